@@ -1,0 +1,213 @@
+"""Differentiable geometry operators on plain tensors, in libigl's vocabulary (validated against libigl).
+
+Every function takes vertex positions ``V`` of shape ``(n, 3)`` or a batch ``(B, n, 3)`` sharing one face
+array ``F`` of shape ``(m, 3)`` (int64), and returns results on the device and in the dtype of ``V``.
+Topology (edges, 1-rings) comes from :func:`meshmei.topology.mesh_topology` and is cached per face array.
+
+Degenerate meshes never produce NaN or Inf: where a division can meet zero, an ``eps`` keyword sets a
+guard that is *relative to the local squared edge lengths*, so it behaves the same at any coordinate scale.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .mesh import check_mesh
+from .topology import mesh_topology
+
+__all__ = [
+    "edges",
+    "adjacency_list",
+    "doublearea",
+    "face_areas",
+    "face_normals",
+    "vertex_normals",
+    "uniform_laplacian",
+    "cot_weights",
+    "cot_laplacian",
+    "cotmatrix",
+    "massmatrix",
+    "safe_norm",
+]
+
+EPS = 1e-12
+
+
+def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """Euclidean norm with a zero (not NaN) gradient at the zero vector."""
+    sq = (x * x).sum(dim)
+    tiny = torch.finfo(x.dtype).tiny
+    return torch.where(sq > 0, sq.clamp_min(tiny).sqrt(), torch.zeros_like(sq))
+
+
+def _corners(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    return V[..., F, :]  # (..., m, 3, 3): face, corner, xyz
+
+
+def edges(F) -> torch.Tensor:
+    """Unique undirected edges ``(E, 2)`` int64, ``i < j``, lexicographically sorted (``igl.edges`` up to order)."""
+    F = torch.as_tensor(F)
+    if F.ndim != 2 or F.shape[1] != 3 or F.numel() == 0:
+        from .errors import MeshError
+
+        raise MeshError(f"F must be a non-empty (m, 3) integer array, got shape {tuple(F.shape)}")
+    return mesh_topology(F.long()).edges
+
+
+def adjacency_list(F, n_vertices: int | None = None) -> list[list[int]]:
+    """Sorted 1-ring neighbour lists (``igl.adjacency_list`` up to order within each list)."""
+    F = torch.as_tensor(F).long()
+    return mesh_topology(F, n_vertices).adjacency_list()
+
+
+def doublearea(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """Twice the area of each face, ``(..., m)``; 0 for degenerate faces, with a finite gradient."""
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    return _doublearea(_corners(V, F))
+
+
+def _doublearea(T: torch.Tensor) -> torch.Tensor:
+    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
+    return safe_norm(c)
+
+
+def face_areas(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """Area of each face, ``(..., m)``."""
+    return 0.5 * doublearea(V, F)
+
+
+def _sq_edge_scale(T: torch.Tensor) -> torch.Tensor:
+    # sum of squared edge lengths of each face: the scale that relative guards multiply
+    d = T - T[..., [1, 2, 0], :]
+    return (d * d).sum((-1, -2))
+
+
+def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+    """Unit face normals ``(..., m, 3)`` following the right-hand rule on ``F``'s corner order.
+
+    A face whose double area is below ``eps`` times its summed squared edge lengths gets a normal
+    shrunk towards zero (exactly zero for a fully degenerate face) instead of NaN.
+    """
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    T = _corners(V, F)
+    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
+    den = safe_norm(c).clamp_min(eps * _sq_edge_scale(T)).clamp_min(torch.finfo(V.dtype).tiny)
+    return c / den.unsqueeze(-1)
+
+
+def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+    """Area-weighted unit vertex normals ``(..., n, 3)``; zero for unreferenced vertices.
+
+    The sum of the adjacent faces' cross products is normalised by its length, guarded below by
+    ``eps`` times the summed double areas around the vertex (so cancelling normals give a short vector,
+    not NaN).
+    """
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    T = _corners(V, F)
+    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)  # (..., m, 3)
+    n = V.shape[-2]
+    idx = F.reshape(-1)
+    c3 = c.unsqueeze(-2).expand(*c.shape[:-1], 3, 3).reshape(*c.shape[:-2], -1, 3)  # (..., 3m, 3)
+    acc = torch.zeros_like(V).index_add_(-2, idx, c3)
+    area = torch.zeros(V.shape[:-1], dtype=V.dtype, device=V.device)
+    area = area.index_add_(-1, idx, safe_norm(c).repeat_interleave(3, dim=-1))
+    den = safe_norm(acc).clamp_min(eps * area).clamp_min(torch.finfo(V.dtype).tiny)
+    return acc / den.unsqueeze(-1)
+
+
+def uniform_laplacian(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """Uniform (umbrella) Laplacian ``v_i - mean_{j in N(i)} v_j``, ``(..., n, 3)``; zero for isolated vertices."""
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    topo = mesh_topology(F, V.shape[-2])
+    return _uniform_laplacian(V, topo)
+
+
+def _uniform_laplacian(V, topo):
+    nb = torch.zeros_like(V).index_add_(-2, topo.nbr_src, V[..., topo.nbr_idx, :])
+    deg = topo.degree.to(V.dtype).clamp_min(1).unsqueeze(-1)
+    mean = torch.where(topo.degree.unsqueeze(-1) > 0, nb / deg, V)
+    return V - mean
+
+
+def cot_weights(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+    """Cotangent of each corner angle, ``(..., m, 3)``; corner ``k`` faces the edge ``F[:, k+1]``-``F[:, k+2]``.
+
+    ``cot = (u . w) / |u x w|`` with the denominator held above ``eps * (|u|^2 + |w|^2)`` so that
+    degenerate faces give large but finite weights rather than Inf.
+    """
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    return _cot(_corners(V, F), eps)
+
+
+def _cot(T: torch.Tensor, eps: float) -> torch.Tensor:
+    u = T[..., [1, 2, 0], :] - T  # corner k -> k+1
+    w = T[..., [2, 0, 1], :] - T  # corner k -> k+2
+    dot = (u * w).sum(-1)
+    dbl = safe_norm(torch.linalg.cross(u, w, dim=-1))
+    scale = (u * u).sum(-1) + (w * w).sum(-1)
+    den = dbl.clamp_min(eps * scale).clamp_min(torch.finfo(T.dtype).tiny)
+    return dot / den
+
+
+def _cot_apply(X: torch.Tensor, F: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+    # (L X)_i = sum_j 0.5 * (cot a_ij + cot b_ij) (x_j - x_i), accumulated per half-edge
+    a = F[:, [1, 2, 0]].reshape(-1)
+    b = F[:, [2, 0, 1]].reshape(-1)
+    w = 0.5 * C.reshape(*C.shape[:-2], -1, 1)  # (..., 3m, 1)
+    d = X[..., b, :] - X[..., a, :]
+    out = torch.zeros_like(X)
+    out = out.index_add(-2, a, w * d)
+    return out.index_add(-2, b, -w * d)
+
+
+def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = None, *, eps: float = EPS):
+    """Apply the cotangent Laplacian of ``(V, F)`` to ``X`` (default ``V``) without forming a matrix.
+
+    Same sign convention as ``igl.cotmatrix`` (negative semi-definite): ``cot_laplacian(V, F, X) ==
+    cotmatrix(V, F) @ X``. Returns ``(..., n, d)``.
+    """
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    C = _cot(_corners(V, F), eps)
+    return _cot_apply(V if X is None else X, F, C)
+
+
+def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+    """Cotangent Laplacian as a coalesced sparse COO ``(n, n)`` tensor, equal to ``igl.cotmatrix``.
+
+    Off-diagonal ``L_ij = 0.5 (cot a_ij + cot b_ij)``, diagonal ``L_ii = -sum_j L_ij``. Values are
+    differentiable with respect to ``V``. Unbatched ``V`` only.
+    """
+    V, F = check_mesh(V, F)
+    n = V.shape[0]
+    C = 0.5 * _cot(_corners(V, F), eps).reshape(-1)  # (3m,)
+    a = F[:, [1, 2, 0]].reshape(-1)
+    b = F[:, [2, 0, 1]].reshape(-1)
+    rows = torch.cat([a, b, a, b])
+    cols = torch.cat([b, a, a, b])
+    vals = torch.cat([C, C, -C, -C])
+    return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (n, n), check_invariants=False).coalesce()
+
+
+def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+    """Diagonal of the mixed Voronoi mass matrix (Meyer et al. 2003), ``(..., n)``; ``igl.massmatrix`` VORONOI.
+
+    Per face, a corner of a non-obtuse triangle gets its circumcentric Voronoi area
+    ``(l_ij^2 cot_k + l_ik^2 cot_j) / 8``; in an obtuse triangle the obtuse corner gets half the
+    face area and the other two a quarter each. Unreferenced vertices get 0.
+    """
+    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    T = _corners(V, F)
+    C = _cot(T, eps)  # (..., m, 3)
+    e = T[..., [2, 0, 1], :] - T[..., [1, 2, 0], :]  # edge opposite corner k
+    l2 = (e * e).sum(-1)  # (..., m, 3)
+    dbl = _doublearea(T).unsqueeze(-1)  # (..., m, 1)
+    # corner k touches the edges opposite corners k+1 and k+2
+    vor = (l2[..., [1, 2, 0]] * C[..., [1, 2, 0]] + l2[..., [2, 0, 1]] * C[..., [2, 0, 1]]) / 8.0
+    u = T[..., [1, 2, 0], :] - T
+    w = T[..., [2, 0, 1], :] - T
+    obtuse = (u * w).sum(-1) < 0  # (..., m, 3)
+    any_obtuse = obtuse.any(-1, keepdim=True)
+    mixed = torch.where(obtuse, dbl / 4.0, dbl / 8.0)
+    area = torch.where(any_obtuse, mixed, vor)
+    out = torch.zeros(V.shape[:-1], dtype=V.dtype, device=V.device)
+    return out.index_add(-1, F.reshape(-1), area.reshape(*area.shape[:-2], -1))

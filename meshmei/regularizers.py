@@ -1,0 +1,188 @@
+"""Geometric regularizers that keep an optimised mesh well formed (paper appendix B, plus true ARAP).
+
+All take vertex positions ``V`` of shape ``(n, 3)`` (returning a scalar) or a batch ``(B, n, 3)``
+sharing the face array ``F`` (returning ``(B,)``). Rest poses ``V0`` may be ``(n, 3)`` or ``(B, n, 3)``.
+They are differentiable, work in float32 and float64, and stay finite on degenerate meshes.
+
+=====================  ==========================================================================
+``laplacian_loss``     uniform: ``mean_i |v_i - mean_{j in N(i)} v_j|^2`` over non-isolated vertices;
+                       cotangent: ``sum_i |(L V)_i|^2 / M_i  /  sum_i M_i`` (area-weighted mean of the
+                       squared mean-curvature normal ``|2 H n|^2``, a discrete Willmore density)
+``edge_loss``          ``mean_e (|e| - mean |e|)^2`` over unique edges
+``area_loss``          ``mean_t (A_t - mean A)^2`` over faces
+``arap_direction_loss`` ``mean_e |e - (e . d_e) d_e|^2`` with ``d_e = e0 / |e0|`` the rest direction
+``arap_loss``          Sorkine-Alexa spokes energy ``sum_i sum_{j in N(i)} w_ij |e'_ij - R_i e_ij|^2``
+                       with rest cotangent weights ``w_ij`` (``igl.cotmatrix`` entries) and best-fit
+                       rotations ``R_i`` held fixed in the gradient (exact at the fit)
+=====================  ==========================================================================
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import MeshError
+from .mesh import check_mesh
+from .operators import EPS, _corners, _cot, _cot_apply, _doublearea, _uniform_laplacian, massmatrix, safe_norm
+from .topology import mesh_topology
+
+__all__ = [
+    "laplacian_loss",
+    "edge_loss",
+    "area_loss",
+    "arap_direction_loss",
+    "arap_loss",
+    "best_fit_rotations",
+]
+
+
+def _check(V, F):
+    V, F = check_mesh(V, F, batched=isinstance(V, torch.Tensor) and V.ndim == 3)
+    return V, F
+
+
+def _check_rest(V, V0, F):
+    V, F = _check(V, F)
+    V0, _ = check_mesh(V0, F, batched=isinstance(V0, torch.Tensor) and V0.ndim == 3)
+    if V0.shape[-2:] != V.shape[-2:] or (V0.ndim == 3 and V.ndim == 3 and V0.shape[0] != V.shape[0]):
+        raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
+    if V0.ndim == 3 and V.ndim == 2:
+        raise MeshError(f"a batched rest pose {tuple(V0.shape)} needs a batched V, got {tuple(V.shape)}")
+    return V, V0.to(V.dtype), F
+
+
+def laplacian_loss(V, F, *, method: str = "uniform", eps: float = EPS) -> torch.Tensor:
+    """Laplacian smoothness.
+
+    Parameters
+    ----------
+    V : (n, 3) or (B, n, 3) float tensor
+    F : (m, 3) int64 tensor
+    method : {"uniform", "cotangent"}
+        ``uniform`` is the paper's loss. ``cotangent`` uses the cotangent Laplacian and Voronoi mass
+        of the current ``V``; it is invariant to the mesh's sampling and equals ``4 H^2`` averaged over
+        the area on smooth surfaces (``4 / r^2`` on a sphere of radius ``r``).
+    eps : float
+        Guard on the cotangent weights (see :func:`meshmei.operators.cot_weights`) and on the mass:
+        ``M_i`` is held above ``eps`` times the mean vertex mass.
+
+    Returns
+    -------
+    () or (B,) float tensor
+    """
+    V, F = _check(V, F)
+    topo = mesh_topology(F, V.shape[-2])
+    if method == "uniform":
+        d = _uniform_laplacian(V, topo)
+        live = topo.degree > 0
+        return (d * d).sum(-1)[..., live].mean(-1)
+    if method == "cotangent":
+        LV = _cot_apply(V, F, _cot(_corners(V, F), eps))
+        M = massmatrix(V, F, eps=eps)
+        total = M.sum(-1, keepdim=True)
+        floor = (eps * total / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
+        e = ((LV * LV).sum(-1) / torch.maximum(M, floor)).sum(-1, keepdim=True)
+        return (e / total.clamp_min(torch.finfo(V.dtype).tiny)).squeeze(-1)
+    raise ValueError(f"method must be 'uniform' or 'cotangent', got {method!r}")
+
+
+def edge_loss(V, F) -> torch.Tensor:
+    """Edge-length uniformity: ``mean_e (|e| - mean |e|)^2`` over unique edges. Returns () or (B,)."""
+    V, F = _check(V, F)
+    E = mesh_topology(F, V.shape[-2]).edges
+    if E.shape[0] == 0:
+        return V.sum((-1, -2)) * 0.0
+    ln = safe_norm(V[..., E[:, 1], :] - V[..., E[:, 0], :])  # (..., E)
+    return ((ln - ln.mean(-1, keepdim=True)) ** 2).mean(-1)
+
+
+def area_loss(V, F) -> torch.Tensor:
+    """Triangle-area uniformity: ``mean_t (A_t - mean A)^2``. Returns () or (B,)."""
+    V, F = _check(V, F)
+    A = 0.5 * _doublearea(_corners(V, F))
+    return ((A - A.mean(-1, keepdim=True)) ** 2).mean(-1)
+
+
+def arap_direction_loss(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
+    """Direction-preserving ARAP term of the paper: ``mean_e |e - (e . d_e) d_e|^2``.
+
+    ``d_e`` is the unit rest direction of edge ``e`` in ``V0``. It is zero under translation and uniform
+    scaling of the rest pose, and positive under rotation. A rest edge shorter than ``eps`` times the mean
+    rest edge length has no direction: ``d_e = 0`` there, so the term becomes ``|e|^2`` and keeps it short.
+
+    Returns () or (B,).
+    """
+    V, V0, F = _check_rest(V, V0, F)
+    E = mesh_topology(F, V.shape[-2]).edges
+    if E.shape[0] == 0:
+        return V.sum((-1, -2)) * 0.0
+    e = V[..., E[:, 1], :] - V[..., E[:, 0], :]
+    e0 = V0[..., E[:, 1], :] - V0[..., E[:, 0], :]
+    l0 = safe_norm(e0)
+    short = l0 <= eps * l0.mean(-1, keepdim=True)
+    d = torch.where(short.unsqueeze(-1), torch.zeros_like(e0), e0 / l0.clamp_min(torch.finfo(V.dtype).tiny).unsqueeze(-1))
+    r = e - (e * d).sum(-1, keepdim=True) * d
+    return (r * r).sum(-1).mean(-1)
+
+
+def _arap_halfedges(F):
+    # directed spokes i -> j for every face corner pair, each carrying the weight of the edge opposite k
+    i = F[:, [1, 2, 0, 2, 0, 1]].reshape(-1)  # (6m,)
+    j = F[:, [2, 0, 1, 1, 2, 0]].reshape(-1)
+    k = torch.arange(3, device=F.device).repeat(2)  # which corner's cotangent weighs the pair
+    return i, j, k
+
+
+def best_fit_rotations(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
+    """Per-vertex rotations ``R_i`` minimising the ARAP spokes energy for fixed ``V`` (local step).
+
+    ``R_i = argmin_R sum_j w_ij |e'_ij - R e_ij|^2`` from the SVD of ``S_i = sum_j w_ij e_ij e'_ij^T``,
+    with the reflection case fixed by flipping the axis of the smallest singular value. Computed without
+    gradient. Returns ``(..., n, 3, 3)``.
+    """
+    V, V0, F = _check_rest(V, V0, F)
+    with torch.no_grad():
+        return _rotations(V.detach(), V0, F, _cot(_corners(V0, F), eps))
+
+
+def _rotations(V, V0, F, C0):
+    i, j, k = _arap_halfedges(F)
+    w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)  # (..., 6m)
+    e0 = V0[..., j, :] - V0[..., i, :]
+    e = V[..., j, :] - V[..., i, :]
+    if e0.ndim < e.ndim:
+        e0 = e0.expand_as(e)
+        w = w.expand(e.shape[:-1])
+    S = (w[..., None, None] * e0.unsqueeze(-1) * e.unsqueeze(-2))  # (..., 6m, 3, 3)
+    S = torch.zeros(*e.shape[:-2], V.shape[-2], 3, 3, dtype=V.dtype, device=V.device).index_add_(-3, i, S)
+    U, _, Vh = torch.linalg.svd(S)
+    R = Vh.transpose(-1, -2) @ U.transpose(-1, -2)
+    flip = torch.linalg.det(R) < 0
+    if bool(flip.any()):
+        D = torch.ones(*R.shape[:-1], dtype=V.dtype, device=V.device)
+        D[..., 2] = torch.where(flip, -1.0, 1.0).to(V.dtype)
+        R = (Vh.transpose(-1, -2) * D.unsqueeze(-2)) @ U.transpose(-1, -2)
+    return R
+
+
+def arap_loss(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
+    """As-rigid-as-possible energy of Sorkine & Alexa (2007), spokes form, cotangent weights.
+
+    ``E = sum_i sum_{j in N(i)} w_ij |(v_j - v_i) - R_i (v0_j - v0_i)|^2`` where ``w_ij`` are the
+    entries of ``igl.cotmatrix(V0, F)`` (``0.5 (cot a_ij + cot b_ij)``, each undirected edge visited
+    from both ends) and ``R_i`` the best-fit rotations (:func:`best_fit_rotations`). The rotations are
+    treated as constants in the gradient: they minimise ``E`` for the current ``V``, so this is the exact
+    gradient of the energy after the local step. Zero for any rigid motion of ``V0``; units of length^2.
+
+    Returns () or (B,).
+    """
+    V, V0, F = _check_rest(V, V0, F)
+    C0 = _cot(_corners(V0, F), eps)
+    with torch.no_grad():
+        R = _rotations(V.detach(), V0.detach(), F, C0.detach())
+    i, j, k = _arap_halfedges(F)
+    w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)
+    e0 = V0[..., j, :] - V0[..., i, :]
+    e = V[..., j, :] - V[..., i, :]
+    r = e - (R[..., i, :, :] @ e0.unsqueeze(-1)).squeeze(-1)
+    return (w * (r * r).sum(-1)).sum(-1)

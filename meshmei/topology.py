@@ -1,0 +1,108 @@
+"""Topology-only structures of a face array (unique edges, 1-ring adjacency), computed once and cached."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["MeshTopology", "mesh_topology"]
+
+
+@dataclass(frozen=True, eq=False)
+class MeshTopology:
+    """Connectivity of a triangle mesh, independent of vertex positions.
+
+    Attributes
+    ----------
+    n_vertices : int
+    faces : (m, 3) int64 tensor
+        The face array this was built from.
+    edges : (E, 2) int64 tensor
+        Unique undirected edges with ``edges[:, 0] < edges[:, 1]``, sorted lexicographically.
+        Self-loops (a face repeating an index) are not edges and are left out.
+    face_edges : (m, 3) int64 tensor
+        ``face_edges[f, k]`` is the row of ``edges`` for the edge opposite corner ``k`` of face ``f``,
+        i.e. between ``F[f, (k+1)%3]`` and ``F[f, (k+2)%3]``; -1 where that edge is a self-loop.
+    nbr_ptr : (n + 1,) int64 tensor
+        CSR row pointer of the 1-ring: the neighbours of vertex ``i`` are ``nbr_idx[nbr_ptr[i]:nbr_ptr[i+1]]``.
+    nbr_src, nbr_idx : (2E,) int64 tensors
+        Directed edges ``nbr_src[k] -> nbr_idx[k]``, sorted by source then target.
+    degree : (n,) int64 tensor
+        Number of distinct neighbours of each vertex (0 for unreferenced vertices).
+    """
+
+    n_vertices: int
+    faces: torch.Tensor
+    edges: torch.Tensor
+    face_edges: torch.Tensor
+    nbr_ptr: torch.Tensor
+    nbr_src: torch.Tensor
+    nbr_idx: torch.Tensor
+    degree: torch.Tensor
+
+    @property
+    def n_edges(self) -> int:
+        return int(self.edges.shape[0])
+
+    def adjacency_list(self) -> list[list[int]]:
+        """Sorted neighbour lists, one per vertex (as ``igl.adjacency_list`` gives them, up to order)."""
+        ptr = self.nbr_ptr.tolist()
+        idx = self.nbr_idx.tolist()
+        return [idx[ptr[i]:ptr[i + 1]] for i in range(self.n_vertices)]
+
+
+def _build(F: torch.Tensor, n: int) -> MeshTopology:
+    device = F.device
+    m = F.shape[0]
+    # half-edge opposite corner k joins corners k+1 and k+2
+    a = F[:, [1, 2, 0]].reshape(-1)  # (3m,)
+    b = F[:, [2, 0, 1]].reshape(-1)
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    key = lo * n + hi  # (3m,)
+    valid = lo != hi
+    uniq, inv = torch.unique(key[valid], return_inverse=True)  # sorted keys -> lexicographic edges
+    edges = torch.stack([uniq // n, uniq % n], dim=1)
+    face_edges = torch.full((3 * m,), -1, dtype=torch.int64, device=device)
+    face_edges[valid] = inv
+    face_edges = face_edges.view(m, 3)
+
+    src = torch.cat([edges[:, 0], edges[:, 1]])
+    dst = torch.cat([edges[:, 1], edges[:, 0]])
+    order = torch.argsort(src * n + dst)
+    src, dst = src[order], dst[order]
+    degree = torch.bincount(src, minlength=n)
+    ptr = torch.zeros(n + 1, dtype=torch.int64, device=device)
+    ptr[1:] = torch.cumsum(degree, 0)
+    return MeshTopology(n, F, edges, face_edges, ptr, src, dst, degree)
+
+
+_CACHE: "OrderedDict[tuple, tuple[torch.Tensor, int, MeshTopology]]" = OrderedDict()
+_CACHE_SIZE = 16
+
+
+def mesh_topology(F: torch.Tensor, n_vertices: int | None = None) -> MeshTopology:
+    """Topology of a face array, cached so optimisation loops build it once.
+
+    The cache holds the face tensor itself and its in-place version counter, so a hit means the very
+    same tensor, unmodified; anything else is rebuilt (and at most 16 entries are kept).
+
+    Parameters
+    ----------
+    F : (m, 3) int64 tensor
+    n_vertices : int, optional
+        Number of vertices (unreferenced trailing vertices count); defaults to ``F.max() + 1``.
+    """
+    n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
+    key = (id(F), n)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is F and hit[1] == F._version:
+        _CACHE.move_to_end(key)
+        return hit[2]
+    topo = _build(F, n)
+    _CACHE[key] = (F, F._version, topo)
+    _CACHE.move_to_end(key)
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return topo
