@@ -1,0 +1,1 @@
+"""Benchmarks that write tables to ``docs/benchmarks.md`` (run as ``python -m meshmei.benchmarks.<name>``)."""

@@ -1,0 +1,60 @@
+"""Shared helpers for benchmark scripts: timing, peak memory, and writing a section of docs/benchmarks.md."""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import time
+from pathlib import Path
+
+import torch
+
+__all__ = ["docs_dir", "write_section", "machine_line", "timeit", "markdown_table"]
+
+_HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
+
+
+def docs_dir() -> Path:
+    """The repository's ``docs/`` folder (``MESHMEI_DOCS`` overrides, e.g. for a dry run)."""
+    env = os.environ.get("MESHMEI_DOCS")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2] / "docs"
+
+
+def machine_line() -> str:
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical cores, "
+            f"torch {torch.__version__}, {torch.get_num_threads()} threads, {time.strftime('%Y-%m-%d')}")
+
+
+def write_section(name: str, body: str) -> Path:
+    """Replace (or append) the section ``name`` of ``docs/benchmarks.md`` with ``body`` (markdown)."""
+    path = docs_dir() / "benchmarks.md"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = path.read_text() if path.exists() else _HEADER
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    block = f"{begin}\n{body.strip()}\n{end}"
+    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
+    text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip() + "\n\n" + block + "\n"
+    path.write_text(text)
+    return path
+
+
+def timeit(fn, *, repeat: int = 5, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in seconds."""
+    for _ in range(warmup):
+        fn()
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    ts.sort()
+    return ts[len(ts) // 2]
+
+
+def markdown_table(header: list[str], rows: list[list]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
