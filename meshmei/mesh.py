@@ -85,9 +85,11 @@ def check_mesh(V, F, *, batched: bool = False):
         raise MeshError(f"F holds vertex index {fmax}, out of range for {n} vertices")
     bad = ~torch.isfinite(V)
     if bool(bad.any()):
-        idx = bad.any(-1).nonzero()[0].tolist()
+        rows = bad.any(-1)
+        first = tuple(rows.nonzero()[0].tolist())
+        where = first[0] if len(first) == 1 else first
         kind = "NaN" if bool(torch.isnan(V).any()) else "Inf"
-        raise MeshError(f"V holds {kind} coordinates ({int(bad.any(-1).sum())} vertices, first at index {idx})")
+        raise MeshError(f"V holds {kind} coordinates ({int(rows.sum())} vertices, first at index {where})")
     F = F.to(device=V.device, dtype=torch.int64)
     return V, F
 

@@ -6,6 +6,7 @@ Topology (edges, 1-rings) comes from :func:`meshmei.topology.mesh_topology` and 
 
 Degenerate meshes never produce NaN or Inf: where a division can meet zero, an ``eps`` keyword sets a
 guard that is *relative to the local squared edge lengths*, so it behaves the same at any coordinate scale.
+``eps=None`` (the default) picks a guard from the dtype (:func:`resolve_eps`).
 """
 
 from __future__ import annotations
@@ -28,9 +29,19 @@ __all__ = [
     "cotmatrix",
     "massmatrix",
     "safe_norm",
+    "resolve_eps",
 ]
 
-EPS = 1e-12
+EPS = None  # resolved per dtype by resolve_eps
+
+
+def resolve_eps(eps, dtype: torch.dtype) -> float:
+    """The guard actually used: ``eps`` if given, else ``finfo(dtype).eps ** 0.75``.
+
+    That is about 1.8e-12 in float64 and 6.3e-6 in float32: small enough to leave sound triangles
+    untouched, large enough that squared cotangent weights of degenerate faces cannot overflow.
+    """
+    return float(eps) if eps is not None else float(torch.finfo(dtype).eps) ** 0.75
 
 
 def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
@@ -38,6 +49,13 @@ def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     sq = (x * x).sum(dim)
     tiny = torch.finfo(x.dtype).tiny
     return torch.where(sq > 0, sq.clamp_min(tiny).sqrt(), torch.zeros_like(sq))
+
+
+def _normalize(x: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:
+    """``x / max(|x|, floor)`` along the last axis; exactly zero, with zero gradient, where both vanish."""
+    den = torch.maximum(safe_norm(x), floor)
+    ok = den > 0
+    return torch.where(ok.unsqueeze(-1), x / torch.where(ok, den, torch.ones_like(den)).unsqueeze(-1), torch.zeros_like(x))
 
 
 def _corners(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
@@ -82,7 +100,7 @@ def _sq_edge_scale(T: torch.Tensor) -> torch.Tensor:
     return (d * d).sum((-1, -2))
 
 
-def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
     """Unit face normals ``(..., m, 3)`` following the right-hand rule on ``F``'s corner order.
 
     A face whose double area is below ``eps`` times its summed squared edge lengths gets a normal
@@ -91,11 +109,10 @@ def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch
     V, F = check_mesh(V, F, batched=V.ndim == 3)
     T = _corners(V, F)
     c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
-    den = safe_norm(c).clamp_min(eps * _sq_edge_scale(T)).clamp_min(torch.finfo(V.dtype).tiny)
-    return c / den.unsqueeze(-1)
+    return _normalize(c, resolve_eps(eps, V.dtype) * _sq_edge_scale(T))
 
 
-def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
     """Area-weighted unit vertex normals ``(..., n, 3)``; zero for unreferenced vertices.
 
     The sum of the adjacent faces' cross products is normalised by its length, guarded below by
@@ -111,8 +128,7 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> tor
     acc = torch.zeros_like(V).index_add_(-2, idx, c3)
     area = torch.zeros(V.shape[:-1], dtype=V.dtype, device=V.device)
     area = area.index_add_(-1, idx, safe_norm(c).repeat_interleave(3, dim=-1))
-    den = safe_norm(acc).clamp_min(eps * area).clamp_min(torch.finfo(V.dtype).tiny)
-    return acc / den.unsqueeze(-1)
+    return _normalize(acc, resolve_eps(eps, V.dtype) * area)
 
 
 def uniform_laplacian(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
@@ -129,7 +145,7 @@ def _uniform_laplacian(V, topo):
     return V - mean
 
 
-def cot_weights(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+def cot_weights(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
     """Cotangent of each corner angle, ``(..., m, 3)``; corner ``k`` faces the edge ``F[:, k+1]``-``F[:, k+2]``.
 
     ``cot = (u . w) / |u x w|`` with the denominator held above ``eps * (|u|^2 + |w|^2)`` so that
@@ -145,7 +161,7 @@ def _cot(T: torch.Tensor, eps: float) -> torch.Tensor:
     dot = (u * w).sum(-1)
     dbl = safe_norm(torch.linalg.cross(u, w, dim=-1))
     scale = (u * u).sum(-1) + (w * w).sum(-1)
-    den = dbl.clamp_min(eps * scale).clamp_min(torch.finfo(T.dtype).tiny)
+    den = dbl.clamp_min(resolve_eps(eps, T.dtype) * scale).clamp_min(torch.finfo(T.dtype).tiny)
     return dot / den
 
 
@@ -160,7 +176,7 @@ def _cot_apply(X: torch.Tensor, F: torch.Tensor, C: torch.Tensor) -> torch.Tenso
     return out.index_add(-2, b, -w * d)
 
 
-def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = None, *, eps: float = EPS):
+def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = None, *, eps: float | None = EPS):
     """Apply the cotangent Laplacian of ``(V, F)`` to ``X`` (default ``V``) without forming a matrix.
 
     Same sign convention as ``igl.cotmatrix`` (negative semi-definite): ``cot_laplacian(V, F, X) ==
@@ -171,7 +187,7 @@ def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = Non
     return _cot_apply(V if X is None else X, F, C)
 
 
-def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
     """Cotangent Laplacian as a coalesced sparse COO ``(n, n)`` tensor, equal to ``igl.cotmatrix``.
 
     Off-diagonal ``L_ij = 0.5 (cot a_ij + cot b_ij)``, diagonal ``L_ii = -sum_j L_ij``. Values are
@@ -188,7 +204,7 @@ def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Te
     return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (n, n), check_invariants=False).coalesce()
 
 
-def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
+def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
     """Diagonal of the mixed Voronoi mass matrix (Meyer et al. 2003), ``(..., n)``; ``igl.massmatrix`` VORONOI.
 
     Per face, a corner of a non-obtuse triangle gets its circumcentric Voronoi area

@@ -23,7 +23,7 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import EPS, _corners, _cot, _cot_apply, _doublearea, _uniform_laplacian, massmatrix, safe_norm
+from .operators import EPS, resolve_eps, _corners, _cot, _cot_apply, _doublearea, _uniform_laplacian, massmatrix, safe_norm
 from .topology import mesh_topology
 
 __all__ = [
@@ -43,15 +43,17 @@ def _check(V, F):
 
 def _check_rest(V, V0, F):
     V, F = _check(V, F)
-    V0, _ = check_mesh(V0, F, batched=isinstance(V0, torch.Tensor) and V0.ndim == 3)
+    if not isinstance(V0, torch.Tensor):
+        V0 = torch.as_tensor(V0)
     if V0.shape[-2:] != V.shape[-2:] or (V0.ndim == 3 and V.ndim == 3 and V0.shape[0] != V.shape[0]):
         raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
     if V0.ndim == 3 and V.ndim == 2:
         raise MeshError(f"a batched rest pose {tuple(V0.shape)} needs a batched V, got {tuple(V.shape)}")
+    V0, _ = check_mesh(V0, F, batched=V0.ndim == 3)
     return V, V0.to(V.dtype), F
 
 
-def laplacian_loss(V, F, *, method: str = "uniform", eps: float = EPS) -> torch.Tensor:
+def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) -> torch.Tensor:
     """Laplacian smoothness.
 
     Parameters
@@ -62,9 +64,10 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float = EPS) -> torch.
         ``uniform`` is the paper's loss. ``cotangent`` uses the cotangent Laplacian and Voronoi mass
         of the current ``V``; it is invariant to the mesh's sampling and equals ``4 H^2`` averaged over
         the area on smooth surfaces (``4 / r^2`` on a sphere of radius ``r``).
-    eps : float
+    eps : float, optional
         Guard on the cotangent weights (see :func:`meshmei.operators.cot_weights`) and on the mass:
-        ``M_i`` is held above ``eps`` times the mean vertex mass.
+        ``M_i`` is held above ``eps`` times the mean vertex mass. Default: from the dtype
+        (:func:`meshmei.operators.resolve_eps`).
 
     Returns
     -------
@@ -80,7 +83,7 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float = EPS) -> torch.
         LV = _cot_apply(V, F, _cot(_corners(V, F), eps))
         M = massmatrix(V, F, eps=eps)
         total = M.sum(-1, keepdim=True)
-        floor = (eps * total / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
+        floor = (resolve_eps(eps, V.dtype) * total / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
         e = ((LV * LV).sum(-1) / torch.maximum(M, floor)).sum(-1, keepdim=True)
         return (e / total.clamp_min(torch.finfo(V.dtype).tiny)).squeeze(-1)
     raise ValueError(f"method must be 'uniform' or 'cotangent', got {method!r}")
@@ -103,7 +106,7 @@ def area_loss(V, F) -> torch.Tensor:
     return ((A - A.mean(-1, keepdim=True)) ** 2).mean(-1)
 
 
-def arap_direction_loss(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
+def arap_direction_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     """Direction-preserving ARAP term of the paper: ``mean_e |e - (e . d_e) d_e|^2``.
 
     ``d_e`` is the unit rest direction of edge ``e`` in ``V0``. It is zero under translation and uniform
@@ -119,7 +122,7 @@ def arap_direction_loss(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
     e = V[..., E[:, 1], :] - V[..., E[:, 0], :]
     e0 = V0[..., E[:, 1], :] - V0[..., E[:, 0], :]
     l0 = safe_norm(e0)
-    short = l0 <= eps * l0.mean(-1, keepdim=True)
+    short = l0 <= resolve_eps(eps, V.dtype) * l0.mean(-1, keepdim=True)
     d = torch.where(short.unsqueeze(-1), torch.zeros_like(e0), e0 / l0.clamp_min(torch.finfo(V.dtype).tiny).unsqueeze(-1))
     r = e - (e * d).sum(-1, keepdim=True) * d
     return (r * r).sum(-1).mean(-1)
@@ -133,7 +136,7 @@ def _arap_halfedges(F):
     return i, j, k
 
 
-def best_fit_rotations(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
+def best_fit_rotations(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     """Per-vertex rotations ``R_i`` minimising the ARAP spokes energy for fixed ``V`` (local step).
 
     ``R_i = argmin_R sum_j w_ij |e'_ij - R e_ij|^2`` from the SVD of ``S_i = sum_j w_ij e_ij e'_ij^T``,
@@ -165,7 +168,7 @@ def _rotations(V, V0, F, C0):
     return R
 
 
-def arap_loss(V, V0, F, *, eps: float = EPS) -> torch.Tensor:
+def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     """As-rigid-as-possible energy of Sorkine & Alexa (2007), spokes form, cotangent weights.
 
     ``E = sum_i sum_{j in N(i)} w_ij |(v_j - v_i) - R_i (v0_j - v0_i)|^2`` where ``w_ij`` are the

@@ -1,0 +1,97 @@
+import numpy as np
+import pytest
+import torch
+
+from meshmei.errors import MeshError
+from meshmei.mesh import check_mesh, load_mesh, save_mesh
+
+from conftest import icosphere
+
+
+def test_check_mesh_accepts_numpy_and_keeps_dtype():
+    V, F = icosphere(1)
+    V2, F2 = check_mesh(V.numpy().astype(np.float32), F.numpy().astype(np.int32))
+    assert V2.dtype == torch.float32 and F2.dtype == torch.int64
+    torch.testing.assert_close(V2.double(), V, rtol=1e-6, atol=1e-7)
+    assert torch.equal(F2, F)
+
+
+def test_check_mesh_does_not_copy_torch_vertices():
+    V, F = icosphere(1)
+    V2, _ = check_mesh(V, F)
+    assert V2 is V
+
+
+@pytest.mark.parametrize(
+    "V, F, match",
+    [
+        (torch.zeros(4, 2), [[0, 1, 2]], r"V must have shape \(n, 3\), got \(4, 2\)"),
+        (torch.zeros(4, 3, dtype=torch.int64), [[0, 1, 2]], "floating-point dtype, got torch.int64"),
+        (torch.zeros(4, 3), torch.zeros(1, 3), "integer dtype, got torch.float32"),
+        (torch.zeros(4, 3), [[0, 1, 2, 3]], "got faces with 4 corners"),
+        (torch.zeros(4, 3), [0, 1, 2], r"F must have shape \(m, 3\), got \(3,\)"),
+        (torch.zeros(0, 3), torch.zeros(0, 3, dtype=torch.int64), "V has no vertices"),
+        (torch.zeros(4, 3), torch.zeros(0, 3, dtype=torch.int64), "F has no faces"),
+        (torch.zeros(4, 3), [[0, 1, 4]], "vertex index 4, out of range for 4 vertices"),
+        (torch.zeros(4, 3), [[0, -1, 2]], r"negative vertex index \(-1\)"),
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, float("nan"), 0]]), [[0, 1, 2]], "NaN coordinates.*index 2"),
+        (torch.tensor([[0.0, 0, 0], [1, 0, float("inf")], [0, 1, 0]]), [[0, 1, 2]], "Inf coordinates.*index 1"),
+        ("not a mesh", [[0, 1, 2]], "V must be a torch tensor or numpy array, got str"),
+        (torch.zeros(3, 3), [[0, 1], [0, 1, 2]], "ragged"),
+        (torch.zeros(3, 3), torch.zeros(1, 3, dtype=torch.bool), "integer dtype, got torch.bool"),
+    ],
+)
+def test_check_mesh_rejects(V, F, match):
+    with pytest.raises(MeshError, match=match):
+        check_mesh(V, F)
+
+
+def test_check_mesh_batched():
+    V, F = icosphere(1)
+    Vb, _ = check_mesh(V.expand(2, -1, -1), F, batched=True)
+    assert Vb.shape == (2, V.shape[0], 3)
+    with pytest.raises(MeshError, match=r"\(B, n, 3\)"):
+        check_mesh(V, F, batched=True)
+    with pytest.raises(MeshError, match="batch is empty"):
+        check_mesh(V.expand(0, -1, -1), F, batched=True)
+
+
+def test_mesh_error_is_value_error():
+    assert issubclass(MeshError, ValueError)
+
+
+@pytest.mark.parametrize("ext", [".obj", ".ply", ".off", ".stl"])
+def test_save_load_roundtrip(tmp_path, ext):
+    V, F = icosphere(2)
+    path = tmp_path / f"mesh{ext}"
+    save_mesh(path, V, F)
+    V2, F2 = load_mesh(path, dtype=torch.float64)
+    if ext == ".stl":  # STL stores triangle soup: compare the face corner positions
+        torch.testing.assert_close(V2[F2], V[F], rtol=0, atol=1e-6)
+    else:
+        # OBJ/OFF are text with trimesh's default precision; PLY stores float32
+        torch.testing.assert_close(V2, V, rtol=0, atol=1e-6)
+        assert torch.equal(F2, F)
+
+
+def test_load_mesh_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="mesh file not found"):
+        load_mesh(tmp_path / "missing.obj")
+    junk = tmp_path / "junk.ply"
+    junk.write_bytes(b"\x00\x01 definitely not a mesh")
+    with pytest.raises(MeshError, match="junk.ply"):
+        load_mesh(junk)
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing here\n")
+    with pytest.raises(MeshError, match="empty"):
+        load_mesh(empty)
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match="NaN"):
+        load_mesh(nan)
+
+
+def test_save_mesh_rejects_unknown_format(tmp_path):
+    V, F = icosphere(0)
+    with pytest.raises(MeshError, match="unsupported mesh format '.xyz'"):
+        save_mesh(tmp_path / "m.xyz", V, F)

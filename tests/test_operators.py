@@ -1,0 +1,172 @@
+import igl
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+
+from meshmei import operators as ops
+from meshmei.topology import mesh_topology
+
+from conftest import grid_sheet, hard_cases, icosphere, perturbed_sphere, random_rotation
+
+
+@pytest.fixture(scope="module", params=["bunny", "teapot", "sheet", "perturbed_sphere"])
+def igl_mesh(request):
+    if request.param in ("bunny", "teapot"):
+        return request.getfixturevalue(f"{request.param}64")
+    if request.param == "sheet":
+        from meshmei.shapes import initial_mesh
+
+        V, F = initial_mesh("sheet", n_vertices=400, dtype=torch.float64)
+        return V, F
+    return perturbed_sphere(3, 0.05)
+
+
+def _to_scipy(L):
+    idx = L.indices().numpy()
+    return sp.coo_matrix((L.values().detach().numpy(), (idx[0], idx[1])), shape=L.shape).tocsr()
+
+
+def test_cotmatrix_equals_igl(igl_mesh):
+    V, F = igl_mesh
+    Li = igl.cotmatrix(V.numpy(), F.numpy()).tocsr()
+    L = _to_scipy(ops.cotmatrix(V, F))
+    assert abs(L - Li).max() <= 1e-10 * abs(Li).max()
+    # the matrix-free apply is the same operator
+    X = torch.randn(V.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(ops.cot_laplacian(V, F, X), torch.from_numpy(Li @ X.numpy()), rtol=1e-10, atol=1e-10 * abs(Li).max())
+
+
+def test_edges_equal_igl(igl_mesh):
+    _, F = igl_mesh
+    E = ops.edges(F).numpy()
+    Ei = np.sort(igl.edges(F.numpy()), axis=1)
+    Ei = Ei[np.lexsort((Ei[:, 1], Ei[:, 0]))]
+    np.testing.assert_array_equal(E, Ei)
+
+
+def test_adjacency_equals_igl(igl_mesh):
+    V, F = igl_mesh
+    ours = ops.adjacency_list(F, V.shape[0])
+    ref = igl.adjacency_list(F.numpy())
+    assert len(ours) == len(ref)
+    assert all(set(a) == set(b) and len(a) == len(b) for a, b in zip(ours, ref))
+
+
+def test_doublearea_equals_igl(igl_mesh):
+    V, F = igl_mesh
+    ref = torch.from_numpy(igl.doublearea(V.numpy(), F.numpy()))
+    torch.testing.assert_close(ops.doublearea(V, F), ref, rtol=1e-12, atol=1e-12 * ref.max())
+
+
+def test_massmatrix_equals_igl_voronoi(igl_mesh):
+    V, F = igl_mesh
+    ref = igl.massmatrix(V.numpy(), F.numpy(), igl.MASSMATRIX_TYPE_VORONOI).diagonal()
+    M = ops.massmatrix(V, F).numpy()
+    assert np.abs(M - ref).max() <= 1e-10 * ref.max()
+
+
+def test_vertex_and_face_normals_equal_igl(igl_mesh):
+    V, F = igl_mesh
+    Vn, Fn = V.numpy(), F.numpy()
+    ref = igl.per_vertex_normals(Vn, Fn, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_AREA)
+    torch.testing.assert_close(ops.vertex_normals(V, F), torch.from_numpy(ref), rtol=0, atol=1e-10)
+    ref_f = igl.per_face_normals(Vn, Fn, np.array([0.0, 0.0, 0.0]))
+    torch.testing.assert_close(ops.face_normals(V, F), torch.from_numpy(ref_f), rtol=0, atol=1e-10)
+
+
+def test_cotmatrix_properties_on_adversarial_mesh():
+    # symmetric, zero row sums, negative semi-definite, annihilates constants; unreferenced vertex row empty
+    V, F = hard_cases()["unreferenced_vertices"]
+    L = ops.cotmatrix(V, F).to_dense()
+    torch.testing.assert_close(L, L.T, rtol=0, atol=0)
+    torch.testing.assert_close(L.sum(1), torch.zeros(V.shape[0], dtype=V.dtype), rtol=0, atol=1e-12)
+    assert torch.linalg.eigvalsh(L).max() < 1e-10
+    assert torch.all(L[5] == 0) and torch.all(L[:, 5] == 0)
+
+
+def test_operators_rigid_motion():
+    V, F = perturbed_sphere(2)
+    R, t = random_rotation(3), torch.tensor([0.3, -2.0, 5.0], dtype=torch.float64)
+    W = V @ R.T + t
+    torch.testing.assert_close(ops.doublearea(W, F), ops.doublearea(V, F))
+    torch.testing.assert_close(ops.massmatrix(W, F), ops.massmatrix(V, F))
+    torch.testing.assert_close(ops.cot_weights(W, F), ops.cot_weights(V, F))
+    torch.testing.assert_close(ops.vertex_normals(W, F), ops.vertex_normals(V, F) @ R.T)
+    torch.testing.assert_close(ops.uniform_laplacian(W, F), ops.uniform_laplacian(V, F) @ R.T)
+
+
+def test_uniform_laplacian_matches_dense_reference():
+    V, F = perturbed_sphere(1)
+    nbrs = [set() for _ in range(V.shape[0])]
+    for f in F.tolist():
+        for a in range(3):
+            for b in range(3):
+                if f[a] != f[b]:
+                    nbrs[f[a]].add(f[b])
+    ref = torch.stack([V[i] - V[sorted(s)].mean(0) for i, s in enumerate(nbrs)])
+    torch.testing.assert_close(ops.uniform_laplacian(V, F), ref, rtol=1e-12, atol=1e-14)
+
+
+def test_sphere_normals_point_outward_and_mass_sums_to_area():
+    V, F = icosphere(3)
+    N = ops.vertex_normals(V, F)
+    assert (torch.sum(N * V, 1) > 0.99).all()
+    torch.testing.assert_close(ops.massmatrix(V, F).sum(), ops.face_areas(V, F).sum())
+
+
+def test_batched_equals_looped_and_float32():
+    V, F = perturbed_sphere(2)
+    Vb = torch.stack([V, V * 2.0 + 1.0, V @ random_rotation(1).T])
+    for fn in (ops.doublearea, ops.massmatrix, ops.vertex_normals, ops.face_normals, ops.uniform_laplacian, ops.cot_laplacian):
+        out = fn(Vb, F)
+        for b in range(3):
+            torch.testing.assert_close(out[b], fn(Vb[b], F))
+        out32 = fn(V.float(), F)
+        assert out32.dtype == torch.float32
+        torch.testing.assert_close(out32.double(), fn(V, F), rtol=1e-4, atol=1e-5)
+
+
+def test_topology_is_cached_per_face_tensor_and_invalidated_by_mutation():
+    V, F = icosphere(1)
+    t1 = mesh_topology(F, V.shape[0])
+    assert mesh_topology(F, V.shape[0]) is t1
+    assert mesh_topology(F.clone(), V.shape[0]) is not t1
+    G = F.clone()
+    tg = mesh_topology(G, V.shape[0])
+    G[0] = G[0, [1, 2, 0]]  # in-place change bumps the version counter
+    assert mesh_topology(G, V.shape[0]) is not tg
+
+
+def test_topology_face_edges_and_degree():
+    V, F = icosphere(2)
+    topo = mesh_topology(F, V.shape[0])
+    E = topo.edges
+    for k in range(3):
+        a, b = F[:, (k + 1) % 3], F[:, (k + 2) % 3]
+        e = E[topo.face_edges[:, k]]
+        assert torch.equal(e[:, 0], torch.minimum(a, b)) and torch.equal(e[:, 1], torch.maximum(a, b))
+    assert topo.n_edges == 3 * F.shape[0] // 2  # closed manifold
+    assert torch.equal(topo.degree, torch.bincount(E.reshape(-1), minlength=V.shape[0]))
+
+
+@pytest.mark.parametrize("fn", [ops.doublearea, ops.massmatrix, ops.vertex_normals, ops.face_normals, ops.uniform_laplacian, ops.cot_laplacian, ops.cot_weights])
+@pytest.mark.parametrize("case", sorted(hard_cases()))
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_operators_finite_on_hard_cases(fn, case, dtype):
+    V, F = hard_cases(dtype)[case]
+    V = V.clone().requires_grad_(True)
+    out = fn(V, F)
+    assert torch.isfinite(out).all()
+    g = torch.randn(out.shape, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    (grad,) = torch.autograd.grad((out * g).sum(), V, allow_unused=True)
+    assert grad is None or torch.isfinite(grad).all()
+
+
+def test_cotmatrix_gradcheck():
+    V, F = perturbed_sphere(0, 0.1)
+    V = V.requires_grad_(True)
+    X = torch.randn(V.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    assert torch.autograd.gradcheck(lambda V: ops.cot_laplacian(V, F, X), (V,))
+    assert torch.autograd.gradcheck(lambda V: ops.massmatrix(V, F), (V,))
+    assert torch.autograd.gradcheck(lambda V: ops.vertex_normals(V, F), (V,))
