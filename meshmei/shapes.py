@@ -1,0 +1,432 @@
+"""Starting meshes (sheet, sphere, torus) and reconstruction targets (Stanford bunny, Utah teapot)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import MeshError
+
+__all__ = ["initial_mesh", "target_mesh", "INITIAL_KINDS", "TARGET_NAMES", "bunny_path"]
+
+INITIAL_KINDS = ("sheet", "sphere", "torus")
+TARGET_NAMES = ("bunny", "teapot")
+
+# Geometry of the initial meshes at size 1 (all fit in the unit box [-0.5, 0.5]^3).
+SPHERE_RADIUS = 0.5
+TORUS_MAJOR_RADIUS = 0.35
+TORUS_MINOR_RADIUS = 0.15
+SHEET_SIDE = 1.0
+
+DEFAULT_N_VERTICES = 2500
+# Limits on the vertex count implied by the arguments: below the minimum a torus tube or sphere is no
+# longer a recognisable surface; above the maximum remeshing takes minutes and gigabytes.
+MIN_VERTICES = 32
+MAX_VERTICES = 5_000_000
+
+_DATA = Path(__file__).resolve().parent / "data"
+TEAPOT_FILE = _DATA / "utah_teapot_bezier.json"
+# Part of each of the 32 teapot patches (from the data file's notes): 0 body (patches 0-11 rim and
+# body, 28-31 bottom), 1 handle (12-15), 2 spout (16-19), 3 lid (20-27).
+TEAPOT_PARTS = np.array([0] * 12 + [1] * 4 + [2] * 4 + [3] * 8 + [0] * 4)
+
+
+def _area(kind):
+    """Surface area of the ideal shape at size 1."""
+    if kind == "sphere":
+        return 4.0 * math.pi * SPHERE_RADIUS**2
+    if kind == "torus":
+        return 4.0 * math.pi**2 * TORUS_MAJOR_RADIUS * TORUS_MINOR_RADIUS
+    return SHEET_SIDE**2
+
+
+def _edge_for_count(kind, n):
+    """Edge length (size 1) whose near-equilateral tiling of the surface has about ``n`` vertices.
+
+    Each vertex owns two triangles on a closed mesh (F ~ 2V), so area ~ n * sqrt(3)/2 * h^2.
+    """
+    return math.sqrt(2.0 * _area(kind) / (math.sqrt(3.0) * n))
+
+
+def _count_for_edge(kind, h):
+    return 2.0 * _area(kind) / (math.sqrt(3.0) * h * h)
+
+
+def _base_meshset(kind, h):
+    """A pymeshlab primitive at size 1 whose edges are about ``h`` long (the icosphere level is capped at 7)."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    if kind == "sphere":
+        # An icosphere with subdivision level s has 10 * 4^s + 2 vertices.
+        n = _count_for_edge(kind, h)
+        subdiv = int(np.clip(round(math.log(max(n, 12.0) / 10.0, 4)), 1, 7))
+        ms.create_sphere(radius=SPHERE_RADIUS, subdiv=subdiv)
+    elif kind == "torus":
+        ms.create_torus(
+            hradius=TORUS_MAJOR_RADIUS,
+            vradius=TORUS_MINOR_RADIUS,
+            hsubdiv=max(8, int(round(2 * math.pi * TORUS_MAJOR_RADIUS / h))),
+            vsubdiv=max(4, int(round(2 * math.pi * TORUS_MINOR_RADIUS / h))),
+        )
+    else:
+        k = max(2, int(round(SHEET_SIDE / h)) + 1)
+        ms.create_grid(numvertx=k, numverty=k, absscalex=SHEET_SIDE, absscaley=SHEET_SIDE, center=False)
+    return ms
+
+
+def _compact(V, F):
+    """Drop unreferenced vertices and renumber the faces."""
+    used = np.unique(F)
+    if len(used) == len(V):
+        return V, F
+    remap = np.full(len(V), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[F]
+
+
+def _project(kind, V):
+    """Move vertices (size 1) exactly onto the ideal surface."""
+    V = V.copy()
+    if kind == "sphere":
+        V *= SPHERE_RADIUS / np.linalg.norm(V, axis=1, keepdims=True)
+    elif kind == "torus":
+        rho = np.linalg.norm(V[:, :2], axis=1, keepdims=True)
+        core = np.zeros_like(V)
+        core[:, :2] = TORUS_MAJOR_RADIUS * V[:, :2] / rho
+        d = V - core
+        V = core + TORUS_MINOR_RADIUS * d / np.linalg.norm(d, axis=1, keepdims=True)
+    else:
+        V[:, 2] = 0.0
+        # Boundary vertices slide along the square's sides; snap the round-off back onto them.
+        half = 0.5 * SHEET_SIDE
+        for c in (0, 1):
+            near = np.abs(np.abs(V[:, c]) - half) < 1e-6 * SHEET_SIDE
+            V[near, c] = np.sign(V[near, c]) * half
+    return V
+
+
+def _outward_sign(kind, V, F):
+    """+1 if the faces point outward (sphere/torus) or up (sheet), -1 if inward, after a majority vote."""
+    N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])  # (m, 3) area-weighted normals
+    C = V[F].mean(axis=1)  # (m, 3) centroids
+    if kind == "sheet":
+        out = np.array([0.0, 0.0, 1.0])
+        return 1 if np.sum(N @ out > 0) * 2 > len(F) else -1
+    if kind == "torus":
+        rho = np.linalg.norm(C[:, :2], axis=1, keepdims=True)
+        core = np.zeros_like(C)
+        core[:, :2] = TORUS_MAJOR_RADIUS * C[:, :2] / rho
+        C = C - core
+    return 1 if np.sum(np.einsum("ij,ij->i", N, C) > 0) * 2 > len(F) else -1
+
+
+def _remesh(kind, h, iterations):
+    """Isotropically remesh the size-1 primitive to edge length ``h``; return float64 V, int64 F."""
+    import pymeshlab
+
+    ms = _base_meshset(kind, h)
+    # create_grid(center=True) is off by half a cell in this pymeshlab, so the sheet is centred here,
+    # by the base grid's bounding box (remeshing keeps the boundary, hence the box).
+    base = ms.current_mesh().vertex_matrix()
+    shift = -0.5 * (base.min(axis=0) + base.max(axis=0)) if kind == "sheet" else np.zeros(3)
+    ms.meshing_isotropic_explicit_remeshing(
+        targetlen=pymeshlab.PureValue(h),
+        iterations=iterations,
+        # Crease detection at 60 degrees keeps the sheet's four corners (90 degree turns of its
+        # boundary) while the smooth primitives, whose facets meet at a few degrees, have no creases.
+        featuredeg=60.0,
+        reprojectflag=True,
+    )
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    V = np.asarray(m.vertex_matrix(), dtype=np.float64)
+    F = np.asarray(m.face_matrix(), dtype=np.int64)
+    V, F = _compact(V, F)
+    V = _project(kind, V + shift)
+    if _outward_sign(kind, V, F) < 0:
+        F = F[:, ::-1].copy()
+    return V, F
+
+
+def _check_positive(name, value, *, integer=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
+    if integer and int(value) != value:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if not (math.isfinite(float(value)) and value > 0):
+        raise ValueError(f"{name} must be positive and finite, got {value!r}")
+
+
+def initial_mesh(
+    kind,
+    *,
+    target_edge_length=None,
+    n_vertices=None,
+    size=1.0,
+    iterations=10,
+    dtype=torch.float32,
+    device=None,
+):
+    """A uniform starting mesh: a square sheet, a sphere or a torus, isotropically remeshed by pymeshlab.
+
+    The primitive comes from pymeshlab (``create_grid``, ``create_sphere``, ``create_torus``) and is
+    remeshed by ``meshing_isotropic_explicit_remeshing`` to one target edge length; the vertices are then
+    projected exactly onto the ideal surface and the faces oriented outward (sphere, torus) or towards
+    +z (sheet). The result is deterministic: the same call gives bitwise the same arrays.
+
+    Geometry, all centred at the origin and scaled by ``size``:
+
+    - ``"sphere"``: radius ``0.5 * size`` (unit diameter).
+    - ``"torus"``: axis z, core circle of radius ``0.35 * size`` in the xy-plane, tube radius
+      ``0.15 * size`` (so it spans ``size`` in x and y and ``0.3 * size`` in z).
+    - ``"sheet"``: the square ``[-size/2, size/2]^2`` in the plane z = 0, normals +z; its boundary
+      stays the square, corners included.
+
+    Parameters
+    ----------
+    kind : str
+        ``"sheet"``, ``"sphere"`` or ``"torus"``.
+    target_edge_length : float, optional
+        Edge length to remesh to, in the output's units. Give this or ``n_vertices``, not both.
+    n_vertices : int, optional
+        Approximate vertex count (usually within 10 %). The edge length is derived from the surface
+        area ``A`` as ``h = sqrt(2 A / (sqrt(3) n))`` (a near-equilateral closed mesh has two triangles
+        per vertex), then corrected once by ``sqrt(n_got / n)`` if the count misses by more than 10 %.
+        Default 2500 when neither argument is given.
+    size : float
+        Overall scale (see above).
+    iterations : int
+        Iterations of the isotropic remesher.
+    dtype : torch float dtype of the vertices
+    device : torch device of the returned tensors
+
+    Returns
+    -------
+    V : (n, 3) float tensor
+        Vertex positions, on the ideal surface up to floating-point round-off.
+    F : (m, 3) int64 tensor
+        Triangles; every vertex is referenced.
+
+    Raises
+    ------
+    ValueError
+        Unknown ``kind``, both or invalid ``target_edge_length`` / ``n_vertices``, non-positive ``size``
+        or ``iterations``, or a request implying fewer than 32 or more than 5,000,000 vertices.
+
+    Examples
+    --------
+    >>> V, F = initial_mesh("sphere", n_vertices=500)
+    >>> V.shape[1], F.dtype, bool((V.norm(dim=1) - 0.5).abs().max() < 1e-6)
+    (3, torch.int64, True)
+    """
+    if kind not in INITIAL_KINDS:
+        raise ValueError(f"kind must be one of {INITIAL_KINDS}, got {kind!r}")
+    _check_positive("size", size)
+    _check_positive("iterations", iterations, integer=True)
+    if target_edge_length is not None and n_vertices is not None:
+        raise ValueError(
+            f"give target_edge_length or n_vertices, not both (got {target_edge_length!r} and {n_vertices!r})"
+        )
+    if target_edge_length is not None:
+        _check_positive("target_edge_length", target_edge_length)
+        h = float(target_edge_length) / float(size)
+        implied = _count_for_edge(kind, h)
+        if not MIN_VERTICES <= implied <= MAX_VERTICES:
+            raise ValueError(
+                f"target_edge_length={target_edge_length!r} at size={size!r} implies about {implied:.0f} "
+                f"vertices for a {kind}; expected between {MIN_VERTICES} and {MAX_VERTICES}"
+            )
+        V, F = _remesh(kind, h, int(iterations))
+    else:
+        n = DEFAULT_N_VERTICES if n_vertices is None else n_vertices
+        _check_positive("n_vertices", n, integer=True)
+        if not MIN_VERTICES <= n <= MAX_VERTICES:
+            raise ValueError(f"n_vertices must lie between {MIN_VERTICES} and {MAX_VERTICES}, got {n!r}")
+        h = _edge_for_count(kind, n)
+        V, F = _remesh(kind, h, int(iterations))
+        if abs(len(V) - n) > 0.1 * n:
+            V, F = _remesh(kind, h * math.sqrt(len(V) / n), int(iterations))
+    V = torch.as_tensor(V * float(size), dtype=dtype, device=device)
+    F = torch.as_tensor(F, dtype=torch.int64, device=device)
+    return V, F
+
+
+def bunny_path():
+    """Path of the Stanford bunny shipped with pymeshlab (``tests/sample_meshes/bunny.obj``).
+
+    Raises
+    ------
+    FileNotFoundError
+        pymeshlab is installed without its sample meshes.
+    """
+    import pymeshlab
+
+    path = Path(os.path.dirname(pymeshlab.__file__)) / "tests" / "sample_meshes" / "bunny.obj"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"the Stanford bunny is looked up inside the installed pymeshlab package, but {path} does not "
+            "exist; install a pymeshlab wheel that ships tests/sample_meshes"
+        )
+    return path
+
+
+def _normalise(V):
+    """Centre on the bounding-box centre and scale to unit bounding-box diagonal (float64)."""
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    return (V - 0.5 * (lo + hi)) / np.linalg.norm(hi - lo)
+
+
+def _bunny():
+    import trimesh
+
+    mesh = trimesh.load(bunny_path(), process=False, force="mesh")
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    F = np.asarray(mesh.faces, dtype=np.int64)
+    return V, F
+
+
+def _bernstein(t):
+    """Cubic Bernstein basis at parameters ``t`` (k,) -> (k, 4)."""
+    s = 1.0 - t
+    return np.stack([s**3, 3 * t * s**2, 3 * t**2 * s, t**3], axis=1)
+
+
+def _teapot_patches(resolution):
+    """Tessellate the 32 Bezier patches; seams are not merged yet. Returns (V (32 (r+1)^2, 3), F)."""
+    data = json.loads(TEAPOT_FILE.read_text())
+    P = np.asarray(data["control_points"], dtype=np.float64)  # (306, 3)
+    patches = np.asarray(data["patches"], dtype=np.int64)  # (32, 16)
+    r = resolution
+    B = _bernstein(np.linspace(0.0, 1.0, r + 1))  # (r+1, 4)
+    nets = P[patches].reshape(len(patches), 4, 4, 3)  # (32, 4, 4, 3): net[i, j] row i, column j
+    # S(u, v) = sum_ij B_i(u) B_j(v) P_ij
+    V = np.einsum("ui,vj,pijc->puvc", B, B, nets).reshape(-1, 3)  # (32 (r+1)^2, 3)
+    grid = np.arange((r + 1) ** 2).reshape(r + 1, r + 1)
+    a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()  # corners (u, v), (u, v+1)
+    c, d = grid[1:, 1:].ravel(), grid[1:, :-1].ravel()  # (u+1, v+1), (u+1, v)
+    quad = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])  # (2 r^2, 3)
+    offsets = (np.arange(len(patches)) * (r + 1) ** 2)[:, None, None]
+    F = (quad[None] + offsets).reshape(-1, 3)
+    return V, F
+
+
+def _merge_close(V, F, tol, group):
+    """Weld vertices closer than ``tol`` within the same ``group`` (n,); clusters keep their first vertex."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(V)
+    # A fourth coordinate far apart per group keeps groups from welding to each other.
+    far = 10.0 * (float(np.ptp(V, axis=0).max()) + 1.0)
+    pairs = cKDTree(np.column_stack([V, far * group])).query_pairs(tol, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    # Renumber clusters in order of their first vertex so the result does not depend on scipy's labels.
+    first = np.full(label.max() + 1, n, dtype=np.int64)
+    np.minimum.at(first, label, np.arange(n))
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return V[first[order]], rank[label][F]
+
+
+def _orient_teapot(V, F):
+    """Orient faces consistently per connected piece, then outward by the winding number of the whole."""
+    import igl
+
+    F, comp = igl.bfs_orient(F)
+    F = np.asarray(F, dtype=np.int64)
+    comp = np.asarray(comp).ravel()
+    N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    C = V[F].mean(axis=1)
+    # A point just in front of an outward face is outside the (nearly closed) teapot: winding number ~0.
+    eps = 1e-3 * np.linalg.norm(V.max(0) - V.min(0))
+    for k in np.unique(comp):
+        sel = np.flatnonzero(comp == k)
+        # A vote of about 64 evenly spread faces decides; probing every face would cost O(m^2).
+        probe = sel[:: max(1, len(sel) // 64)]
+        w = igl.fast_winding_number(V, F, C[probe] + eps * N[probe])
+        if np.mean(w > 0.5) > 0.5:
+            F[sel] = F[sel][:, ::-1]
+    return F
+
+
+def _teapot(resolution):
+    V, F = _teapot_patches(resolution)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    # Weld seams within each part only: the handle's lower end touches the body at one point, and
+    # welding it there would make a non-manifold (bow-tie) vertex.
+    group = np.repeat(TEAPOT_PARTS, (resolution + 1) ** 2)
+    V, F = _merge_close(V, F, 1e-8 * float(np.linalg.norm(hi - lo)), group)
+    # Collapsed rows at the lid tip and bottom centre give faces with a repeated index.
+    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])]
+    dblA = np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    F = F[dblA > 0]
+    # The same triangle twice (in either orientation) would make a non-manifold edge.
+    _, keep = np.unique(np.sort(F, axis=1), axis=0, return_index=True)
+    F = F[np.sort(keep)]
+    V, F = _compact(V, F)
+    F = _orient_teapot(V, F)
+    return V, F
+
+
+def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
+    """A reconstruction target, centred on its bounding-box centre and scaled to unit bounding-box diagonal.
+
+    - ``"bunny"``: the Stanford bunny shipped inside pymeshlab (28,088 vertices, watertight, genus 0),
+      kept as stored apart from the normalisation; y is up, as in the file.
+    - ``"teapot"``: Newell's 32 bicubic Bezier patches (``meshmei/data/utah_teapot_bezier.json``), each
+      sampled on a ``(resolution + 1)^2`` grid and split into ``2 resolution^2`` triangles; coincident seam
+      vertices are welded (tolerance ``1e-8`` of the diagonal), faces with repeated indices, zero area or
+      duplicates are dropped, unused vertices removed, and faces oriented outward. z is up, as in the
+      data. The teapot is open (gaps at the lid, spout tip, and where the handle and spout meet the body)
+      and self-intersecting where the handle and spout pass into the body.
+
+    Parameters
+    ----------
+    name : str
+        ``"bunny"`` or ``"teapot"``.
+    resolution : int
+        Samples per patch side for the teapot (ignored for the bunny).
+    dtype : torch float dtype of the vertices
+    device : torch device of the returned tensors
+
+    Returns
+    -------
+    V : (n, 3) float tensor
+    F : (m, 3) int64 tensor
+
+    Raises
+    ------
+    ValueError
+        Unknown ``name`` or non-positive ``resolution``.
+    FileNotFoundError
+        pymeshlab's copy of the bunny is missing.
+    MeshError
+        The bunny file holds no triangles.
+
+    Examples
+    --------
+    >>> V, F = target_mesh("teapot", resolution=4)
+    >>> round(float((V.max(0).values - V.min(0).values).norm()), 6)
+    1.0
+    """
+    if name not in TARGET_NAMES:
+        raise ValueError(f"name must be one of {TARGET_NAMES}, got {name!r}")
+    _check_positive("resolution", resolution, integer=True)
+    if name == "bunny":
+        V, F = _bunny()
+        if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+            raise MeshError(f"{bunny_path()} should hold a triangle mesh, got faces of shape {F.shape}")
+    else:
+        V, F = _teapot(int(resolution))
+    V = _normalise(V)
+    return torch.as_tensor(V, dtype=dtype, device=device), torch.as_tensor(F, dtype=torch.int64, device=device)
