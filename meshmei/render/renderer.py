@@ -1,0 +1,139 @@
+"""The paper's renderer ``I = R(M)``: pose, camera, point light, Lambertian gray shading, soft silhouette."""
+
+from __future__ import annotations
+
+import torch
+
+from ..operators import face_normals, vertex_normals
+from .camera import Camera
+from .raster import _broadcast, _perspective, _prepare, _raster
+from .settings import RenderError, RenderSettings
+from .shading import lambert
+from .transforms import _check_batch
+
+__all__ = ["render", "Renderer"]
+
+
+def _light(light, eye, dtype, device):
+    """Light positions ``(B, 3)``; default: at each camera centre."""
+    if light is None:
+        return eye.detach() if not eye.requires_grad else eye
+    t = light if isinstance(light, torch.Tensor) else torch.as_tensor(light, dtype=dtype)
+    t = t.to(dtype=dtype, device=device)
+    if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
+        raise RenderError(f"light must have shape (3,) or (B, 3), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise RenderError("light holds NaN or Inf")
+    return t.reshape(-1, 3)
+
+
+def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, translation=None,
+           settings: RenderSettings | None = None, return_fragments: bool = False):
+    """Render grayscale images of a mesh, differentiable in vertices, pose, light and camera placement.
+
+    The image is ``I = c * shade + (1 - c) * background`` with soft coverage ``c`` (``Fragments.coverage``)
+    and ``shade = albedo * (ambient + light_intensity * max(0, n . l))`` evaluated at the visible surface
+    point (covered pixels) or at the nearest silhouette point (the anti-aliased fringe just outside).
+
+    Parameters
+    ----------
+    V : (n, 3) or (B, n, 3) float tensor
+        Vertex positions (object coordinates). Output dtype and device follow ``V``.
+    F : (m, 3) int64 tensor
+    camera : Camera, optional
+        One camera or a batch of B; default overhead at (0, 0, 2.5) looking at the origin, +y up.
+    light : (3,) or (B, 3) float tensor, optional
+        Point light position(s) in world coordinates; default: at the camera centre.
+    rotation : (3, 3) / (B, 3, 3) matrix or (3,) / (B, 3) axis-angle vector, optional
+    translation : (3,) or (B, 3) tensor, optional
+        Object pose ``V @ R.T + t``.
+    settings : RenderSettings, optional
+    return_fragments : bool
+        Also return the :class:`~meshmei.render.raster.Fragments`.
+
+    Returns
+    -------
+    image : (B, 1, S, S) tensor
+        B is the broadcast batch size of ``V``, pose, camera and light; S = ``settings.image_size``.
+    fragments : Fragments, only with ``return_fragments``
+
+    Examples
+    --------
+    >>> import torch
+    >>> V = torch.tensor([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.0, 0.5, 0.0]])
+    >>> F = torch.tensor([[0, 1, 2]])
+    >>> render(V, F, settings=RenderSettings(image_size=32)).shape
+    torch.Size([1, 1, 32, 32])
+    """
+    V, F, n, Vb, eye, R, camera, st = _prepare(V, F, camera, rotation, translation, settings)
+    L = _light(light, eye, V.dtype, V.device)
+    _check_batch("light", L.shape[0], max(Vb.shape[0], eye.shape[0]))
+    B = max(Vb.shape[0], eye.shape[0], L.shape[0])
+    Vw, eye, R = Vb.expand(B, *Vb.shape[1:]), eye.expand(B, 3), R.expand(B, 3, 3)
+    L = L.expand(B, 3)
+    r = _raster(Vw, F, eye, R, camera, st, n)
+    S = r.S
+    if st.shading == "smooth":
+        normals = vertex_normals(Vb, F, eps=1e-12)  # on the un-expanded batch
+        normals = normals.expand(B, *normals.shape[1:])
+    else:
+        normals = face_normals(Vb, F).expand(B, F.shape[0], 3)
+
+    def shade(b, f, l):
+        bary, depth = _perspective(r, F, b, f, l)
+        Fi = F[f]
+        P = (bary.unsqueeze(-1) * Vw[b.unsqueeze(1), Fi]).sum(1)  # (N, 3) surface points
+        if st.shading == "smooth":
+            N = (bary.unsqueeze(-1) * normals[b.unsqueeze(1), Fi]).sum(1)
+        else:
+            N = normals[b, f]
+        if st.two_sided:
+            N = torch.where(r.front[b, f].unsqueeze(1), N, -N)
+        return lambert(P, N, L[b], ambient=st.ambient, intensity=st.light_intensity, albedo=st.albedo,
+                       eps=st.eps), bary, depth
+
+    dt, dev = V.dtype, V.device
+    shade_in, bary_in, depth_in = shade(r.b_in, r.f_in, r.l_in)
+    outside = ~r.hit[r.pix_s]
+    shade_out, _, _ = shade(r.b_s[outside], r.f_s[outside], r.l_s[outside])
+    sh = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.pix_in,), shade_in)
+    sh = sh.index_put((r.pix_s[outside],), shade_out)
+    c = r.coverage
+    # zero-weight anchor: an empty image still depends (with zero gradient) on every differentiable input
+    zero = 0.0 * (r.Vc.sum() + L.sum())
+    image = (c * sh + (1 - c) * st.background + zero).view(B, 1, S, S)
+    if not return_fragments:
+        return image
+    from .raster import Fragments
+
+    bary = torch.zeros(B * S * S, 3, dtype=dt, device=dev).index_put((r.pix_in,), bary_in)
+    depth = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.pix_in,), depth_in)
+    frags = Fragments(face_id=r.face_id, bary=bary.view(B, S, S, 3), depth=depth.view(B, S, S),
+                      coverage=c.view(B, S, S))
+    return image, frags
+
+
+class Renderer:
+    """A face array with fixed settings, camera and light, for optimisation loops: ``Renderer(F)(V)``.
+
+    The only state is the topology (cached per face tensor) and the scene defaults; every call accepts
+    the same keywords as :func:`render` to override them.
+    """
+
+    def __init__(self, F, *, camera: Camera | None = None, light=None, settings: RenderSettings | None = None):
+        self.F = torch.as_tensor(F)
+        self.camera = camera if camera is not None else Camera()
+        self.light = light
+        self.settings = settings if settings is not None else RenderSettings()
+        if not isinstance(self.settings, RenderSettings):
+            raise RenderError(f"settings must be a RenderSettings, got {type(self.settings).__name__}")
+
+    def __call__(self, V, **kw):
+        kw.setdefault("camera", self.camera)
+        kw.setdefault("light", self.light)
+        kw.setdefault("settings", self.settings)
+        F = self.F if self.F.device == V.device else self.F.to(V.device)
+        return render(V, F, **kw)
+
+    def __repr__(self):
+        return f"Renderer(m={self.F.shape[0]}, settings={self.settings!r})"

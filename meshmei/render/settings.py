@@ -1,0 +1,100 @@
+"""Render settings (a frozen dataclass) and the exception raised for bad render input."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS"]
+
+# Soft coverage is evaluated only within this many sigmas of the silhouette: beyond it the logistic
+# differs from 0 or 1 by less than 1e-3 (sigmoid(-7) = 9.1e-4), the size of the jump we accept there.
+SOFT_MARGIN_SIGMAS = 7.0
+
+
+class RenderError(ValueError):
+    """Bad input to the renderer (settings, camera, pose, light); the message names the value and what arrived."""
+
+
+def _finite(name, value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise RenderError(f"{name} must be a real number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise RenderError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How an image is formed, independent of where the camera, object and light are.
+
+    Attributes
+    ----------
+    image_size : int
+        Width and height of the square image in pixels (1 to 8192).
+    sigma : float
+        Softness of the silhouette in pixels: coverage is ``sigmoid(s / sigma)`` of the signed distance
+        ``s`` (pixels, positive inside) from the pixel centre to the silhouette. ``0.3`` minimises the
+        coverage error against area sampling (see ``docs/rendering.md``); larger values spread silhouette
+        gradients over more pixels at the price of a blurrier outline.
+    background : float
+        Uniform gray level behind the object.
+    ambient : float
+        Ambient term added to every surface point (>= 0).
+    light_intensity : float
+        Intensity of the point light (>= 0); the Lambertian term is ``light_intensity * max(0, n . l)``
+        with unit normal ``n`` and unit direction ``l`` to the light (no distance falloff).
+    albedo : float
+        Gray reflectance of the surface (>= 0); surface shade is ``albedo * (ambient + Lambertian)``.
+    shading : str
+        ``"smooth"`` (interpolated area-weighted vertex normals) or ``"flat"`` (face normals).
+    two_sided : bool
+        Light faces seen from behind with their normal flipped towards the camera (open meshes such as
+        the sheet or the teapot); with ``False`` their Lambertian term uses the stored normal.
+    chunk_size : int
+        Most (face, pixel) candidate pairs formed at once; bounds the rasterizer's working memory to about
+        ``chunk_size * 100`` bytes (>= 1024).
+    eps : float
+        Guard for divisions that can meet zero: normal lengths, light distances and edge lengths (in
+        pixels) are held above it.
+    """
+
+    image_size: int = 128
+    sigma: float = 0.3
+    background: float = 0.5
+    ambient: float = 0.2
+    light_intensity: float = 0.8
+    albedo: float = 1.0
+    shading: str = "smooth"
+    two_sided: bool = True
+    chunk_size: int = 1 << 19
+    eps: float = 1e-9
+
+    def __post_init__(self):
+        size = self.image_size
+        if isinstance(size, bool) or not isinstance(size, int) or not 1 <= size <= 8192:
+            raise RenderError(f"image_size must be an integer in [1, 8192], got {size!r}")
+        sigma = _finite("sigma", self.sigma)
+        if sigma <= 0:
+            raise RenderError(f"sigma must be > 0 pixels, got {self.sigma!r}")
+        _finite("background", self.background)
+        for name in ("ambient", "light_intensity", "albedo"):
+            if _finite(name, getattr(self, name)) < 0:
+                raise RenderError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.shading not in ("smooth", "flat"):
+            raise RenderError(f"shading must be 'smooth' or 'flat', got {self.shading!r}")
+        if not isinstance(self.two_sided, bool):
+            raise RenderError(f"two_sided must be a bool, got {self.two_sided!r}")
+        cs = self.chunk_size
+        if isinstance(cs, bool) or not isinstance(cs, int) or cs < 1024:
+            raise RenderError(f"chunk_size must be an integer >= 1024, got {cs!r}")
+        eps = _finite("eps", self.eps)
+        if not 0 < eps < 1e-2:
+            raise RenderError(f"eps must lie in (0, 1e-2), got {self.eps!r}")
+
+    @property
+    def soft_margin(self) -> float:
+        """Distance in pixels beyond which coverage is taken as exactly 0 or 1."""
+        return SOFT_MARGIN_SIGMAS * float(self.sigma)

@@ -1,0 +1,96 @@
+"""Rigid object pose: rotations from axis-angle vectors and their application to vertex batches."""
+
+from __future__ import annotations
+
+import torch
+
+from .settings import RenderError
+
+__all__ = ["axis_angle_to_matrix", "apply_pose"]
+
+
+def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices from axis-angle vectors (Rodrigues), differentiable everywhere including at zero.
+
+    Parameters
+    ----------
+    aa : (..., 3) float tensor
+        Rotation axis times angle in radians.
+
+    Returns
+    -------
+    (..., 3, 3) tensor, ``R @ x`` rotates ``x``.
+
+    Examples
+    --------
+    >>> import math
+    >>> R = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 2]))
+    >>> torch.allclose(R @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]), atol=1e-6)
+    True
+    """
+    if aa.shape[-1:] != (3,):
+        raise RenderError(f"axis-angle vectors must have shape (..., 3), got {tuple(aa.shape)}")
+    theta2 = (aa * aa).sum(-1, keepdim=True).unsqueeze(-1)  # (..., 1, 1)
+    small = theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = t2.sqrt()
+    # sin(t)/t and (1 - cos(t))/t^2, with their Taylor series near zero so the gradient stays finite
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / t2)
+    x, y, z = aa.unbind(-1)
+    zero = torch.zeros_like(x)
+    K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*aa.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device)
+    return eye + a * K + b * (K @ K)
+
+
+def _rotation(rotation, dtype, device):
+    R = rotation if isinstance(rotation, torch.Tensor) else torch.as_tensor(rotation, dtype=dtype)
+    R = R.to(dtype=dtype, device=device)
+    if R.shape[-2:] == (3, 3) and R.ndim in (2, 3):
+        R = R.reshape(-1, 3, 3)
+    elif R.shape[-1:] == (3,) and R.ndim in (1, 2):
+        R = axis_angle_to_matrix(R.reshape(-1, 3))
+    else:
+        raise RenderError(
+            f"rotation must be a (3, 3) / (B, 3, 3) matrix or a (3,) / (B, 3) axis-angle vector, got {tuple(R.shape)}")
+    if R.shape[0] == 0 or not bool(torch.isfinite(R).all()):
+        raise RenderError(f"rotation must be non-empty and finite, got shape {tuple(R.shape)}")
+    return R
+
+
+def apply_pose(V: torch.Tensor, rotation=None, translation=None) -> torch.Tensor:
+    """Rotate about the origin, then translate: ``V @ R.T + t``, broadcast over a batch.
+
+    Parameters
+    ----------
+    V : (n, 3) or (B, n, 3) float tensor
+    rotation : None, (3, 3) or (B, 3, 3) matrix, or (3,) or (B, 3) axis-angle vector (radians)
+        Not checked for orthogonality: a general linear map is applied as given.
+    translation : None, (3,) or (B, 3) tensor
+
+    Returns
+    -------
+    (B, n, 3) tensor (B = 1 when nothing is batched).
+    """
+    Vb = V if V.ndim == 3 else V.unsqueeze(0)
+    if rotation is not None:
+        R = _rotation(rotation, V.dtype, V.device)
+        _check_batch("rotation", R.shape[0], Vb.shape[0])
+        Vb = torch.matmul(Vb, R.transpose(-1, -2))
+    if translation is not None:
+        t = translation if isinstance(translation, torch.Tensor) else torch.as_tensor(translation, dtype=V.dtype)
+        t = t.to(dtype=V.dtype, device=V.device)
+        if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
+            raise RenderError(f"translation must have shape (3,) or (B, 3), got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            raise RenderError("translation holds NaN or Inf")
+        t = t.reshape(-1, 3)
+        _check_batch("translation", t.shape[0], Vb.shape[0])
+        Vb = Vb + t.unsqueeze(1)
+    return Vb
+
+
+def _check_batch(name, b, B):
+    if b != 1 and B != 1 and b != B:
+        raise RenderError(f"{name} has batch size {b}, incompatible with batch size {B}")
