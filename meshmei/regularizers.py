@@ -6,8 +6,9 @@ They are differentiable, work in float32 and float64, and stay finite on degener
 
 =====================  ==========================================================================
 ``laplacian_loss``     uniform: ``mean_i |v_i - mean_{j in N(i)} v_j|^2`` over non-isolated vertices;
-                       cotangent: ``sum_i |(L V)_i|^2 / M_i  /  sum_i M_i`` (area-weighted mean of the
-                       squared mean-curvature normal ``|2 H n|^2``, a discrete Willmore density)
+                       cotangent: ``sum_i |(L V)_i|^2 / M_i  /  sum_i M_i`` over interior vertices
+                       (area-weighted mean of the squared mean-curvature normal ``|2 H n|^2``, a
+                       discrete Willmore density)
 ``edge_loss``          ``mean_e (|e| - mean |e|)^2`` over unique edges
 ``area_loss``          ``mean_t (A_t - mean A)^2`` over faces
 ``arap_direction_loss`` ``mean_e |e - (e . d_e) d_e|^2`` with ``d_e = e0 / |e0|`` the rest direction
@@ -62,8 +63,10 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
     F : (m, 3) int64 tensor
     method : {"uniform", "cotangent"}
         ``uniform`` is the paper's loss. ``cotangent`` uses the cotangent Laplacian and Voronoi mass
-        of the current ``V``; it is invariant to the mesh's sampling and equals ``4 H^2`` averaged over
-        the area on smooth surfaces (``4 / r^2`` on a sphere of radius ``r``).
+        of the current ``V``; it is insensitive to the mesh's sampling and equals ``4 H^2`` averaged over
+        the area on smooth surfaces (``4 / r^2`` on a sphere of radius ``r``). Boundary vertices are left
+        out of it: there ``L V`` measures the in-plane curvature of the boundary curve, not bending, so a
+        flat sheet scores 0.
     eps : float, optional
         Guard on the cotangent weights (see :func:`meshmei.operators.cot_weights`) and on the mass:
         ``M_i`` is held above ``eps`` times the mean vertex mass. Default: from the dtype
@@ -82,9 +85,10 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
     if method == "cotangent":
         LV = _cot_apply(V, F, _cot(_corners(V, F), eps))
         M = massmatrix(V, F, eps=eps)
-        total = M.sum(-1, keepdim=True)
-        floor = (resolve_eps(eps, V.dtype) * total / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
-        e = ((LV * LV).sum(-1) / torch.maximum(M, floor)).sum(-1, keepdim=True)
+        interior = ~topo.boundary_vertex
+        total = (M * interior).sum(-1, keepdim=True)
+        floor = (resolve_eps(eps, V.dtype) * M.sum(-1, keepdim=True) / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
+        e = (((LV * LV).sum(-1) / torch.maximum(M, floor)) * interior).sum(-1, keepdim=True)
         return (e / total.clamp_min(torch.finfo(V.dtype).tiny)).squeeze(-1)
     raise ValueError(f"method must be 'uniform' or 'cotangent', got {method!r}")
 

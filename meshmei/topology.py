@@ -31,6 +31,8 @@ class MeshTopology:
         Directed edges ``nbr_src[k] -> nbr_idx[k]``, sorted by source then target.
     degree : (n,) int64 tensor
         Number of distinct neighbours of each vertex (0 for unreferenced vertices).
+    boundary_vertex : (n,) bool tensor
+        True for vertices on an edge that only one face uses.
     """
 
     n_vertices: int
@@ -41,6 +43,7 @@ class MeshTopology:
     nbr_src: torch.Tensor
     nbr_idx: torch.Tensor
     degree: torch.Tensor
+    boundary_vertex: torch.Tensor
 
     @property
     def n_edges(self) -> int:
@@ -75,7 +78,10 @@ def _build(F: torch.Tensor, n: int) -> MeshTopology:
     degree = torch.bincount(src, minlength=n)
     ptr = torch.zeros(n + 1, dtype=torch.int64, device=device)
     ptr[1:] = torch.cumsum(degree, 0)
-    return MeshTopology(n, F, edges, face_edges, ptr, src, dst, degree)
+    uses = torch.bincount(inv, minlength=edges.shape[0])  # faces per edge
+    boundary = torch.zeros(n, dtype=torch.bool, device=device)
+    boundary[edges[uses == 1].reshape(-1)] = True
+    return MeshTopology(n, F, edges, face_edges, ptr, src, dst, degree, boundary)
 
 
 _CACHE: "OrderedDict[tuple, tuple[torch.Tensor, int, MeshTopology]]" = OrderedDict()

@@ -227,6 +227,15 @@ def test_cotangent_laplacian_is_willmore_density_on_sphere():
         assert abs(reg.laplacian_loss(r * V, F, method="cotangent").item() - 4 / r**2) < 0.02 * 4 / r**2
 
 
+def test_cotangent_laplacian_zero_on_flat_sheet_and_counts_interior_only():
+    V, F = grid_sheet(6, 6)
+    assert reg.laplacian_loss(V, F, method="cotangent") <= 1e-28
+    # lifting one interior vertex bends the sheet; lifting a corner changes only boundary terms
+    up = torch.zeros_like(V)
+    up[14, 2] = 0.1  # interior vertex of the 6 x 6 grid
+    assert reg.laplacian_loss(V + up, F, method="cotangent") > 0.1
+
+
 def test_uniform_laplacian_zero_on_interior_of_plane_only_boundary_contributes():
     V, F = grid_sheet(6, 6)
     assert reg.laplacian_loss(V, F) > 0  # boundary vertices are off their neighbours' mean

@@ -1,0 +1,58 @@
+"""meshmei: 3D maximally exciting inputs with RBF mesh deformation, a differentiable rasterizer and regularizers."""
+
+from .errors import MeshError
+from .mesh import check_mesh, load_mesh, save_mesh
+from .operators import (
+    adjacency_list,
+    cot_laplacian,
+    cot_weights,
+    cotmatrix,
+    doublearea,
+    edges,
+    face_areas,
+    face_normals,
+    massmatrix,
+    uniform_laplacian,
+    vertex_normals,
+)
+from .regularizers import (
+    arap_direction_loss,
+    arap_loss,
+    area_loss,
+    best_fit_rotations,
+    edge_loss,
+    laplacian_loss,
+)
+from .shapes import bunny_path, initial_mesh, target_mesh
+from .topology import MeshTopology, mesh_topology
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "MeshError",
+    "check_mesh",
+    "load_mesh",
+    "save_mesh",
+    "adjacency_list",
+    "cot_laplacian",
+    "cot_weights",
+    "cotmatrix",
+    "doublearea",
+    "edges",
+    "face_areas",
+    "face_normals",
+    "massmatrix",
+    "uniform_laplacian",
+    "vertex_normals",
+    "arap_direction_loss",
+    "arap_loss",
+    "area_loss",
+    "best_fit_rotations",
+    "edge_loss",
+    "laplacian_loss",
+    "bunny_path",
+    "initial_mesh",
+    "target_mesh",
+    "MeshTopology",
+    "mesh_topology",
+]
