@@ -1,0 +1,36 @@
+"""The README stays true: its Python quick start runs, its commands are the ones CI and the CLI know."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def _blocks(lang):
+    return re.findall(rf"```{lang}\n(.*?)```", README, re.S)
+
+
+def test_quick_start_runs():
+    (code,) = _blocks("python")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert "gradient finite: True" in out.stdout
+
+
+def test_exactly_two_commands_and_ci_runs_the_test_one():
+    setup, tests = [b.strip() for b in _blocks("bash")]
+    assert setup.startswith("pip install torch==2.13.0 && ")
+    assert tests in (ROOT / ".ci" / "run").read_text()
+
+
+def test_main_job_command_is_a_cli_command():
+    from meshmei.cli import build_parser
+
+    setup = _blocks("bash")[0].strip()
+    job = setup.split("&&")[-1].split()
+    assert job[0] == "meshmei"
+    args = build_parser().parse_args(job[1:])
+    assert callable(args.func)
