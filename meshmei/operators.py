@@ -195,13 +195,10 @@ def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> t
     """
     V, F = check_mesh(V, F)
     n = V.shape[0]
+    indices, slot = mesh_topology(F, n).cot_pattern
     C = 0.5 * _cot(_corners(V, F), eps).reshape(-1)  # (3m,)
-    a = F[:, [1, 2, 0]].reshape(-1)
-    b = F[:, [2, 0, 1]].reshape(-1)
-    rows = torch.cat([a, b, a, b])
-    cols = torch.cat([b, a, a, b])
-    vals = torch.cat([C, C, -C, -C])
-    return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (n, n), check_invariants=False).coalesce()
+    vals = torch.zeros(indices.shape[1], dtype=V.dtype, device=V.device).index_add(0, slot, torch.cat([C, C, -C, -C]))
+    return torch.sparse_coo_tensor(indices, vals, (n, n), is_coalesced=True, check_invariants=False)
 
 
 def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:

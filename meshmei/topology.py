@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -48,6 +49,22 @@ class MeshTopology:
     @property
     def n_edges(self) -> int:
         return int(self.edges.shape[0])
+
+    @cached_property
+    def cot_pattern(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sparsity of the cotangent Laplacian: ``(indices (2, nnz), slot (12m,))``.
+
+        ``indices`` are the coalesced (row-major sorted, unique) positions; ``slot`` sends the four
+        contributions of each of the ``3m`` half-edges, in the order ``(a, b), (b, a), (a, a), (b, b)``
+        blocked by kind, to their position, so assembly is one ``index_add`` with no sort per call.
+        """
+        F, n = self.faces, self.n_vertices
+        a = F[:, [1, 2, 0]].reshape(-1)
+        b = F[:, [2, 0, 1]].reshape(-1)
+        rows = torch.cat([a, b, a, b])
+        cols = torch.cat([b, a, a, b])
+        uniq, slot = torch.unique(rows * n + cols, return_inverse=True)
+        return torch.stack([uniq // n, uniq % n]), slot
 
     def adjacency_list(self) -> list[list[int]]:
         """Sorted neighbour lists, one per vertex (as ``igl.adjacency_list`` gives them, up to order)."""
