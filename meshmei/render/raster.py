@@ -332,7 +332,8 @@ def rasterize(V, F, *, camera: Camera | None = None, rotation=None, translation=
     F : (m, 3) int64 tensor
     camera : Camera, optional
         Default: overhead at (0, 0, 2.5) looking at the origin. A batch of B cameras is allowed.
-    rotation : (3, 3) / (B, 3, 3) matrix or (3,) / (B, 3) axis-angle vector, optional
+    rotation : (3, 3) or (B, 3, 3) float tensor, optional
+        Rotation matrix; :func:`~meshmei.render.axis_angle_to_matrix` makes one from axis-angle vectors.
     translation : (3,) or (B, 3) tensor, optional
         Object pose ``V @ R.T + t`` (rotation about the object origin, then translation).
     settings : RenderSettings, optional

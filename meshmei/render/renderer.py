@@ -44,7 +44,8 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
         One camera or a batch of B; default overhead at (0, 0, 2.5) looking at the origin, +y up.
     light : (3,) or (B, 3) float tensor, optional
         Point light position(s) in world coordinates; default: at the camera centre.
-    rotation : (3, 3) / (B, 3, 3) matrix or (3,) / (B, 3) axis-angle vector, optional
+    rotation : (3, 3) or (B, 3, 3) float tensor, optional
+        Rotation matrix; :func:`~meshmei.render.axis_angle_to_matrix` makes one from axis-angle vectors.
     translation : (3,) or (B, 3) tensor, optional
         Object pose ``V @ R.T + t``.
     settings : RenderSettings, optional

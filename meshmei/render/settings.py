@@ -62,7 +62,7 @@ class RenderSettings:
     """
 
     image_size: int = 128
-    sigma: float = 0.3
+    sigma: float = 0.2
     background: float = 0.5
     ambient: float = 0.2
     light_intensity: float = 0.8

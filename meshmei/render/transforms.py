@@ -47,13 +47,10 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
 def _rotation(rotation, dtype, device):
     R = rotation if isinstance(rotation, torch.Tensor) else torch.as_tensor(rotation, dtype=dtype)
     R = R.to(dtype=dtype, device=device)
-    if R.shape[-2:] == (3, 3) and R.ndim in (2, 3):
-        R = R.reshape(-1, 3, 3)
-    elif R.shape[-1:] == (3,) and R.ndim in (1, 2):
-        R = axis_angle_to_matrix(R.reshape(-1, 3))
-    else:
-        raise RenderError(
-            f"rotation must be a (3, 3) / (B, 3, 3) matrix or a (3,) / (B, 3) axis-angle vector, got {tuple(R.shape)}")
+    if R.shape[-2:] != (3, 3) or R.ndim not in (2, 3):
+        raise RenderError(f"rotation must be a (3, 3) or (B, 3, 3) matrix (use axis_angle_to_matrix for "
+                          f"axis-angle vectors), got shape {tuple(R.shape)}")
+    R = R.reshape(-1, 3, 3)
     if R.shape[0] == 0 or not bool(torch.isfinite(R).all()):
         raise RenderError(f"rotation must be non-empty and finite, got shape {tuple(R.shape)}")
     return R
@@ -65,8 +62,9 @@ def apply_pose(V: torch.Tensor, rotation=None, translation=None) -> torch.Tensor
     Parameters
     ----------
     V : (n, 3) or (B, n, 3) float tensor
-    rotation : None, (3, 3) or (B, 3, 3) matrix, or (3,) or (B, 3) axis-angle vector (radians)
-        Not checked for orthogonality: a general linear map is applied as given.
+    rotation : None, (3, 3) or (B, 3, 3) float tensor
+        Rotation matrix (see :func:`axis_angle_to_matrix`). Not checked for orthogonality: a general
+        linear map is applied as given.
     translation : None, (3,) or (B, 3) tensor
 
     Returns
