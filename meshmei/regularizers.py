@@ -24,7 +24,7 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import EPS, resolve_eps, _corners, _cot, _cot_apply, _doublearea, _uniform_laplacian, massmatrix, safe_norm
+from .operators import EPS, resolve_eps, _corners, _cot, _cot_apply, _doublearea, _uniform_laplacian, gather, massmatrix, safe_norm
 from .topology import mesh_topology
 
 __all__ = [
@@ -81,7 +81,7 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
     if method == "uniform":
         d = _uniform_laplacian(V, topo)
         live = topo.degree > 0
-        return (d * d).sum(-1)[..., live].mean(-1)
+        return ((d * d).sum(-1) * live).sum(-1) / live.sum().clamp_min(1)
     if method == "cotangent":
         LV = _cot_apply(V, F, _cot(_corners(V, F), eps))
         M = massmatrix(V, F, eps=eps)
@@ -99,7 +99,7 @@ def edge_loss(V, F) -> torch.Tensor:
     E = mesh_topology(F, V.shape[-2]).edges
     if E.shape[0] == 0:
         return V.sum((-1, -2)) * 0.0
-    ln = safe_norm(V[..., E[:, 1], :] - V[..., E[:, 0], :])  # (..., E)
+    ln = safe_norm(gather(V, E[:, 1]) - gather(V, E[:, 0]))  # (..., E)
     return ((ln - ln.mean(-1, keepdim=True)) ** 2).mean(-1)
 
 
@@ -123,8 +123,8 @@ def arap_direction_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     E = mesh_topology(F, V.shape[-2]).edges
     if E.shape[0] == 0:
         return V.sum((-1, -2)) * 0.0
-    e = V[..., E[:, 1], :] - V[..., E[:, 0], :]
-    e0 = V0[..., E[:, 1], :] - V0[..., E[:, 0], :]
+    e = gather(V, E[:, 1]) - gather(V, E[:, 0])
+    e0 = gather(V0, E[:, 1]) - gather(V0, E[:, 0])
     l0 = safe_norm(e0)
     short = l0 <= resolve_eps(eps, V.dtype) * l0.mean(-1, keepdim=True)
     d = torch.where(short.unsqueeze(-1), torch.zeros_like(e0), e0 / l0.clamp_min(torch.finfo(V.dtype).tiny).unsqueeze(-1))
@@ -155,8 +155,8 @@ def best_fit_rotations(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
 def _rotations(V, V0, F, C0):
     i, j, k = _arap_halfedges(F)
     w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)  # (..., 6m)
-    e0 = V0[..., j, :] - V0[..., i, :]
-    e = V[..., j, :] - V[..., i, :]
+    e0 = gather(V0, j) - gather(V0, i)
+    e = gather(V, j) - gather(V, i)
     if e0.ndim < e.ndim:
         e0 = e0.expand_as(e)
         w = w.expand(e.shape[:-1])
@@ -189,7 +189,7 @@ def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
         R = _rotations(V.detach(), V0.detach(), F, C0.detach())
     i, j, k = _arap_halfedges(F)
     w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)
-    e0 = V0[..., j, :] - V0[..., i, :]
-    e = V[..., j, :] - V[..., i, :]
-    r = e - (R[..., i, :, :] @ e0.unsqueeze(-1)).squeeze(-1)
+    e0 = gather(V0, j) - gather(V0, i)
+    e = gather(V, j) - gather(V, i)
+    r = e - (gather(R, i, dim=-3) @ e0.unsqueeze(-1)).squeeze(-1)
     return (w * (r * r).sum(-1)).sum(-1)
