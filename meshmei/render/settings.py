@@ -36,7 +36,7 @@ class RenderSettings:
         Width and height of the square image in pixels (1 to 8192).
     sigma : float
         Softness of the silhouette in pixels: coverage is ``sigmoid(s / sigma)`` of the signed distance
-        ``s`` (pixels, positive inside) from the pixel centre to the silhouette. ``0.3`` minimises the
+        ``s`` (pixels, positive inside) from the pixel centre to the silhouette. ``0.2`` about minimises the
         coverage error against area sampling (see ``docs/rendering.md``); larger values spread silhouette
         gradients over more pixels at the price of a blurrier outline.
     background : float
@@ -55,7 +55,7 @@ class RenderSettings:
         the sheet or the teapot); with ``False`` their Lambertian term uses the stored normal.
     chunk_size : int
         Most (face, pixel) candidate pairs formed at once; bounds the rasterizer's working memory to about
-        ``chunk_size * 100`` bytes (>= 1024).
+        ``chunk_size * 150`` bytes (>= 1024).
     eps : float
         Guard for divisions that can meet zero: normal lengths, light distances and edge lengths (in
         pixels) are held above it.
