@@ -24,7 +24,9 @@ both over the full image, so a parameter set means the same at any resolution.
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import torch
 import torch.nn.functional as TF
@@ -40,9 +42,12 @@ __all__ = [
     "GaussianReadout",
     "CoreReadoutModel",
     "DEFAULT_NORM",
+    "DEMO_MODEL_PATH",
+    "load_demo_model",
 ]
 
 DEFAULT_NORM = 25.0
+DEMO_MODEL_PATH = Path(__file__).resolve().parent / "data" / "demo_model.pt"
 
 
 class EncoderError(ValueError):
@@ -398,17 +403,22 @@ class DefaultCore(torch.nn.Module):
         Feature channels ``C``.
     kernel_sizes : tuple of int
         Odd kernel sizes of the layers (the first is the largest: a V1-like front end).
+    strides : tuple of int, optional
+        Stride of each layer (default all 1); a stride of 2 in the first layer quarters the cost.
     """
 
-    def __init__(self, channels: int = 16, kernel_sizes=(9, 5, 5)):
+    def __init__(self, channels: int = 16, kernel_sizes=(9, 5, 5), strides=None):
         super().__init__()
         if isinstance(channels, bool) or int(channels) != channels or channels < 1:
             raise EncoderError(f"channels must be a positive integer, got {channels!r}")
+        strides = tuple(strides) if strides is not None else (1,) * len(kernel_sizes)
+        if len(strides) != len(kernel_sizes) or any(int(s) != s or s < 1 for s in strides):
+            raise EncoderError(f"strides must be positive integers, one per layer, got {strides!r}")
         layers, cin = [], 1
-        for k in kernel_sizes:
+        for k, stride in zip(kernel_sizes, strides):
             if int(k) != k or k < 1 or k % 2 == 0:
                 raise EncoderError(f"kernel sizes must be odd positive integers, got {kernel_sizes!r}")
-            layers += [torch.nn.Conv2d(cin, channels, int(k), padding=int(k) // 2), torch.nn.ELU()]
+            layers += [torch.nn.Conv2d(cin, channels, int(k), stride=int(stride), padding=int(k) // 2), torch.nn.ELU()]
             cin = channels
         self.net = torch.nn.Sequential(*layers)
         self.out_channels = int(channels)
@@ -524,3 +534,29 @@ class CoreReadoutModel(Encoder):
         except RuntimeError as err:
             raise EncoderError(f"state_dict does not fit the model: {err}") from None
         return model.eval()
+
+
+def load_demo_model(path=None) -> CoreReadoutModel:
+    """The shipped demo model: a core + Gaussian readout trained on simulated neurons (eval mode).
+
+    It is a *digital twin of simulated neurons*, not of recorded V4 data: ``data_gen/make_demo_model.py``
+    renders random deformed meshes under random poses and lights with meshmei's own renderer, computes the
+    responses of a population of ground-truth model neurons (Gabor energy units, simple cells, curvature
+    and shading units) and fits the model to them. The test-set correlation of each neuron and the
+    ground-truth definitions are in ``demo_model.json`` beside the weights; see ``docs/encoders.md``.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        A file written by the same script (default: the one inside the package).
+    """
+    path = Path(path) if path is not None else DEMO_MODEL_PATH
+    if not path.is_file():
+        raise EncoderError(f"no demo model at {path}; run data_gen/make_demo_model.py to make it")
+    blob = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(blob, dict) or "state_dict" not in blob or "core" not in blob:
+        raise EncoderError(f"{path} is not a meshmei demo model file")
+    core = DefaultCore(**json.loads(blob["core"]))
+    model = CoreReadoutModel.from_state_dict(blob["state_dict"], core)
+    model._meshmei_demo = True
+    return model

@@ -37,6 +37,8 @@ __all__ = [
     "triangle_quality",
     "mesh_quality",
     "grid_search",
+    "random_deformations",
+    "random_mesh_responses",
     "save_run",
     "load_run",
     "make_encoder",
@@ -248,6 +250,8 @@ class MEIResult:
     wall_time : float
         Seconds for all seeds.
     seconds_per_step : float
+    time_history : list of float
+        Seconds since the start of the winning seed at the end of every step.
     extra : dict
         JSON-able additions written to the summary (e.g. ``pixel_mei_activation``).
     """
@@ -272,6 +276,7 @@ class MEIResult:
     init: str = "custom"
     wall_time: float = 0.0
     seconds_per_step: float = 0.0
+    time_history: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -315,13 +320,13 @@ def encoder_spec(encoder: Encoder) -> dict:
 
 def make_encoder(kind: str, **params) -> Encoder:
     """A built-in encoder by name: ``"gabor-simple"``, ``"gabor-complex"`` (Gabor parameters as keywords),
-    or ``"demo"`` (the shipped demo model, :func:`meshmei.demo_model.load_demo_model`)."""
+    or ``"demo"`` (the shipped demo model, :func:`meshmei.encoders.load_demo_model`)."""
     if kind == "gabor-simple":
         return GaborSimpleCell(**params)
     if kind == "gabor-complex":
         return GaborComplexCell(**params)
     if kind == "demo":
-        from .demo_model import load_demo_model
+        from .encoders import load_demo_model
 
         return load_demo_model()
     raise MEIError(f"unknown encoder {kind!r}; expected 'gabor-simple', 'gabor-complex' or 'demo'")
@@ -423,8 +428,9 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar=None
     opt = torch.optim.Adam(groups)
     st = settings.render_settings()
     active = {k: w for k, w in settings.weights.items() if w > 0}
-    hist, loss_hist, reg_hist = [], [], {k: [] for k in active}
+    hist, loss_hist, reg_hist, times = [], [], {k: [] for k in active}, []
     best = None
+    t_start = time.perf_counter()
 
     def snapshot():
         return ({k: v.detach().clone() for k, v in rbf.state_dict().items()},
@@ -454,6 +460,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar=None
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        times.append(time.perf_counter() - t_start)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(seed=seed, act=f"{hist[-1]:.4f}")
@@ -474,7 +481,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar=None
         I = render(V, F, camera=camera, light=lt, settings=st, **pose).detach()
         act = float(encoder(I, neuron)[0, 0])
     return dict(V=V, image=I, activation=act, loss=best[0], history=hist, loss_history=loss_hist,
-                reg_history=reg_hist, deformer_state=state, light=lt, rotation=rt, translation=tr, best_step=best[1])
+                reg_history=reg_hist, time_history=times, deformer_state=state, light=lt, rotation=rt, translation=tr, best_step=best[1])
 
 
 def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISettings | None = None, *,
@@ -552,7 +559,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     r = runs[seed]
     return MEIResult(
         V=r["V"], F=F, V0=V0, image=r["image"], activation=r["activation"], history=r["history"],
-        loss_history=r["loss_history"], reg_history=r["reg_history"], seed=seed,
+        loss_history=r["loss_history"], reg_history=r["reg_history"], seed=seed, time_history=r["time_history"],
         seed_activations={s: runs[s]["activation"] for s in runs}, settings=settings, neuron=neuron,
         encoder=encoder_spec(encoder), deformer_state=r["deformer_state"], light=r["light"], rotation=r["rotation"],
         translation=r["translation"], init=init_name, wall_time=wall,
@@ -600,12 +607,56 @@ def grid_search(encoder: Encoder, neuron: int, init="sphere", grid: dict | None 
     return rows
 
 
+def random_deformations(V0: torch.Tensor, n: int, *, generator: torch.Generator | None = None, n_bumps: int = 4,
+                        amplitude: float = 0.15, width=(0.1, 0.3)) -> torch.Tensor:
+    """``n`` random smooth deformations of a mesh: sums of ``n_bumps`` Gaussian bumps of random displacement.
+
+    Each bump sits on a random vertex, has a width drawn uniformly from ``width`` and a displacement drawn
+    from ``N(0, amplitude^2 I)`` (world units; the initial meshes span 1).
+
+    Returns
+    -------
+    (n, V0.shape[0], 3) tensor of deformed vertex positions (dtype and device of ``V0``).
+    """
+    g = generator if generator is not None else torch.Generator().manual_seed(0)
+    dt = V0.dtype
+    c = V0[torch.randint(V0.shape[0], (n, n_bumps), generator=g)]  # (n, k, 3)
+    w = width[0] + (width[1] - width[0]) * torch.rand(n, 1, n_bumps, generator=g, dtype=dt)
+    d = amplitude * torch.randn(n, n_bumps, 3, generator=g, dtype=dt)
+    K = torch.exp(-torch.cdist(V0.unsqueeze(0).expand(n, -1, -1), c) ** 2 / (2 * w * w))  # (n, nv, k)
+    return V0 + K @ d
+
+
+@torch.no_grad()
+def random_mesh_responses(encoder: Encoder, neuron: int, init="sphere", n: int = 1000,
+                          settings: MEISettings | None = None, *, seed: int = 0, batch: int = 50,
+                          **deform_kw) -> torch.Tensor:
+    """Responses ``(n,)`` of a neuron to ``n`` random deformations of the initial mesh, in the MEI's scene.
+
+    The baseline a 3D-MEI has to beat: the same starting mesh, scene and preprocessing, with random smooth
+    deformations (:func:`random_deformations`) instead of optimised ones.
+    """
+    settings = settings if settings is not None else MEISettings()
+    V0, F, _ = _initial(init, settings, settings.torch_dtype)
+    g = torch.Generator().manual_seed(int(seed))
+    out = []
+    with eval_mode(encoder):
+        for start in range(0, n, batch):
+            Vb = random_deformations(V0, min(batch, n - start), generator=g, **deform_kw)
+            I = render(Vb, F, camera=settings.camera(),
+                       light=None if settings.light is None else torch.tensor(settings.light, dtype=V0.dtype),
+                       settings=settings.render_settings())
+            out.append(encoder(I, neuron)[:, 0])
+    return torch.cat(out)
+
+
 # ---------------------------------------------------------------------------------------------- run directories
 
 _REQUIRED = ("summary.json", "state.pt", "mesh.obj")
 _SUMMARY_KEYS = {"format", "complete", "neuron", "init", "activation", "fraction_of_bound", "seed", "seed_activations",
                  "encoder", "settings", "light", "rotation_axis_angle", "translation", "n_vertices", "n_faces",
-                 "wall_time_s", "seconds_per_step", "quality", "history", "loss_history", "reg_history"}
+                 "wall_time_s", "seconds_per_step", "quality", "history", "loss_history", "reg_history",
+                 "time_history"}
 
 
 def _write_obj(path, V, F):
@@ -640,6 +691,7 @@ def _summary(result: MEIResult) -> dict:
         "history": result.history,
         "loss_history": result.loss_history,
         "reg_history": result.reg_history,
+        "time_history": result.time_history,
         **result.extra,
     }
 
@@ -765,7 +817,7 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         settings=settings, neuron=int(summary["neuron"]), encoder=summary["encoder"],
         deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
         translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),
-        seconds_per_step=float(summary["seconds_per_step"]),
+        seconds_per_step=float(summary["seconds_per_step"]), time_history=summary.get("time_history", []),
         extra={k: summary[k] for k in summary if k not in _SUMMARY_KEYS})
     if encoder is not None or rebuild_encoder:
         res.encoder_module = encoder if encoder is not None else _encoder_from_spec(summary["encoder"])

@@ -1,0 +1,143 @@
+"""3D-MEI optimisation curves on simulated cells (fraction of the bound vs step and wall time), 3D-MEI vs
+pixel MEI, and the time per step at 64 x 64 and 128 x 128.
+
+Run: ``python -m meshmei.benchmarks.mei [--steps 400] [--seeds 0]``; writes the "mei" section of
+``docs/benchmarks.md`` and ``docs/figures/mei_curves.png``, ``docs/figures/mei_vs_pixel.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from meshmei.benchmarks._report import docs_dir, machine_line, markdown_table, write_section
+from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
+from meshmei.mei import MEISettings, mesh_quality, optimize_mei, random_mesh_responses
+from meshmei.pixel_mei import pixel_mei
+
+
+def _first(xs, ts, level):
+    for x, t in zip(xs, ts):
+        if x >= level:
+            return t
+    return None
+
+
+def _fmt(x, spec=".3f"):
+    return "-" if x is None else format(x, spec)
+
+
+def time_per_step(image_size: int, n_vertices: int, steps: int = 30) -> float:
+    res = optimize_mei(GaborSimpleCell(), 0, "sphere", steps=steps, seeds=(0,), image_size=image_size,
+                       n_vertices=n_vertices)
+    # skip the first steps (allocator warm-up)
+    ts = res.time_history
+    return (ts[-1] - ts[4]) / (len(ts) - 5)
+
+
+def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = out_dir or docs_dir() / "figures"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    settings = MEISettings(steps=steps, seeds=tuple(seeds))
+    curves, rows, bars = {}, [], []
+    for cname, cell in (("simple", GaborSimpleCell()), ("complex", GaborComplexCell())):
+        pm = pixel_mei(cell, 0, image_size=settings.image_size, steps=pixel_steps)
+        for init in ("sheet", "sphere"):
+            res = optimize_mei(cell, 0, init, settings)
+            h = res.history
+            best = [max(h[: i + 1]) for i in range(len(h))]
+            curves[(cname, init)] = (h, res.time_history)
+            q = mesh_quality(res.V, res.F)
+            rows.append([cname, init, f"{res.activation:.3f}", f"{max(h):.3f}",
+                         _fmt(_first(best, range(1, len(h) + 1), 0.9), "d"),
+                         _fmt(_first(best, res.time_history, 0.9), ".1f"),
+                         _fmt(_first(best, range(1, len(h) + 1), 0.95), "d"),
+                         f"{1000 * res.seconds_per_step:.0f}", f"{q['min_quality']:.3f}", q["self_intersections"],
+                         f"{pm.activation:.4f}"])
+            bars.append((f"{cname}\n{init}", res.activation, pm.activation))
+            print(rows[-1], flush=True)
+    demo_line = ""
+    if DEMO_MODEL_PATH.is_file():
+        model = load_demo_model()
+        rand = random_mesh_responses(model, 0, "sphere", 1000, settings)
+        res = optimize_mei(model, 0, "sphere", settings)
+        pm = pixel_mei(model, 0, image_size=settings.image_size, steps=pixel_steps)
+        bars.append(("demo n0\nsphere", res.activation, pm.activation))
+        demo_line = (f"Demo model neuron 0 (sphere start): best of 1000 random deformed spheres "
+                     f"{float(rand.max()):.3f} (median {float(rand.median()):.3f}), 3D-MEI {res.activation:.3f}, "
+                     f"pixel MEI {pm.activation:.3f}.")
+        print(demo_line, flush=True)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for (cname, init), (h, ts) in curves.items():
+        ls = "-" if cname == "simple" else "--"
+        axes[0].plot(range(1, len(h) + 1), h, ls, label=f"{cname} cell, {init}")
+        axes[1].plot(ts, h, ls, label=f"{cname} cell, {init}")
+    for ax, xl in zip(axes, ("step", "wall time (s)")):
+        ax.axhline(1.0, color="k", lw=0.5)
+        ax.axhline(0.9, color="gray", lw=0.5, ls=":")
+        ax.set_xlabel(xl)
+        ax.set_ylabel("fraction of upper bound")
+        ax.set_ylim(0, 1.02)
+    axes[0].legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_dir / "mei_curves.png", dpi=120)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(1.4 * len(bars) + 1, 3.4))
+    x = torch.arange(len(bars)).float()
+    ax.bar(x - 0.2, [b[1] for b in bars], 0.4, label="3D-MEI")
+    ax.bar(x + 0.2, [b[2] for b in bars], 0.4, label="pixel MEI")
+    ax.set_xticks(x.tolist(), [b[0] for b in bars], fontsize=8)
+    ax.set_ylabel("response")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_dir / "mei_vs_pixel.png", dpi=120)
+    plt.close(fig)
+    speed = []
+    for size, nv in ((64, 400), (64, 1500), (128, 400), (128, 1500)):
+        speed.append([f"{size} x {size}", nv, f"{1000 * time_per_step(size, nv):.1f}"])
+        print(speed[-1], flush=True)
+    body = "\n".join([
+        "## 3D-MEI on simulated cells (`python -m meshmei.benchmarks.mei`)",
+        "",
+        f"Machine: {machine_line()}.",
+        f"Default `MEISettings` ({settings.n_vertices}-vertex initial mesh, {settings.image_size} x "
+        f"{settings.image_size} image, RBF on every vertex, weights {settings.weights}), {steps} steps, "
+        f"seeds {list(seeds)}; the response of a Gabor cell is its fraction of the upper bound 1. "
+        "'steps/s to 0.9' count until the best response so far first reaches 0.9.",
+        "",
+        markdown_table(["cell", "init", "final", "best", "steps to 0.9", "s to 0.9", "steps to 0.95", "ms/step",
+                        "min tri quality", "self-intersections", "pixel MEI"], rows),
+        "",
+        demo_line,
+        "",
+        "![curves](figures/mei_curves.png)",
+        "",
+        "![3D vs pixel MEI](figures/mei_vs_pixel.png)",
+        "",
+        "Time per optimisation step (render + encoder + regularizers + backward + Adam; sphere, simple cell):",
+        "",
+        markdown_table(["image", "vertices", "ms/step"], speed),
+    ])
+    return write_section("mei", body)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--pixel-steps", type=int, default=200)
+    args = ap.parse_args(argv)
+    t = time.perf_counter()
+    path = run(args.steps, tuple(args.seeds), args.pixel_steps)
+    print(f"wrote {path} in {time.perf_counter() - t:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
