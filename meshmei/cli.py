@@ -12,6 +12,7 @@ __all__ = ["main"]
 COMMANDS = {
     "demo": "meshmei.demo",
     "reconstruct": "meshmei.reconstruct",
+    "tune": "meshmei.tuning",
     "mei": "meshmei.mei",
 }
 

@@ -1,0 +1,182 @@
+"""Pose and light sweeps: known tuning of simulated cells, saved sweeps, bad input."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from meshmei.cli import main
+from meshmei.mei import MEISettings, make_encoder, optimize_mei, save_run
+from meshmei.render import RenderSettings
+from meshmei.shapes import initial_mesh
+from meshmei.tuning import (
+    TuningError,
+    light_positions,
+    light_sweep,
+    load_sweep,
+    pose_rotations,
+    pose_sweep,
+    response_groups,
+    save_sweep,
+)
+
+FREQ, SIGMA, ORIENT = 3.0, 0.3, math.pi / 6
+
+
+@pytest.fixture(scope="module")
+def simple_cell():
+    return make_encoder("gabor-simple", orientation=ORIENT, frequency=FREQ, sigma=SIGMA)
+
+
+@pytest.fixture(scope="module")
+def sheet_mei(simple_cell):
+    st = MEISettings(image_size=40, n_vertices=250, steps=100, seeds=(0,))
+    res = optimize_mei(simple_cell, 0, init="sheet", settings=st, progress=False)
+    assert res.activation > 0.85  # the optimisation itself is tested in test_mei.py
+    return res
+
+
+def test_rotations_are_proper_and_compose_in_order():
+    R = pose_rotations([-30, 0, 45], [-90, 10], [0, 120], dtype=torch.float64)
+    assert R.shape == (3, 2, 2, 3, 3)
+    torch.testing.assert_close(R @ R.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand_as(R))
+    assert torch.allclose(torch.linalg.det(R), torch.ones(3, 2, 2, dtype=torch.float64))
+    front = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+    # azimuth turns the front to image right (+x); elevation tilts it up (+y)
+    Ra = pose_rotations([0], [30], dtype=torch.float64)[0, 0]
+    torch.testing.assert_close(Ra @ front, torch.tensor([0.5, 0, math.sqrt(3) / 2], dtype=torch.float64))
+    Re = pose_rotations([30], [0], dtype=torch.float64)[0, 0]
+    torch.testing.assert_close(Re @ front, torch.tensor([0, 0.5, math.sqrt(3) / 2], dtype=torch.float64))
+
+
+def test_light_positions_on_the_hemisphere():
+    P = light_positions([0, 45, 90], [0, 90, 180], 2.0, dtype=torch.float64)
+    torch.testing.assert_close(P.norm(dim=-1), torch.full((3, 3), 2.0, dtype=torch.float64))
+    torch.testing.assert_close(P[0, 2], torch.tensor([-2.0, 0, 0], dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(P[2, 1], torch.tensor([0, 0, 2.0], dtype=torch.float64), atol=1e-12, rtol=0)
+
+
+def test_pose_sweep_peaks_at_the_original_view_and_falls_off(sheet_mei, simple_cell):
+    ang = np.linspace(-90, 90, 13)
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=ang, azimuth=ang)
+    r = sw.of(0)
+    assert r.shape == (13, 13) and sw.neurons == (0,)
+    assert sw.argmax(0) == {"elevation": 0.0, "azimuth": 0.0}
+    assert r[6, 6] == pytest.approx(sheet_mei.activation, abs=1e-5)
+    assert r[6, 6] == pytest.approx(sw.reference["responses"][0], abs=1e-6)
+    far = np.abs(ang) >= 45
+    assert np.abs(r[6, far]).max() < 0.5 * r[6, 6] and np.abs(r[far, 6]).max() < 0.5 * r[6, 6]
+
+
+def test_roll_sweep_reproduces_the_gabor_orientation_tuning(sheet_mei, simple_cell):
+    roll = np.linspace(-180, 180, 37)
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0], roll=roll)
+    curve = sw.of(0)[0, 0]
+    # analytic tuning of an isotropic even Gabor to its own rotation: the overlap of the rotated spectra,
+    # <g_0, g_theta> / <g_0, g_0> with wave number k = pi f and envelope sigma (image half-widths)
+    k, th = math.pi * FREQ, np.radians(roll)
+    pred = (np.exp(-(SIGMA * k) ** 2 * (1 - np.cos(th)) / 2) + np.exp(-(SIGMA * k) ** 2 * (1 + np.cos(th)) / 2))
+    pred /= 1 + np.exp(-(SIGMA * k) ** 2)
+    measured = curve / curve[18]
+    assert np.argmax(curve) in (0, 18, 36)
+    assert np.abs(measured - pred).max() < 0.1
+    assert np.corrcoef(measured, pred)[0, 1] > 0.98
+
+
+def test_light_sweep_on_a_sphere_finds_the_left_light():
+    # an odd Gabor of half a cycle across the image: prefers bright on the left, dark on the right
+    cell = make_encoder("gabor-simple", orientation=0.0, frequency=0.5, sigma=0.6, phase=math.pi / 2)
+    V, F = initial_mesh("sphere", n_vertices=600)
+    sw = light_sweep((V, F, {"settings": RenderSettings(image_size=48)}), cell, elevation=np.linspace(0, 90, 4), azimuth=np.linspace(0, 330, 12),
+                     distance=2.5)
+    best = sw.argmax(0)
+    assert abs(best["azimuth"] - 180) <= 30
+    r = sw.of(0)
+    # off the camera axis, the mirror light (from the right) drives it the opposite way; on the axis
+    # (elevation 90) the shading is left-right symmetric and the response vanishes
+    assert r[:-1, 0].max() < 0 < r[:-1, 6].min()
+    assert np.abs(r[-1]).max() < 1e-2 * r.max()
+    groups = response_groups(sw)
+    assert len(groups["high"]) + len(groups["mid"]) + len(groups["low"]) == r.size
+    assert groups["high_example"]["response"] == pytest.approx(r.max())
+    assert min(g["response"] for g in groups["high"]) >= max(g["response"] for g in groups["low"])
+
+
+def test_sweep_saves_and_reloads_exactly(tmp_path, sheet_mei, simple_cell):
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=[-20, 0, 20], azimuth=[-10, 0, 10])
+    out = save_sweep(sw, tmp_path / "pose")
+    back = load_sweep(out)
+    assert np.array_equal(back.responses, sw.responses)
+    assert all(a == b and np.array_equal(u, v) for (a, u), (b, v) in zip(back.axes, sw.axes))
+    assert back.neurons == sw.neurons and back.kind == "pose"
+    assert (out / "pose_neuron0.png").is_file() and (out / "pose_neuron0.pdf").is_file()
+    with pytest.raises(TuningError, match="exists"):
+        save_sweep(sw, out)
+
+
+def test_half_written_sweep_is_not_taken_for_a_finished_one(tmp_path, sheet_mei, simple_cell):
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10])
+
+    class Boom(RuntimeError):
+        pass
+
+    import meshmei.plots as plots
+
+    orig = plots.plot_pose_heatmap
+    plots.plot_pose_heatmap = lambda *a, **k: (_ for _ in ()).throw(Boom())
+    try:
+        with pytest.raises(Boom):
+            save_sweep(sw, tmp_path / "pose")
+    finally:
+        plots.plot_pose_heatmap = orig
+    assert not (tmp_path / "pose").exists()
+    assert not list(tmp_path.iterdir())  # the temporary directory is cleaned up too
+    # a directory with a sweep.json that never got marked complete is refused
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    np.savez(bad / "sweep.npz", responses=np.zeros((1, 1)), axis_elevation=np.zeros(1))
+    (bad / "sweep.json").write_text(json.dumps({"format": "meshmei-sweep-1", "kind": "pose", "neurons": [0],
+                                                "axes": ["elevation"]}))
+    with pytest.raises(TuningError, match="no complete sweep"):
+        load_sweep(bad)
+
+
+def test_bad_input(tmp_path, sheet_mei, simple_cell):
+    with pytest.raises(TuningError, match="elevation range is empty"):
+        pose_sweep(sheet_mei, simple_cell, elevation=[], azimuth=[0])
+    with pytest.raises(TuningError, match=r"neuron index out of range for an encoder of 1 neurons: \[3\]"):
+        pose_sweep(sheet_mei, simple_cell, neurons=[3], elevation=[0], azimuth=[0])
+    with pytest.raises(TuningError, match=r"elevation must lie in \[0.0, 90.0\]"):
+        light_sweep(sheet_mei, simple_cell, elevation=[-10], azimuth=[0])
+    with pytest.raises(TuningError, match="NaN"):
+        pose_sweep(sheet_mei, simple_cell, elevation=[float("nan")], azimuth=[0])
+    with pytest.raises(TuningError, match="no sweep directory"):
+        load_sweep(tmp_path / "nothing")
+    corrupt = tmp_path / "corrupt"
+    corrupt.mkdir()
+    (corrupt / "sweep.json").write_text("{not json")
+    with pytest.raises(TuningError, match="not a readable sweep"):
+        load_sweep(corrupt)
+
+
+def test_cli_tune_pose_and_light(tmp_path, sheet_mei, capsys):
+    run = save_run(sheet_mei, tmp_path / "run", figures=False)
+    assert main(["tune", "pose", "--mei", str(run), "--elevation=-30:30:3", "--azimuth=-30:30:3"]) == 0
+    sw = load_sweep(run / "tuning_pose")
+    assert sw.shape == (3, 3) and sw.argmax(0) == {"elevation": 0.0, "azimuth": 0.0}
+    assert main(["tune", "light", "--mei", str(run), "--elevation", "0:90:2", "--azimuth", "0:270:4"]) == 0
+    light = load_sweep(run / "tuning_light")
+    assert light.shape == (2, 4)
+    assert (run / "tuning_light" / "light_neuron0.png").is_file()
+    meta = json.loads((run / "tuning_light" / "sweep.json").read_text())
+    assert set(meta["groups"]["0"]) == {"high_example", "mid_example", "low_example"}
+    capsys.readouterr()
+    # bad input through the CLI: a clear message and exit code 2, no traceback
+    assert main(["tune", "pose", "--mei", str(tmp_path / "missing")]) == 2
+    assert "no MEI run directory" in capsys.readouterr().err
+    assert main(["tune", "pose", "--mei", str(run), "--neurons", "5", "--overwrite"]) == 2
+    assert "out of range" in capsys.readouterr().err
+    assert main(["tune", "pose", "--mei", str(run), "--azimuth", "0:10:0", "--overwrite"]) == 2
+    assert "at least one angle" in capsys.readouterr().err
