@@ -92,7 +92,7 @@ def _twins(F: torch.Tensor, n: int) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------------
 def _ranges(lo, hi, S):
     """Inclusive index range of pixel centres ``i + 0.5`` in ``[lo, hi]``, clipped to the image."""
-    lo = torch.ceil(lo.clamp(-2.0, S + 2.0) - 0.5).long().clamp(0, S - 1)
+    lo = torch.ceil(lo.clamp(-2.0, S + 2.0) - 0.5).long().clamp(0, S)
     hi = torch.floor(hi.clamp(-2.0, S + 2.0) - 0.5).long().clamp(-1, S - 1)
     return lo, hi
 
@@ -216,10 +216,13 @@ def _raster(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices):
             ea = Fk[:, [1, 2, 0]]
             eb = Fk[:, [2, 0, 1]]
             opp_g = F[tf, tk]  # (K, 3): the twin face's corner off the edge
-            bu, bv = kb.unsqueeze(1), kb.unsqueeze(1)
-            Au, Av, Bu, Bv = U[bu, ea], Vv[bv, ea], U[bu, eb], Vv[bv, eb]
-            side_f = _edge_fn(Au, Av, Bu, Bv, ku, kv)  # opposite corner k of this face
-            side_g = _edge_fn(Au, Av, Bu, Bv, U[bu, opp_g], Vv[bv, opp_g])
+            bu = kb.unsqueeze(1)
+            Au, Av, Bu, Bv = U[bu, ea], Vv[bu, ea], U[bu, eb], Vv[bu, eb]
+            # side tests with the edge in canonical order, so both half-edges classify it identically
+            lo, hi = torch.minimum(ea, eb), torch.maximum(ea, eb)
+            Lu, Lv, Hu, Hv = U[bu, lo], Vv[bu, lo], U[bu, hi], Vv[bu, hi]
+            side_f = _edge_fn(Lu, Lv, Hu, Hv, ku, kv)  # opposite corner k of this face
+            side_g = _edge_fn(Lu, Lv, Hu, Hv, U[bu, opp_g], Vv[bu, opp_g])
             contour = ~(tkeep & (side_f * side_g < 0))
             fr, gfr = front[kb, kf].unsqueeze(1), front[bu, tf]
             owner = ~tkeep | (fr & ~gfr) | ((fr == gfr) & (kf.unsqueeze(1) < tf))
