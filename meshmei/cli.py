@@ -10,7 +10,8 @@ __all__ = ["main"]
 
 # command name -> module exposing ``add_parser(subparsers)``; the parser's ``func(args)`` runs it
 COMMANDS = {
-    "demo": "meshmei.demo",
+    "demo": "meshmei.story",
+    "regularizers": "meshmei.demo",
     "reconstruct": "meshmei.reconstruct",
     "tune": "meshmei.tuning",
     "mei": "meshmei.mei",

@@ -1,4 +1,4 @@
-"""The built-in demo job: make the initial meshes, deform them, and tabulate every regularizer."""
+"""``meshmei regularizers``: make the initial meshes, deform them, and tabulate every regularizer."""
 
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def run_demo(n_vertices: int = 2500, seed: int = 0, out=print) -> dict:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("demo", help="build initial meshes and tabulate every regularizer")
+    p = sub.add_parser("regularizers", help="build initial meshes and tabulate every regularizer")
     p.add_argument("--n-vertices", type=int, default=2500)
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=lambda a: run_demo(a.n_vertices, a.seed) and 0)

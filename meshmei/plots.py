@@ -73,10 +73,10 @@ def plot_light_polar(sweep, neuron: int, stem, images: dict | None = None) -> li
     r = sweep.of(neuron)
     az, el = sweep.axis("azimuth"), sweep.axis("elevation")
     ncol = 1 + (3 if images else 0)
-    fig = plt.figure(figsize=(4.6 + 2.4 * (ncol - 1), 4.4))
+    fig = plt.figure(figsize=(5.0 + 2.6 * (ncol - 1), 4.4), layout="constrained")
     ax = fig.add_subplot(1, ncol, 1, projection="polar")
     theta = np.radians(_edges(az))
-    rad = 90.0 - _edges(el)  # radius: angle away from the camera axis
+    rad = 90.0 - np.clip(_edges(el), 0.0, 90.0)  # radius: angle away from the camera axis
     m = ax.pcolormesh(theta, rad, r, shading="flat", cmap="magma")
     ax.set_ylim(0, 90)
     ax.set_yticks([30, 60, 90])

@@ -226,7 +226,7 @@ def pose_sweep(result, encoder, *, neurons=None, elevation=np.linspace(-90, 90, 
 
 
 def light_sweep(result, encoder, *, neurons=None, elevation=np.linspace(0, 90, 10),
-                azimuth=np.linspace(0, 360, 37), distance: float | None = None, batch_size: int = 64) -> Sweep:
+                azimuth=np.arange(0, 360, 10.0), distance: float | None = None, batch_size: int = 64) -> Sweep:
     """Responses while a point light moves over the camera-facing hemisphere.
 
     ``distance`` defaults to the camera's distance from the origin. Returns a Sweep with ``responses``
@@ -373,7 +373,7 @@ def add_parser(sub) -> None:
     p.add_argument("--out", default=None, help="output directory (default: MEI_DIR/tuning_<what>)")
     p.add_argument("--neurons", type=int, nargs="+", default=None, help="default: the run's neuron")
     p.add_argument("--elevation", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:90:10)")
-    p.add_argument("--azimuth", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:360:37)")
+    p.add_argument("--azimuth", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:350:36)")
     p.add_argument("--roll", default=None, help="lo:hi:n degrees: add an in-plane roll axis to a pose sweep")
     p.add_argument("--distance", type=float, default=None, help="light distance (default: the camera's)")
     p.add_argument("--overwrite", action="store_true")
@@ -399,7 +399,7 @@ def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, az
     else:
         sweep = light_sweep(run, encoder, neurons=neurons,
                             elevation=np.linspace(0, 90, 10) if elevation is None else elevation,
-                            azimuth=np.linspace(0, 360, 37) if azimuth is None else azimuth, distance=distance)
+                            azimuth=np.arange(0, 360, 10.0) if azimuth is None else azimuth, distance=distance)
         images = example_renders(run, sweep)
     sweep.meta["run"] = str(Path(mei_dir))
     save_sweep(sweep, out, overwrite=overwrite, images=images)

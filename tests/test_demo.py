@@ -16,6 +16,6 @@ def test_demo_table_is_finite_and_rest_poses_are_arap_minima():
     assert any(line.startswith("arap (Sorkine-Alexa)") for line in lines)
 
 
-def test_cli_demo_exit_code(capsys):
-    assert main(["demo", "--n-vertices", "200"]) == 0
+def test_cli_regularizers_exit_code(capsys):
+    assert main(["regularizers", "--n-vertices", "200"]) == 0
     assert "all 36 values finite: True" in capsys.readouterr().out

@@ -1,0 +1,134 @@
+"""The main job, end to end on built-in data: a 3D-MEI for a demo neuron, its pose and light tuning, plots.
+
+``meshmei demo`` runs it offline in a few minutes on a laptop CPU and prints where everything went.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["run_story", "add_parser", "QUICK", "FULL"]
+
+# Sizes of the two presets: the full job (the README's) and a quick one for tests and smoke runs.
+FULL = dict(image_size=64, n_vertices=600, steps=200, seeds=(0, 1), pixel_steps=200, pose=37, light=(10, 36))
+QUICK = dict(image_size=32, n_vertices=150, steps=25, seeds=(0,), pixel_steps=30, pose=5, light=(3, 6))
+
+
+def _default_neuron(encoder) -> int:
+    """The shipped demo model's best-predicted neuron (highest test correlation with ground truth), else 0."""
+    from .encoders import DEMO_MODEL_PATH
+
+    info = DEMO_MODEL_PATH.with_suffix(".json")
+    if getattr(encoder, "_meshmei_demo", False) and info.is_file():
+        corr = json.loads(info.read_text()).get("test_correlation_with_ground_truth")
+        if isinstance(corr, list) and corr:
+            return int(np.nanargmax(np.asarray(corr, dtype=np.float64)))
+    return 0
+
+
+def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "sheet", preset: dict | None = None,
+              overwrite: bool = False, log=print) -> dict:
+    """3D-MEI, pixel MEI, pose sweep, light sweep and the summary sheet, written under ``out``.
+
+    Parameters
+    ----------
+    out : path
+        Output directory (``mei/``, ``mei/tuning_pose/``, ``mei/tuning_light/``, ``summary.png|pdf``,
+        ``story.json``).
+    encoder : Encoder, optional
+        Default: the shipped demo model (:func:`meshmei.encoders.load_demo_model`).
+    neuron : int, optional
+        Default: the demo model's best-predicted neuron.
+    init : str
+        Initial mesh of the 3D-MEI.
+    preset : dict, optional
+        :data:`FULL` (default) or :data:`QUICK`, or a dict with the same keys.
+
+    Returns
+    -------
+    dict with the activations, the sweep maxima and the paths written.
+    """
+    from .encoders import load_demo_model
+    from .mei import MEISettings, optimize_mei, save_run
+    from .pixel_mei import pixel_mei
+    from .plots import summary_sheet
+    from .tuning import example_renders, light_sweep, pose_sweep, save_sweep
+
+    p = dict(FULL if preset is None else preset)
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace its contents")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    encoder = load_demo_model() if encoder is None else encoder
+    neuron = _default_neuron(encoder) if neuron is None else int(neuron)
+    encoder.neuron_index(neuron)  # clear error for an out-of-range neuron before any work
+    log(f"[1/5] 3D-MEI of neuron {neuron} from a {init} ({p['steps']} steps x {len(p['seeds'])} seeds, "
+        f"{p['image_size']}x{p['image_size']} px)")
+    st = MEISettings(image_size=p["image_size"], n_vertices=p["n_vertices"], steps=p["steps"], seeds=tuple(p["seeds"]))
+    res = optimize_mei(encoder, neuron, init=init, settings=st, progress=True)
+    log(f"      response {res.activation:.4f} in {res.wall_time:.1f} s")
+
+    log("[2/5] pixel MEI in the same image space")
+    pix = pixel_mei(encoder, neuron, image_size=p["image_size"], steps=p["pixel_steps"], seeds=tuple(p["seeds"]))
+    res.extra["pixel_mei_activation"] = float(pix.activation)
+    log(f"      response {pix.activation:.4f}")
+    run_dir = save_run(res, out / "mei", overwrite=True)
+
+    n_pose = p["pose"]
+    log(f"[3/5] pose sweep, {n_pose} x {n_pose} (azimuth x elevation, -90..90 deg)")
+    pose = pose_sweep(res, encoder, elevation=np.linspace(-90, 90, n_pose), azimuth=np.linspace(-90, 90, n_pose))
+    save_sweep(pose, run_dir / "tuning_pose", overwrite=True)
+
+    n_el, n_az = p["light"]
+    log(f"[4/5] light sweep, {n_el} elevations x {n_az} azimuths over the camera-facing hemisphere")
+    light = light_sweep(res, encoder, elevation=np.linspace(0, 90, n_el),
+                        azimuth=np.linspace(0, 360, n_az, endpoint=False))
+    save_sweep(light, run_dir / "tuning_light", overwrite=True, images=example_renders(res, light))
+
+    log("[5/5] summary sheet")
+    pix_img = pix.image[0, 0].detach().cpu().numpy() if hasattr(pix, "image") else None
+    sheet = summary_sheet(res, out / "summary", pixel_image=pix_img, pixel_activation=float(pix.activation))
+
+    best_pose, best_light = pose.argmax(neuron), light.argmax(neuron)
+    summary = {
+        "neuron": neuron,
+        "mei_activation": res.activation,
+        "pixel_mei_activation": float(pix.activation),
+        "pose_best": best_pose,
+        "pose_best_response": float(pose.of(neuron).max()),
+        "pose_sweep_seconds": pose.meta["seconds"],
+        "light_best": best_light,
+        "light_best_response": float(light.of(neuron).max()),
+        "light_sweep_seconds": light.meta["seconds"],
+        "total_seconds": time.perf_counter() - t0,
+        "files": {"run": str(run_dir), "pose": str(run_dir / "tuning_pose"), "light": str(run_dir / "tuning_light"),
+                  "summary": [str(s) for s in sheet]},
+    }
+    with open(out / "story.json", "w") as fh:
+        json.dump(summary, fh, indent=1)
+    log("")
+    log(f"neuron {neuron}: 3D-MEI response {res.activation:.4f}, pixel MEI {pix.activation:.4f}")
+    log(f"pose tuning: best {summary['pose_best_response']:.4f} at azimuth {best_pose['azimuth']:.0f}, "
+        f"elevation {best_pose['elevation']:.0f} (original view {pose.reference['responses'][0]:.4f}); "
+        f"{n_pose * n_pose} renders in {pose.meta['seconds']:.1f} s")
+    log(f"light tuning: best {summary['light_best_response']:.4f} with the light at azimuth "
+        f"{best_light['azimuth']:.0f}, elevation {best_light['elevation']:.0f}")
+    log(f"files: {out}/summary.png, {run_dir} (mesh.obj, renders, summary.json), tuning_pose/, tuning_light/")
+    log(f"total {summary['total_seconds']:.0f} s")
+    return summary
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("demo", help="the main job: 3D-MEI of a demo neuron, its pose and light tuning, plots")
+    p.add_argument("--out", default="meshmei-demo", help="output directory (default: ./meshmei-demo)")
+    p.add_argument("--neuron", type=int, default=None, help="default: the best-predicted demo neuron")
+    p.add_argument("--init", default="sheet", choices=["sheet", "sphere", "torus"])
+    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=lambda a: run_story(a.out, neuron=a.neuron, init=a.init, preset=QUICK if a.quick else FULL,
+                                            overwrite=a.overwrite) and 0)

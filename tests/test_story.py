@@ -1,0 +1,45 @@
+"""The main job end to end (quick preset), its outputs, and its refusals."""
+
+import json
+import math
+
+import pytest
+
+from meshmei.cli import main
+from meshmei.encoders import EncoderError
+from meshmei.mei import load_run, make_encoder
+from meshmei.story import QUICK, run_story
+from meshmei.tuning import load_sweep
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return make_encoder("gabor-simple", orientation=math.pi / 6, frequency=3.0, sigma=0.3)
+
+
+def test_story_writes_every_artifact_and_they_reload(tmp_path, cell):
+    lines = []
+    s = run_story(tmp_path / "out", encoder=cell, preset=QUICK, log=lines.append)
+    out = tmp_path / "out"
+    for name in ("summary.png", "summary.pdf", "story.json"):
+        assert (out / name).is_file()
+    run = load_run(out / "mei")
+    assert run.activation == pytest.approx(s["mei_activation"])
+    assert run.extra["pixel_mei_activation"] == pytest.approx(s["pixel_mei_activation"])
+    pose, light = load_sweep(out / "mei" / "tuning_pose"), load_sweep(out / "mei" / "tuning_light")
+    assert pose.shape == (QUICK["pose"], QUICK["pose"]) and light.shape == QUICK["light"]
+    # the simple cell's 3D-MEI: strongest at its own view; the pixel MEI beats it in its own image space
+    assert s["pose_best"] == {"elevation": 0.0, "azimuth": 0.0}
+    assert s["mei_activation"] > 0.6 and s["pixel_mei_activation"] > s["mei_activation"]
+    assert json.loads((out / "story.json").read_text())["neuron"] == 0
+    assert any("files:" in line for line in lines)
+
+
+def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
+    with pytest.raises(EncoderError, match="out of range"):
+        run_story(tmp_path / "a", encoder=cell, neuron=4, preset=QUICK)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "keep.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="not empty"):
+        run_story(tmp_path / "b", encoder=cell, preset=QUICK)
+    assert (tmp_path / "b" / "keep.txt").read_text() == "mine"
