@@ -9,6 +9,16 @@ import torch
 from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_from_angles, rasterize, render
 from meshmei.shapes import initial_mesh, target_mesh
 
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Many small tensor ops: on shared cores, torch's thread pool costs more than it saves here."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 VIEWS = [(0.0, 0.0), (60.0, 20.0), (200.0, -30.0), (120.0, 70.0)]
 
 
@@ -139,9 +149,7 @@ def test_coverage_matches_supersampled_ray_casting(targets, sphere64):
 
 def test_coverage_is_area_like_on_a_straight_edge():
     """A half-plane edge through a pixel centre gives coverage 1/2; far pixels give exactly 0 and 1."""
-    V = torch.tensor([[-10.0, -10.0, 0.0], [10.0, -10.0, 0.0], [0.0, 10.0, 0.0], [0.0, -10.0, 0.0]],
-                     dtype=torch.float64)
-    # a big square whose left edge is x = 0: the image's middle column boundary at u = S/2
+    # a big square whose left edge is x = 0: the boundary between the middle columns, u = S/2
     V = torch.tensor([[0.0, -5, 0], [5, -5, 0], [5, 5, 0], [0, 5, 0]], dtype=torch.float64)
     F = torch.tensor([[0, 1, 2], [0, 2, 3]])
     S = 16

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -12,6 +11,15 @@ from meshmei.errors import MeshError
 from meshmei.render import (Camera, RenderError, Renderer, RenderSettings, apply_pose, axis_angle_to_matrix,
                             camera_from_angles, rasterize, render)
 from meshmei.shapes import initial_mesh
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Many small tensor ops: on shared cores, torch's thread pool costs more than it saves here."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 def uv_sphere(n_lat, n_lon, r=0.5, dtype=torch.float64):

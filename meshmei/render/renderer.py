@@ -6,7 +6,7 @@ import torch
 
 from ..operators import face_normals, vertex_normals
 from .camera import Camera
-from .raster import _broadcast, _perspective, _prepare, _raster
+from .raster import Fragments, _perspective, _prepare, _raster
 from .settings import RenderError, RenderSettings
 from .shading import lambert
 from .transforms import _check_batch
@@ -105,7 +105,6 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     image = (c * sh + (1 - c) * st.background + zero).view(B, 1, S, S)
     if not return_fragments:
         return image
-    from .raster import Fragments
 
     bary = torch.zeros(B * S * S, 3, dtype=dt, device=dev).index_put((r.pix_in,), bary_in)
     depth = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.pix_in,), depth_in)
