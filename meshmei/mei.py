@@ -526,11 +526,12 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
             raise MEIError(f"unknown MEISettings fields {sorted(unknown)}")
         settings = replace(settings, **overrides)
     try:
-        neuron = int(encoder.neuron_index(neuron)[0]) if not isinstance(neuron, (list, tuple)) else None
+        idx = encoder.neuron_index(neuron)
     except EncoderError as err:
         raise MEIError(str(err)) from None
-    if neuron is None:
-        raise MEIError("neuron must be a single index")
+    if idx.numel() != 1 or neuron is None:
+        raise MEIError(f"neuron must be a single index, got {neuron!r}")
+    neuron = int(idx[0])
     V0, F, init_name = _initial(init, settings, settings.torch_dtype)
     bar = None
     if progress:

@@ -165,6 +165,8 @@ def test_bad_input_raises_mei_error():
         optimize_mei(cell, 0, "cube", **TINY)
     with pytest.raises(MEIError, match="out of range"):
         optimize_mei(cell, 3, "sheet", **TINY)
+    with pytest.raises(MEIError, match="single index"):
+        optimize_mei(cell, [0, 0], "sheet", **TINY)
     with pytest.raises(MEIError, match="encoder"):
         optimize_mei(lambda x: x, 0, "sheet")
     with pytest.raises(MEIError, match="unknown regularizer"):
@@ -195,3 +197,41 @@ def test_cli_writes_a_run(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["encoder"]["kind"] == "gabor-complex" and "pixel_mei_activation" in summary
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
+
+
+# ---------------------------------------------------------------------------------------------- demo model
+
+def _demo_or_skip():
+    from meshmei.encoders import DEMO_MODEL_PATH, load_demo_model
+
+    if not DEMO_MODEL_PATH.is_file():
+        pytest.skip("demo model not built (python data_gen/make_demo_model.py)")
+    return DEMO_MODEL_PATH, load_demo_model()
+
+
+def test_demo_model_ships_small_with_its_correlations():
+    path, model = _demo_or_skip()
+    info = json.loads(path.with_suffix(".json").read_text())
+    assert path.stat().st_size < 400_000
+    assert model.n_neurons == info["n_neurons"] == len(info["test_correlation_with_ground_truth"])
+    assert "SIMULATED" in info["what"] and not model.training
+    assert float(model.preprocess.mean) == pytest.approx(info["training_mean"])
+    assert info["mean_test_correlation_with_ground_truth"] >= 0.5
+    assert make_encoder_demo_kind(model) == "demo"
+
+
+def make_encoder_demo_kind(model):
+    from meshmei.mei import encoder_spec
+
+    return encoder_spec(model)["kind"]
+
+
+def test_demo_neuron_3d_mei_beats_random_meshes_and_pixel_mei_is_higher_still():
+    from meshmei.mei import random_mesh_responses
+
+    _, model = _demo_or_skip()
+    rand = random_mesh_responses(model, 0, "sphere", 1000)
+    res = optimize_mei(model, 0, "sphere", steps=150, seeds=(0,))
+    assert res.activation >= float(rand.max()), (res.activation, float(rand.max()))
+    pm = pixel_mei(model, 0, image_size=res.settings.image_size, steps=100, seeds=(0,))
+    assert pm.activation >= res.activation, (pm.activation, res.activation)
