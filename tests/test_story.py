@@ -43,3 +43,14 @@ def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
     with pytest.raises(FileExistsError, match="not empty"):
         run_story(tmp_path / "b", encoder=cell, preset=QUICK)
     assert (tmp_path / "b" / "keep.txt").read_text() == "mine"
+
+
+def test_demo_cli_quick_on_the_shipped_model(tmp_path, capsys):
+    from meshmei.encoders import DEMO_MODEL_PATH
+
+    if not DEMO_MODEL_PATH.is_file():
+        pytest.fail(f"the demo model must ship with the package: {DEMO_MODEL_PATH} is missing")
+    assert main(["demo", "--quick", "--out", str(tmp_path / "demo")]) == 0
+    s = json.loads((tmp_path / "demo" / "story.json").read_text())
+    assert s["mei_activation"] > 0 and math.isfinite(s["light_best_response"])
+    assert "3D-MEI response" in capsys.readouterr().out
