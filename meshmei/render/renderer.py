@@ -121,7 +121,8 @@ class Renderer:
     """
 
     def __init__(self, F, *, camera: Camera | None = None, light=None, settings: RenderSettings | None = None):
-        self.F = torch.as_tensor(F)
+        self.F = torch.as_tensor(F).long()
+        self._F_on = {self.F.device: self.F}  # one copy per device, so the topology cache keeps hitting
         self.camera = camera if camera is not None else Camera()
         self.light = light
         self.settings = settings if settings is not None else RenderSettings()
@@ -132,7 +133,7 @@ class Renderer:
         kw.setdefault("camera", self.camera)
         kw.setdefault("light", self.light)
         kw.setdefault("settings", self.settings)
-        F = self.F if self.F.device == V.device else self.F.to(V.device)
+        F = self._F_on.setdefault(V.device, self.F.to(V.device))
         return render(V, F, **kw)
 
     def __repr__(self):
