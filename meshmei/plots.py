@@ -108,13 +108,25 @@ def summary_sheet(run, stem, *, pixel_image=None, pixel_activation=None, views=(
     ax.imshow(run.image[0, 0].cpu().numpy(), cmap="gray", vmin=0, vmax=1)
     ax.set_title(f"3D-MEI render\nneuron {run.neuron}, response {run.activation:.3f}", fontsize=9)
     ax.axis("off")
-    base = run.scene()["rotation"]
+    import math
+
+    from .render import Camera
+
+    scene = run.scene()
+    base = scene["rotation"]
+    # frame the whole mesh: camera distance from its bounding sphere and the field of view, light at the camera
+    cam = scene["camera"]
+    radius = float((run.V - run.V.mean(0)).norm(dim=1).max())
+    half = math.radians(cam.fov_degrees) / 2
+    dist = max(float(torch.as_tensor(cam.eye).reshape(-1, 3)[0].norm()), 1.15 * radius / math.sin(half))
+    view_cam = Camera(eye=(0.0, 0.0, dist), fov_degrees=cam.fov_degrees, znear=cam.znear, zfar=max(cam.zfar, 4 * dist))
+    light = torch.tensor([0.0, 0.0, dist], dtype=run.V.dtype)
     for k, (azi, ele) in enumerate(views):
         R = pose_rotations([ele], [azi], dtype=run.V.dtype).reshape(3, 3) @ base.to(run.V.dtype)
         with torch.no_grad():
-            img = run.render(rotation=R[None])[0, 0].cpu().numpy()
+            img = run.render(rotation=R[None], camera=view_cam, light=light, translation=-(run.V.mean(0) @ R.T))
         a = fig.add_subplot(gs[0, 1 + k])
-        a.imshow(img, cmap="gray", vmin=0, vmax=1)
+        a.imshow(img[0, 0].cpu().numpy(), cmap="gray", vmin=0, vmax=1)
         a.set_title(f"mesh, azimuth {azi}, elevation {ele}", fontsize=9)
         a.axis("off")
     a = fig.add_subplot(gs[1, 0:2])

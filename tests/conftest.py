@@ -6,6 +6,11 @@ import numpy as np
 import pytest
 import torch
 
+# The tests are about correctness. Many small tensor ops run faster on one thread than on a pool that
+# stalls on each of them (measured: the render tests take 13 s single-threaded, 100 s with 2 threads on
+# a shared 2-core machine). Benchmarks set their own thread counts.
+torch.set_num_threads(1)
+
 
 def grid_sheet(nx: int = 6, ny: int = 5, *, dtype=torch.float64):
     """A regular right-triangle grid in z=0 (boundary, normals +z): (V, F)."""
