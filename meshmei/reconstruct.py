@@ -1,0 +1,634 @@
+"""Shape reconstruction by Chamfer minimisation: deform a starting mesh into a target surface.
+
+:func:`reconstruct` fits a source mesh (a sphere, a torus, any mesh) to a target by minimising a sampled
+Chamfer distance plus geometric regularizers with Adam, through one of three parameterisations:
+
+- ``"rbf"``: the paper's Gaussian RBF deformation (:class:`meshmei.deform.RBFDeformer`), kernels at all
+  vertices with learnable offsets and scales;
+- ``"vertex"``: free per-vertex offsets (the classic pytorch3d "deform a sphere" recipe);
+- ``"largesteps"``: ``u = (I + lambda L) V`` with a uniform Adam step (:mod:`meshmei.largesteps`).
+
+Optional coarse-to-fine stages remesh the current shape isotropically (pymeshlab) to more vertices between
+stages. The result carries the mesh, the history of loss and metrics against optimisation wall time
+(metric evaluation is timed separately and not counted), and the settings. ``meshmei reconstruct`` is the
+command-line front end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import MeshError
+from .mesh import check_mesh, load_mesh, save_mesh
+from .metrics import PointIndex, SurfaceMetrics, sample_points, surface_metrics
+from .regularizers import arap_direction_loss, edge_loss, laplacian_loss
+
+__all__ = [
+    "reconstruct",
+    "ReconstructionSettings",
+    "ReconstructionResult",
+    "METHODS",
+    "DEFAULTS",
+    "remesh",
+    "source_mesh",
+    "target_surface",
+    "add_parser",
+    "default_stages",
+]
+
+METHODS = ("rbf", "vertex", "largesteps")
+
+# Per-method defaults, tuned on sphere -> bunny and torus -> teapot at 2.5k and 10k vertices
+# (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal target.
+DEFAULTS = {
+    "rbf": dict(optimizer="uniform", lr=2e-3, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0),
+    "vertex": dict(optimizer="adam", lr=1e-3, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0),
+    "largesteps": dict(optimizer="uniform", lr=5e-2, lr_scale=0.0, w_laplacian=0.0, w_edge=0.0, w_arap=0.0),
+}
+
+
+@dataclass(frozen=True)
+class ReconstructionSettings:
+    """Everything that determines a reconstruction run (recorded in its result and history JSON).
+
+    Attributes
+    ----------
+    method : {"rbf", "vertex", "largesteps"}
+    steps : int or None
+        Stop after this many optimisation steps (over all stages).
+    time_budget : float or None
+        Stop after this many seconds of optimisation wall time (metric evaluation not counted). With both
+        ``steps`` and ``time_budget``, whichever ends first; the schedule (stages, learning-rate decay)
+        follows the fraction of the budget used.
+    lr : float
+        Adam learning rate (offsets for rbf, vertex offsets for vertex, ``u`` for largesteps).
+    lr_scale : float
+        Learning rate of the RBF log-scales (0 freezes them).
+    lr_decay : float
+        The learning rate decays geometrically to ``lr * lr_decay`` at the end of the run.
+    n_samples : int
+        Points sampled on the current mesh per step, and target points drawn per step.
+    target_pool : int
+        Size of the fixed pool of target samples; the source-to-target direction uses all of it (through
+        a KD-tree built once), so its resolution, not ``n_samples``, limits that direction.
+    w_laplacian, w_edge, w_arap : float
+        Weights of the uniform Laplacian, edge-length and direction-preserving ARAP regularizers.
+    optimizer : {"adam", "uniform"}
+        ``torch.optim.Adam`` (per-coordinate step normalisation) or :class:`~meshmei.largesteps.AdamUniform`
+        (one normalisation per tensor, which keeps the smoothness of a preconditioned gradient).
+    lam : float
+        Smoothing weight of the large-steps parameterisation ``I + lam L``.
+    sigma_factor, r_cut, centers : RBF kernel scale (in centre spacings), truncation radius (in scales) and
+        number of kernels (None: all vertices).
+    stages : tuple of int, or None
+        Vertex counts of coarse-to-fine stages; the source is remeshed to ``stages[0]`` at the start and the
+        current shape to each next count between stages. None: one stage at the source's resolution.
+    stage_fractions : tuple of float or None
+        Share of the steps / budget of each stage (default equal shares).
+    seed : int
+        Seed of all sampling (runs with ``steps`` are then bitwise repeatable).
+    eval_every : int or None
+        Evaluate :func:`surface_metrics` every this many steps (and always at the end).
+    eval_times : tuple of float
+        Also evaluate at the first step at or past each of these optimisation times (seconds).
+    eval_samples : int
+        Samples per surface for the metrics (100,000 is the project's reported metric).
+    """
+
+    method: str = "rbf"
+    steps: int | None = None
+    time_budget: float | None = None
+    lr: float | None = None
+    lr_scale: float | None = None
+    lr_decay: float = 0.1
+    n_samples: int = 10_000
+    target_pool: int = 200_000
+    w_laplacian: float | None = None
+    w_edge: float | None = None
+    w_arap: float | None = None
+    optimizer: str | None = None
+    lam: float = 19.0
+    sigma_factor: float = 1.0
+    r_cut: float = 4.0
+    centers: int | None = None
+    stages: tuple | None = None
+    stage_fractions: tuple | None = None
+    seed: int = 0
+    eval_every: int | None = None
+    eval_times: tuple = ()
+    eval_samples: int = 100_000
+
+    def resolved(self) -> "ReconstructionSettings":
+        """A copy with the per-method defaults filled in and every value checked."""
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        s = replace(self, **{k: v for k, v in DEFAULTS[self.method].items() if getattr(self, k) is None})
+        if s.steps is None and s.time_budget is None:
+            s = replace(s, steps=500)
+        if s.steps is not None and (isinstance(s.steps, bool) or int(s.steps) != s.steps or s.steps < 1):
+            raise ValueError(f"steps must be a positive integer, got {s.steps!r}")
+        if s.time_budget is not None and not (s.time_budget > 0 and math.isfinite(s.time_budget)):
+            raise ValueError(f"time_budget must be positive and finite, got {s.time_budget!r}")
+        for name in ("lr", "n_samples", "target_pool", "eval_samples", "r_cut", "sigma_factor"):
+            if not getattr(s, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(s, name)!r}")
+        for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam"):
+            if not getattr(s, name) >= 0:
+                raise ValueError(f"{name} must be non-negative, got {getattr(s, name)!r}")
+        if s.optimizer not in ("adam", "uniform"):
+            raise ValueError(f"optimizer must be 'adam' or 'uniform', got {s.optimizer!r}")
+        if not 0 < s.lr_decay <= 1:
+            raise ValueError(f"lr_decay must lie in (0, 1], got {s.lr_decay!r}")
+        if s.eval_every is not None and not s.eval_every >= 1:
+            raise ValueError(f"eval_every must be a positive integer or None, got {s.eval_every!r}")
+        if s.stages is not None:
+            stages = tuple(int(x) for x in s.stages)
+            if not stages or min(stages) < 32:
+                raise ValueError(f"stages must be vertex counts of at least 32, got {s.stages!r}")
+            fr = s.stage_fractions or tuple(1.0 / len(stages) for _ in stages)
+            if len(fr) != len(stages) or min(fr) <= 0:
+                raise ValueError(f"stage_fractions must give one positive share per stage, got {s.stage_fractions!r}")
+            tot = float(sum(fr))
+            s = replace(s, stages=stages, stage_fractions=tuple(float(f) / tot for f in fr))
+        elif s.stage_fractions is not None:
+            raise ValueError("stage_fractions needs stages")
+        return replace(s, eval_times=tuple(float(t) for t in s.eval_times))
+
+
+@dataclass(frozen=True)
+class ReconstructionResult:
+    """Output of :func:`reconstruct`.
+
+    Attributes
+    ----------
+    V : (n, 3) float tensor, the reconstructed vertices (detached)
+    F : (m, 3) int64 tensor
+    history : list of dict
+        One record per step: ``step``, ``stage``, ``time`` (optimisation seconds so far), ``loss``,
+        ``chamfer`` (the sampled Chamfer term), ``lr``.
+    metrics : list of dict
+        One record per evaluation: ``step``, ``time``, ``n_vertices``, ``eval_seconds`` and the fields of
+        :class:`~meshmei.metrics.SurfaceMetrics`.
+    settings : ReconstructionSettings (resolved)
+    final : SurfaceMetrics, the metrics of the returned mesh
+    wall_time : float, optimisation seconds (remeshing between stages included, evaluation excluded)
+    eval_time : float, seconds spent evaluating metrics
+    info : dict, e.g. the RBF truncation error and pair counts per stage
+    """
+
+    V: torch.Tensor
+    F: torch.Tensor
+    history: list
+    metrics: list
+    settings: ReconstructionSettings
+    final: SurfaceMetrics
+    wall_time: float
+    eval_time: float
+    info: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """A JSON-serialisable dict of everything except the mesh."""
+        return {
+            "settings": asdict(self.settings),
+            "final": self.final.as_dict(),
+            "wall_time": self.wall_time,
+            "eval_time": self.eval_time,
+            "n_vertices": int(self.V.shape[0]),
+            "n_faces": int(self.F.shape[0]),
+            "info": self.info,
+            "history": self.history,
+            "metrics": self.metrics,
+        }
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Meshes in and out
+
+
+def _normalise(V: torch.Tensor) -> torch.Tensor:
+    lo, hi = V.min(0).values, V.max(0).values
+    diag = float((hi - lo).norm())
+    if not diag > 0:
+        raise MeshError(f"mesh has zero extent (all {V.shape[0]} vertices coincide); cannot normalise it")
+    return (V - 0.5 * (lo + hi)) / diag
+
+
+def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
+    """Resolve a target: ``"bunny"``, ``"teapot"``, a mesh file path, or a ``(V, F)`` pair.
+
+    Files and pairs are centred and scaled to unit bounding-box diagonal (``normalize=True``), as the
+    named targets are, so metrics are comparable across targets.
+
+    Raises
+    ------
+    FileNotFoundError
+        A path that does not exist.
+    MeshError
+        A file that holds no mesh, an empty mesh, NaN coordinates, or a mesh of zero area.
+    """
+    from .shapes import TARGET_NAMES, target_mesh
+
+    if isinstance(spec, str) and spec in TARGET_NAMES:
+        V, F = target_mesh(spec, dtype=dtype)
+    else:
+        if isinstance(spec, (str, os.PathLike)):
+            V, F = load_mesh(spec, dtype=dtype)
+        else:
+            V, F = _pair(spec, "target")
+            V = V.to(dtype)
+        if normalize:
+            V = _normalise(V)
+    _check_area(V, F, "target")
+    return V, F
+
+
+def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32):
+    """Resolve a starting mesh: ``"sphere"``, ``"torus"``, ``"sheet"`` (made with ``n_vertices``), a mesh
+    file path (used as stored), or a ``(V, F)`` pair."""
+    from .shapes import INITIAL_KINDS, initial_mesh
+
+    if isinstance(spec, str) and spec in INITIAL_KINDS:
+        V, F = initial_mesh(spec, n_vertices=n_vertices, dtype=dtype)
+    elif isinstance(spec, (str, os.PathLike)):
+        V, F = load_mesh(spec, dtype=dtype)
+    else:
+        V, F = _pair(spec, "source")
+    _check_area(V, F, "source")
+    return V, F
+
+
+def _pair(spec, role):
+    try:
+        V, F = spec
+    except (TypeError, ValueError):
+        raise ValueError(f"{role} must be a name, a mesh file path or a (V, F) pair, got {type(spec).__name__}") from None
+    V, F = check_mesh(V, F)
+    return V.detach(), F
+
+
+def _area(V, F) -> float:
+    T = V.detach()[F].double()
+    return 0.5 * float(torch.linalg.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0], dim=-1).norm(dim=-1).sum())
+
+
+def _check_area(V, F, role):
+    area = _area(V, F)
+    if not area > 0:
+        raise MeshError(f"{role} mesh has zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
+
+
+def default_stages(n_vertices: int) -> tuple:
+    """The coarse-to-fine schedule used by the benchmark and the CLI: ``(n/4, n, n)`` with shares
+    ``(0.25, 0.45, 0.3)`` of the budget; the last stage restarts on a fresh isotropic remesh of the shape,
+    which clears folds and slivers left by the second. Returns ``(stages, stage_fractions)``."""
+    n = int(n_vertices)
+    return (max(32, n // 4), n, n), (0.25, 0.45, 0.3)
+
+
+def remesh(V, F, n_vertices: int, *, iterations: int = 5):
+    """Isotropic remeshing (pymeshlab) to about ``n_vertices`` vertices, for coarse-to-fine stages.
+
+    The target edge length is ``sqrt(2 A / (sqrt(3) n))`` for total area ``A`` (a near-equilateral closed
+    mesh has two triangles per vertex). Returns float tensors in the dtype of ``V`` and int64 faces.
+    """
+    import pymeshlab
+
+    V, F = check_mesh(V, F)
+    Vn = V.detach().cpu().double().numpy()
+    Fn = F.cpu().numpy().astype(np.int32)
+    T = Vn[Fn]
+    area = 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1).sum()
+    h = math.sqrt(2.0 * area / (math.sqrt(3.0) * n_vertices))
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vn, face_matrix=Fn))
+    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PureValue(h), iterations=iterations,
+                                            featuredeg=180.0, reprojectflag=True)
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    V2 = torch.as_tensor(np.asarray(m.vertex_matrix()), dtype=V.dtype, device=V.device)
+    F2 = torch.as_tensor(np.asarray(m.face_matrix(), dtype=np.int64), device=V.device)
+    return check_mesh(V2, F2)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Parameterisations: each maps learnable tensors to vertex positions
+
+
+class _Param:
+    def __init__(self, method, V0, F, s):
+        self.method = method
+        self.info = {}
+        if method == "vertex":
+            self.D = torch.zeros_like(V0, requires_grad=True)
+            self.V0 = V0
+            groups = [{"params": [self.D], "lr": s.lr}]
+        elif method == "rbf":
+            from .deform import RBFDeformer
+
+            self.rbf = RBFDeformer(V0, s.centers, sigma_factor=s.sigma_factor, r_cut=s.r_cut,
+                                   learn_scales=s.lr_scale > 0)
+            groups = [{"params": [self.rbf.offsets], "lr": s.lr}]
+            if s.lr_scale > 0:
+                groups.append({"params": [self.rbf.log_sigma], "lr": s.lr_scale})
+            self.info = {"n_kernels": self.rbf.n_kernels, "n_pairs_initial": self.rbf.n_pairs}
+        else:
+            from .largesteps import DifferentialSolver, system_matrix
+
+            self.solver = DifferentialSolver(system_matrix(F, V0.shape[0], s.lam))
+            self.u = self.solver.to_differential(V0).requires_grad_(True)
+            groups = [{"params": [self.u], "lr": s.lr}]
+        from .largesteps import AdamUniform
+
+        self.opt = AdamUniform(groups) if s.optimizer == "uniform" else torch.optim.Adam(groups)
+        for g in self.opt.param_groups:
+            g["lr0"] = g["lr"]
+
+    def vertices(self):
+        if self.method == "vertex":
+            return self.V0 + self.D
+        if self.method == "rbf":
+            return self.rbf()
+        return self.solver.solve(self.u)
+
+    def set_lr_factor(self, f):
+        for g in self.opt.param_groups:
+            g["lr"] = g["lr0"] * f
+
+    def finish(self):
+        if self.method == "rbf":
+            self.info.update(n_pairs_final=self.rbf.n_pairs, n_rebuilds=self.rbf.n_rebuilds,
+                             truncation_error=self.rbf.truncation_error,
+                             sigma_median=float(self.rbf.sigma.detach().median()))
+        return self.info
+
+
+# ---------------------------------------------------------------------------------------------------------
+
+
+def reconstruct(source, target, method: str = "rbf", *, settings: ReconstructionSettings | None = None,
+                progress: bool = False, callback=None, **kwargs) -> ReconstructionResult:
+    """Deform ``source`` into ``target`` by minimising Chamfer distance plus regularizers with Adam.
+
+    The loss per step is ``chamfer + w_laplacian * laplacian_loss + w_edge * edge_loss + w_arap *
+    arap_direction_loss`` where ``chamfer`` is the mean squared distance from ``n_samples`` fresh
+    area-uniform samples of the current mesh to their nearest points in a fixed pool of target samples,
+    plus the mean squared distance from ``n_samples`` pool points to their nearest current samples.
+
+    Parameters
+    ----------
+    source : (V, F) pair, a mesh file path, or "sphere" / "torus" / "sheet" (2,500 vertices)
+        Starting mesh, used as given (no normalisation).
+    target : (V, F) pair, a mesh file path, or "bunny" / "teapot"
+        Target surface; paths and pairs are normalised to unit bounding-box diagonal and centred.
+    method : {"rbf", "vertex", "largesteps"}
+    settings : ReconstructionSettings, optional
+        All other options (see its attributes); keyword arguments override its fields, e.g.
+        ``reconstruct(src, "bunny", steps=300, lr=1e-3)``.
+    progress : bool
+        Show a tqdm progress bar (over steps, or seconds of the budget).
+    callback : callable, optional
+        ``callback(step, V, loss)`` after every step (``V`` detached).
+
+    Returns
+    -------
+    ReconstructionResult
+
+    Raises
+    ------
+    ValueError
+        Unknown method or a bad setting. ``MeshError`` (a ``ValueError``) for an invalid source or target
+        (empty, NaN coordinates, zero area); ``FileNotFoundError`` for a missing file. All before the
+        first step.
+
+    Examples
+    --------
+    >>> from meshmei.shapes import initial_mesh
+    >>> res = reconstruct(initial_mesh("sphere", n_vertices=200), "bunny", "largesteps", steps=5,
+    ...                   n_samples=500, target_pool=2000, eval_samples=1000)
+    >>> len(res.history), res.V.shape == (200, 3) or res.V.shape[1] == 3
+    (5, True)
+    """
+    s = replace(settings or ReconstructionSettings(), method=method, **kwargs).resolved()
+    Vt, Ft = target_surface(target)
+    V, F = source_mesh(source)
+    Vt = Vt.to(V.dtype)
+    g = torch.Generator(device=V.device).manual_seed(s.seed)
+
+    with torch.no_grad():
+        pool = sample_points(Vt, Ft, s.target_pool, generator=g)  # (Np, 3) fixed target samples
+    # Nearest neighbours are exact within 10 sample spacings of a surface and near-nearest beyond (where
+    # exact KD-tree queries get slow and the neighbour's exact identity hardly matters).
+    pool_index = PointIndex(pool)
+
+    stages = s.stages or (None,)
+    bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
+    history, metrics, info = [], [], {"stages": []}
+    opt_time, eval_time = 0.0, 0.0
+    pending_times = sorted(s.eval_times)
+
+    def progress_fraction(step, t):
+        f = 0.0
+        if s.steps is not None:
+            f = max(f, step / s.steps)
+        if s.time_budget is not None:
+            f = max(f, t / s.time_budget)
+        return f
+
+    def evaluate(step, Vc, Fc, health=False):
+        nonlocal eval_time
+        t0 = time.perf_counter()
+        m = surface_metrics(Vc, Fc, Vt, Ft, n_samples=s.eval_samples, seed=s.seed, health=health)
+        dt = time.perf_counter() - t0
+        eval_time += dt
+        rec = {"step": step, "time": opt_time, "n_vertices": int(Vc.shape[0]), "eval_seconds": dt}
+        rec.update(m.as_dict())
+        metrics.append(rec)
+        return m
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        total = s.steps if s.time_budget is None else s.time_budget
+        bar = tqdm(total=total, unit="step" if s.time_budget is None else "s", desc=f"reconstruct[{s.method}]",
+                   bar_format=None if s.time_budget is None else "{l_bar}{bar}| {n:.1f}/{total:.0f} s {postfix}")
+
+    step = 0
+    t_start = time.perf_counter()
+    done = False
+    last_eval_step = -1
+    for k, n_stage in enumerate(stages):
+        t0 = time.perf_counter()
+        if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
+            V, F = remesh(V, F, n_stage)
+        param = _Param(s.method, V.detach(), F, s)
+        opt_time += time.perf_counter() - t0
+        last_stage = k == len(stages) - 1
+        while True:
+            f = progress_fraction(step, opt_time)
+            if f >= 1.0 or (not last_stage and f >= bounds[k + 1]):
+                done = f >= 1.0
+                break
+            t0 = time.perf_counter()
+            param.set_lr_factor(s.lr_decay ** f)
+            param.opt.zero_grad(set_to_none=True)
+            Vc = param.vertices()
+            P = sample_points(Vc, F, s.n_samples, generator=g)
+            sub = torch.randint(0, s.target_pool, (s.n_samples,), generator=g, device=V.device)
+            Q = pool[sub]
+            i_pq = torch.from_numpy(pool_index.query(P))
+            i_qp = torch.from_numpy(PointIndex(P).query(Q))
+            cd = ((P - pool[i_pq]) ** 2).sum(-1).mean() + ((Q - P[i_qp]) ** 2).sum(-1).mean()
+            loss = cd
+            if s.w_laplacian > 0:
+                loss = loss + s.w_laplacian * laplacian_loss(Vc, F)
+            if s.w_edge > 0:
+                loss = loss + s.w_edge * edge_loss(Vc, F)
+            if s.w_arap > 0:
+                loss = loss + s.w_arap * arap_direction_loss(Vc, param_rest(param, V), F)
+            loss.backward()
+            param.opt.step()
+            step += 1
+            dt = time.perf_counter() - t0
+            opt_time += dt
+            lv = float(loss.detach())
+            if not math.isfinite(lv):
+                raise FloatingPointError(f"loss became {lv} at step {step}; lower the learning rate (lr={s.lr})")
+            history.append({"step": step, "stage": k, "time": opt_time, "loss": lv, "chamfer": float(cd.detach()),
+                            "lr": param.opt.param_groups[0]["lr"]})
+            if bar is not None:
+                bar.update(1 if s.time_budget is None else dt)
+                if step % 10 == 0:
+                    bar.set_postfix(loss=f"{lv:.3e}", n=int(V.shape[0]))
+            if callback is not None:
+                callback(step, Vc.detach(), lv)
+            due = s.eval_every is not None and step % s.eval_every == 0
+            while pending_times and opt_time >= pending_times[0]:
+                pending_times.pop(0)
+                due = True
+            if due:
+                with torch.no_grad():
+                    evaluate(step, param.vertices().detach(), F)
+                last_eval_step = step
+        with torch.no_grad():
+            V = param.vertices().detach()
+        info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": step, **param.finish()})
+        if done:
+            break
+    if bar is not None:
+        bar.close()
+    if last_eval_step == step and metrics:
+        metrics.pop()  # re-evaluated below with the health checks
+    final = evaluate(step, V, F, health=True)
+    info["total_seconds"] = time.perf_counter() - t_start
+    return ReconstructionResult(V=V, F=F, history=history, metrics=metrics, settings=s, final=final,
+                                wall_time=opt_time, eval_time=eval_time, info=info)
+
+
+def param_rest(param, V):
+    return param.V0 if param.method == "vertex" else V
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Output files and the command line
+
+
+def plot_history(result: ReconstructionResult, path_prefix) -> list[Path]:
+    """Write ``<prefix>loss.png`` (loss against time) and ``<prefix>metrics.png`` (Chamfer-L2, F-score,
+    normal consistency against time); returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    prefix = str(path_prefix)
+    h = result.history
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.semilogy([r["time"] for r in h], [r["loss"] for r in h], lw=0.8)
+    ax.set_xlabel("optimisation time (s)")
+    ax.set_ylabel("loss")
+    ax.set_title(f"{result.settings.method}: training loss")
+    fig.tight_layout()
+    p1 = Path(prefix + "loss.png")
+    fig.savefig(p1, dpi=120)
+    plt.close(fig)
+    m = result.metrics
+    fig, axs = plt.subplots(1, 3, figsize=(12, 3.5))
+    t = [r["time"] for r in m]
+    axs[0].semilogy(t, [r["chamfer_l2"] for r in m], "o-")
+    axs[0].set_ylabel("Chamfer-L2")
+    axs[1].plot(t, [r["fscore"] for r in m], "o-")
+    axs[1].set_ylabel("F-score @ 1%")
+    axs[2].plot(t, [r["normal_consistency"] for r in m], "o-")
+    axs[2].set_ylabel("normal consistency")
+    for a in axs:
+        a.set_xlabel("optimisation time (s)")
+    fig.tight_layout()
+    p2 = Path(prefix + "metrics.png")
+    fig.savefig(p2, dpi=120)
+    plt.close(fig)
+    return [p1, p2]
+
+
+def add_parser(subparsers) -> None:
+    """Add ``meshmei reconstruct`` to an argparse subparsers object."""
+    p = subparsers.add_parser(
+        "reconstruct",
+        help="deform a sphere/torus/mesh into a target mesh by Chamfer minimisation",
+        description="Deform a starting mesh into a target by Chamfer minimisation; writes mesh.obj, "
+                    "history.json, loss.png and metrics.png to --out.",
+    )
+    p.add_argument("--init", default="sphere", help="sphere, torus, sheet, or a mesh file (default sphere)")
+    p.add_argument("--target", required=True, help="bunny, teapot, or a mesh file (normalised to unit diagonal)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--method", choices=METHODS, default="rbf")
+    p.add_argument("--n-vertices", type=int, default=2500, help="vertices of a generated --init mesh")
+    p.add_argument("--steps", type=int, default=None)
+    p.add_argument("--time-budget", type=float, default=None, help="seconds of optimisation")
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--samples", type=int, default=10_000, help="Chamfer samples per step")
+    p.add_argument("--stages", default="auto",
+                   help="comma-separated vertex counts, e.g. 600,2500,2500; 'auto' (default): n/4,n,n; 'none': one stage")
+    p.add_argument("--eval-every", type=int, default=None)
+    p.add_argument("--eval-samples", type=int, default=100_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_run_cli)
+
+
+def _run_cli(args) -> int:
+    # Resolve and check both meshes first: bad input fails before any optimisation starts.
+    target = target_surface(args.target)
+    source = source_mesh(args.init, n_vertices=args.n_vertices)
+    stages, fractions = None, None
+    if args.stages == "auto":
+        stages, fractions = default_stages(source[0].shape[0])
+    elif args.stages and args.stages != "none":
+        try:
+            stages = tuple(int(x) for x in args.stages.split(","))
+        except ValueError:
+            raise ValueError(f"--stages must be 'auto', 'none' or comma-separated integers, got {args.stages!r}") from None
+    if args.steps is None and args.time_budget is None:
+        args.steps = 500
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    res = reconstruct(source, target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
+                      n_samples=args.samples, stages=stages, stage_fractions=fractions, eval_every=args.eval_every,
+                      eval_samples=args.eval_samples, seed=args.seed, progress=not args.no_progress)
+    save_mesh(out / "mesh.obj", res.V, res.F)
+    record = res.to_json()
+    record["init"], record["target"] = str(args.init), str(args.target)
+    (out / "history.json").write_text(json.dumps(record, indent=1))
+    plot_history(res, out / "")
+    f = res.final
+    print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
+          f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}; wrote {out}")
+    return 0
