@@ -236,7 +236,8 @@ class RBFDeformer(torch.nn.Module):
         self._ensure_covered()
         w = self._pair_weights()
         n = self.V0.shape[0]
-        return torch.sparse_coo_tensor(torch.stack([self._rows, self._cols]), w, (n, self.n_kernels))
+        return torch.sparse_coo_tensor(torch.stack([self._rows, self._cols]), w, (n, self.n_kernels),
+                                       check_invariants=False)
 
     def _pair_weights(self) -> torch.Tensor:
         inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)

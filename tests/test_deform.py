@@ -1,0 +1,176 @@
+"""RBF deformation: truncated sparse map against the dense reference, gradients, rebuilds, centre choice."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meshmei.deform import RBFDeformer, farthest_point_sampling, rbf_dense
+from meshmei.errors import MeshError
+
+from conftest import icosphere
+
+
+def _random_params(rbf, seed=0, spread=0.3):
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        rbf.offsets.copy_(0.1 * torch.randn(rbf.offsets.shape, generator=g, dtype=rbf.offsets.dtype))
+        rbf.log_sigma.add_(spread * torch.randn(rbf.log_sigma.shape, generator=g, dtype=rbf.log_sigma.dtype))
+
+
+def _dense_weights(rbf):
+    C = rbf.V0[rbf.center_index]
+    d2 = torch.cdist(rbf.V0, C) ** 2
+    return torch.exp(-d2 / (2 * rbf.sigma.detach() ** 2))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_zero_offsets_give_rest_pose(dtype):
+    V0, _ = icosphere(2, dtype=dtype)
+    rbf = RBFDeformer(V0)
+    out = rbf()
+    assert out.dtype == dtype
+    assert torch.equal(out, V0)
+
+
+@pytest.mark.parametrize("r_cut", [2.0, 3.0, 4.0])
+def test_truncated_equals_dense_to_the_reported_bound(r_cut):
+    V0, _ = icosphere(2)  # 162 vertices
+    rbf = RBFDeformer(V0, r_cut=r_cut, headroom=1.0, sigma_factor=2.0)
+    _random_params(rbf)
+    V = rbf()  # scales may have grown: the call rebuilds as needed
+    err = rbf.truncation_error
+    assert err <= math.exp(-r_cut**2 / 2) * (1 + 1e-12)
+    # every weight the sparse map drops is at most the reported error
+    Wd = _dense_weights(rbf)
+    Ws = rbf.weights().detach().to_dense()
+    dropped = Wd - Ws
+    assert float(dropped.min()) >= -1e-12
+    assert float(dropped.max()) <= err * (1 + 1e-9)
+    # hence the displacement error is bounded by err times the summed offset norms
+    Vd = rbf_dense(V0, V0[rbf.center_index], rbf.offsets.detach(), rbf.sigma.detach())
+    bound = err * float(rbf.offsets.detach().norm(dim=1).sum())
+    assert float((V.detach() - Vd).norm(dim=1).max()) <= bound
+    # and the truncation is real at small r_cut (the test would not notice a dense fallback otherwise)
+    assert rbf.n_pairs < V0.shape[0] * rbf.n_kernels
+
+
+def test_gradients_match_dense_reference():
+    V0, _ = icosphere(1)  # 42 vertices
+    rbf = RBFDeformer(V0, r_cut=12.0, sigma_factor=1.5)  # dropped weights < 1e-31: exact in float64
+    _random_params(rbf, seed=1)
+    target = torch.randn(V0.shape, dtype=V0.dtype, generator=torch.Generator().manual_seed(2))
+    loss = ((rbf() - target) ** 2).sum()
+    g_off, g_ls = torch.autograd.grad(loss, [rbf.offsets, rbf.log_sigma])
+    off = rbf.offsets.detach().clone().requires_grad_(True)
+    ls = rbf.log_sigma.detach().clone().requires_grad_(True)
+    loss_d = ((rbf_dense(V0, V0[rbf.center_index], off, torch.exp(ls)) - target) ** 2).sum()
+    r_off, r_ls = torch.autograd.grad(loss_d, [off, ls])
+    torch.testing.assert_close(g_off, r_off, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(g_ls, r_ls, rtol=1e-10, atol=1e-12)
+    assert float(g_ls.abs().max()) > 0
+
+
+def test_gradcheck_offsets_and_scales():
+    V0, _ = icosphere(0)
+    rbf = RBFDeformer(V0, r_cut=3.0)
+    _random_params(rbf, seed=3, spread=0.1)
+    rbf()  # settle the pair list so that gradcheck's perturbations do not rebuild it
+
+    def f(off, ls):
+        return torch.func.functional_call(rbf, {"offsets": off, "log_sigma": ls}, ())
+
+    off = rbf.offsets.detach().clone().requires_grad_(True)
+    ls = rbf.log_sigma.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(f, (off, ls))
+    assert rbf.n_rebuilds == 0
+
+
+def test_pair_list_rebuilt_only_when_a_scale_outgrows_it():
+    V0, _ = icosphere(3)
+    rbf = RBFDeformer(V0, headroom=1.5)
+    assert rbf.n_rebuilds == 0
+    n0 = rbf.n_pairs
+    with torch.no_grad():
+        rbf.log_sigma.add_(math.log(1.4))  # within the headroom
+    rbf()
+    assert rbf.n_rebuilds == 0
+    with torch.no_grad():
+        rbf.log_sigma[5] += math.log(1.2)  # one kernel now 1.68x its build scale: past the headroom
+    rbf()
+    assert rbf.n_rebuilds == 1
+    assert rbf.n_pairs > n0
+    assert rbf.truncation_error <= math.exp(-rbf.r_cut**2 / 2) * (1 + 1e-12)
+    with torch.no_grad():
+        rbf.log_sigma.sub_(math.log(3.0))  # shrinking never needs a rebuild
+    rbf()
+    assert rbf.n_rebuilds == 1
+
+
+def test_pairs_grow_linearly_with_vertices():
+    per_vertex = []
+    for s in (3, 4):
+        V0, _ = icosphere(s)
+        rbf = RBFDeformer(V0)
+        per_vertex.append(rbf.n_pairs / V0.shape[0])
+    # a fixed scale in units of the spacing keeps the pairs per kernel constant as the mesh is refined
+    assert per_vertex[1] == pytest.approx(per_vertex[0], rel=0.25)
+
+
+@pytest.mark.slow
+def test_all_vertex_kernels_on_the_bunny_fit_in_memory():
+    from meshmei.shapes import target_mesh
+
+    V0, _ = target_mesh("bunny")  # 28,088 vertices
+    rbf = RBFDeformer(V0)
+    assert rbf.n_kernels == V0.shape[0]
+    assert rbf.n_pairs < 400 * V0.shape[0]  # about 8e6 pairs, versus 7.9e8 entries dense
+    with torch.no_grad():
+        rbf.offsets.normal_(std=1e-3)
+    rbf().sum().backward()
+    assert rbf.offsets.grad.shape == rbf.offsets.shape
+
+
+def test_farthest_point_centres():
+    V0, _ = icosphere(2)
+    idx = farthest_point_sampling(V0, 12)
+    assert len(set(idx.tolist())) == 12
+    assert int(idx[0]) == 0
+    # greedy property: each pick is a point farthest from those picked before it
+    for i in range(1, 12):
+        d = torch.cdist(V0, V0[idx[:i]]).min(dim=1).values
+        assert float(d[idx[i]]) == pytest.approx(float(d.max()), rel=1e-12)
+    # and the result is a 2-approximation of the best spread of 12 points (the icosahedron's)
+    C = V0[idx]
+    d = torch.cdist(C, C) + torch.eye(12, dtype=V0.dtype) * 10
+    edge = 4 / math.sqrt(10 + 2 * math.sqrt(5))  # icosahedron edge on the unit sphere
+    assert float(d.min()) >= edge / 2
+    rbf = RBFDeformer(V0, 12)
+    assert rbf.n_kernels == 12 and torch.equal(rbf.center_index, idx)
+    rbf2 = RBFDeformer(V0, torch.tensor([0, 5, 7]))
+    assert rbf2.offsets.shape == (3, 3)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(V0=torch.zeros(0, 3)), "empty"),
+        (dict(V0=torch.zeros(4, 2)), r"\(n, 3\)"),
+        (dict(V0=torch.tensor([[0.0, 0, 0], [float("nan"), 0, 0]])), "NaN"),
+        (dict(V0=torch.rand(5, 3), r_cut=0.0), "r_cut"),
+        (dict(V0=torch.rand(5, 3), centers=torch.tensor([0, 9])), "out of range"),
+        (dict(V0=torch.rand(5, 3), centers=torch.tensor([0.5])), "integer"),
+        (dict(V0=torch.rand(5, 3), sigma=-1.0), "sigma"),
+        (dict(V0=torch.rand(5, 3), centers=9), "between 1 and 5"),
+    ],
+)
+def test_bad_input_raises(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        RBFDeformer(**kwargs)
+
+
+def test_bad_mesh_is_a_mesh_error():
+    with pytest.raises(MeshError):
+        RBFDeformer(torch.zeros(0, 3))
