@@ -28,7 +28,7 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh, load_mesh, save_mesh
-from .metrics import PointIndex, SurfaceMetrics, sample_points, surface_metrics
+from .metrics import PointIndex, SurfaceMetrics, mesh_health, sample_points, surface_metrics
 from .regularizers import arap_direction_loss, edge_loss, laplacian_loss
 
 __all__ = [
@@ -42,6 +42,7 @@ __all__ = [
     "target_surface",
     "add_parser",
     "default_stages",
+    "plot_history",
 ]
 
 METHODS = ("rbf", "vertex", "largesteps")
@@ -240,13 +241,13 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
         V, F = target_mesh(spec, dtype=dtype)
     else:
         if isinstance(spec, (str, os.PathLike)):
-            V, F = load_mesh(spec, dtype=dtype)
+            V, F = _load(spec, "target", dtype)
         else:
             V, F = _pair(spec, "target")
             V = V.to(dtype)
         if normalize:
             V = _normalise(V)
-    _check_area(V, F, "target")
+    _check_area(V, F, f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target")
     return V, F
 
 
@@ -258,11 +259,20 @@ def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32):
     if isinstance(spec, str) and spec in INITIAL_KINDS:
         V, F = initial_mesh(spec, n_vertices=n_vertices, dtype=dtype)
     elif isinstance(spec, (str, os.PathLike)):
-        V, F = load_mesh(spec, dtype=dtype)
+        V, F = _load(spec, "source", dtype)
     else:
         V, F = _pair(spec, "source")
-    _check_area(V, F, "source")
+    _check_area(V, F, f"source {spec}" if isinstance(spec, (str, os.PathLike)) else "source")
     return V, F
+
+
+def _load(path, role, dtype):
+    try:
+        return load_mesh(path, dtype=dtype)
+    except MeshError as err:
+        if str(path) in str(err):
+            raise
+        raise MeshError(f"{role} {path}: {err}") from None
 
 
 def _pair(spec, role):
@@ -433,6 +443,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
     history, metrics, info = [], [], {"stages": []}
     opt_time, eval_time = 0.0, 0.0
     pending_times = sorted(s.eval_times)
+    last_metrics = []
 
     def progress_fraction(step, t):
         f = 0.0
@@ -451,6 +462,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         rec = {"step": step, "time": opt_time, "n_vertices": int(Vc.shape[0]), "eval_seconds": dt}
         rec.update(m.as_dict())
         metrics.append(rec)
+        last_metrics[:] = [m]
         return m
 
     bar = None
@@ -526,8 +538,15 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
     if bar is not None:
         bar.close()
     if last_eval_step == step and metrics:
-        metrics.pop()  # re-evaluated below with the health checks
-    final = evaluate(step, V, F, health=True)
+        # the last step was just evaluated: add the health check instead of sampling again
+        t0 = time.perf_counter()
+        si = mesh_health(V, F).self_intersections
+        dt = time.perf_counter() - t0
+        eval_time += dt
+        metrics[-1].update(self_intersections=si, eval_seconds=metrics[-1]["eval_seconds"] + dt)
+        final = replace(last_metrics[0], self_intersections=si)
+    else:
+        final = evaluate(step, V, F, health=True)
     info["total_seconds"] = time.perf_counter() - t_start
     return ReconstructionResult(V=V, F=F, history=history, metrics=metrics, settings=s, final=final,
                                 wall_time=opt_time, eval_time=eval_time, info=info)
@@ -541,15 +560,16 @@ def param_rest(param, V):
 # Output files and the command line
 
 
-def plot_history(result: ReconstructionResult, path_prefix) -> list[Path]:
-    """Write ``<prefix>loss.png`` (loss against time) and ``<prefix>metrics.png`` (Chamfer-L2, F-score,
-    normal consistency against time); returns the paths."""
+def plot_history(result: ReconstructionResult, out_dir) -> list[Path]:
+    """Write ``loss.png`` (loss against time) and ``metrics.png`` (Chamfer-L2, F-score, normal consistency
+    against time) into ``out_dir``; returns the paths."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    prefix = str(path_prefix)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     h = result.history
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.semilogy([r["time"] for r in h], [r["loss"] for r in h], lw=0.8)
@@ -557,7 +577,7 @@ def plot_history(result: ReconstructionResult, path_prefix) -> list[Path]:
     ax.set_ylabel("loss")
     ax.set_title(f"{result.settings.method}: training loss")
     fig.tight_layout()
-    p1 = Path(prefix + "loss.png")
+    p1 = out_dir / "loss.png"
     fig.savefig(p1, dpi=120)
     plt.close(fig)
     m = result.metrics
@@ -572,7 +592,7 @@ def plot_history(result: ReconstructionResult, path_prefix) -> list[Path]:
     for a in axs:
         a.set_xlabel("optimisation time (s)")
     fig.tight_layout()
-    p2 = Path(prefix + "metrics.png")
+    p2 = out_dir / "metrics.png"
     fig.savefig(p2, dpi=120)
     plt.close(fig)
     return [p1, p2]
@@ -627,7 +647,7 @@ def _run_cli(args) -> int:
     record = res.to_json()
     record["init"], record["target"] = str(args.init), str(args.target)
     (out / "history.json").write_text(json.dumps(record, indent=1))
-    plot_history(res, out / "")
+    plot_history(res, out)
     f = res.final
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
           f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}; wrote {out}")
