@@ -191,3 +191,12 @@ def test_torus_to_teapot_with_default_stages():
     res = reconstruct(src, "teapot", "rbf", steps=300, stages=stages, stage_fractions=fr)
     assert res.final.chamfer_l2 < 2e-4
     assert res.final.fscore > 0.9
+
+
+@pytest.mark.parametrize("module", ["meshmei.deform", "meshmei.metrics", "meshmei.largesteps", "meshmei.reconstruct"])
+def test_docstring_examples_run(module):
+    import doctest
+    import importlib
+
+    res = doctest.testmod(importlib.import_module(module))
+    assert res.attempted > 0 and res.failed == 0

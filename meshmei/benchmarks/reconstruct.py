@@ -156,12 +156,59 @@ def plot(results, floors, out):
         plt.close(fig)
 
 
+def rbf_cost(quick=False):
+    """Pairs, memory and forward+backward time of the truncated RBF map against resolution, r_cut and scale."""
+    from ..deform import RBFDeformer
+    from ._report import timeit
+
+    rows = []
+    meshes = [("sphere", n) for n in ((500, 2000) if quick else (2500, 10000))]
+    meshes.append(("bunny", None))
+    for kind, n in meshes:
+        V0 = target_mesh("bunny")[0] if kind == "bunny" else initial_mesh("sphere", n_vertices=n)[0]
+        for sigma_factor, r_cut in ((1.0, 3.0), (1.0, 4.0), (1.0, 5.0), (2.0, 4.0)):
+            t0 = time.perf_counter()
+            rbf = RBFDeformer(V0, sigma_factor=sigma_factor, r_cut=r_cut)
+            build = time.perf_counter() - t0
+            with torch.no_grad():
+                rbf.offsets.normal_(std=1e-3)
+
+            def step():
+                rbf.zero_grad(set_to_none=True)
+                (rbf() ** 2).sum().backward()
+
+            t = timeit(step, repeat=3 if quick else 5)
+            mb = rbf.n_pairs * (8 + 8 + 4 * 2 + 4 * 3 * 2) / 2**20  # indices, distance, weight, (P, 3) fwd/bwd
+            rows.append([f"{kind} {V0.shape[0]}", sigma_factor, r_cut, f"{rbf.truncation_error:.1e}", rbf.n_pairs,
+                         f"{rbf.n_pairs / V0.shape[0]:.0f}", f"{mb:.0f}", f"{build:.2f}", f"{1e3 * t:.1f}"])
+            print(rows[-1], flush=True)
+    body = [
+        "Written by `python -m meshmei.benchmarks.reconstruct --rbf-cost`. " + machine_line() + ".",
+        "",
+        "All-vertex Gaussian kernels (`RBFDeformer(V0, sigma_factor=..., r_cut=...)`, headroom 1.25). "
+        "`sigma` is `sigma_factor` times the mean centre spacing; pairs within `1.25 * r_cut * sigma` are kept, "
+        "so the largest dropped weight is at most `exp(-r_cut^2 / 2)` (the column shows the value at build). "
+        "Memory: pair indices and distances plus the per-pair temporaries of one forward and backward pass "
+        "(float32). Time: one forward and backward pass, single thread, median of 5.",
+        "",
+        markdown_table(["mesh", "sigma_factor", "r_cut", "max dropped weight", "pairs", "pairs / kernel",
+                        "memory (MiB)", "build (s)", "fwd+bwd (ms)"], rows),
+    ]
+    write_section("reconstruction-rbf-cost", "\n".join(body))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="tiny budgets, to check that the script runs")
+    ap.add_argument("--rbf-cost", action="store_true", help="only the RBF cost table (section reconstruction-rbf-cost)")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep results of configurations not re-run from docs/reconstruction_benchmark.json")
     ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of " + ", ".join(VARIANTS))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.rbf_cost:
+        rbf_cost(args.quick)
+        return
     budgets = (1.0, 2.0, 3.0) if args.quick else BUDGETS
     resolutions = (300,) if args.quick else RESOLUTIONS
     eval_samples = 5000 if args.quick else 100_000
@@ -170,6 +217,10 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     results, floors = {}, {}
     raw_path = out / "reconstruction_benchmark.json"
+    if args.merge and raw_path.exists():
+        # keep the configurations not re-run now, so a subset (--variants) can be refreshed on its own
+        old = json.loads(raw_path.read_text())
+        results, floors = old["results"], old["floors"]
     t_all = time.perf_counter()
     for prob, init in PROBLEMS:
         Vt, Ft = target_mesh(prob)
