@@ -29,8 +29,8 @@ def sphere():
     return initial_mesh("sphere", n_vertices=300)
 
 
-# Measured on this problem (80 steps): rbf 0.15, vertex 0.69, largesteps 0.03 of the initial Chamfer-L2.
-@pytest.mark.parametrize("method, ratio", [("rbf", 0.3), ("vertex", 0.85), ("largesteps", 0.1)])
+# Measured on this problem (80 steps): rbf 0.008, vertex 0.69, largesteps 0.03 of the initial Chamfer-L2.
+@pytest.mark.parametrize("method, ratio", [("rbf", 0.05), ("vertex", 0.85), ("largesteps", 0.1)])
 def test_each_method_reduces_chamfer(sphere, bunny, method, ratio):
     before = surface_metrics(*sphere, *bunny, n_samples=5000).chamfer_l2
     res = reconstruct(sphere, bunny, method, steps=80, **SMALL)
@@ -142,6 +142,10 @@ def test_other_bad_input(sphere, bunny, tmp_path):
         reconstruct(sphere, bunny, steps=5, stages=(100, 300), stage_fractions=(1.0,))
     with pytest.raises(ValueError, match="optimizer"):
         ReconstructionSettings(optimizer="sgd").resolved()
+    with pytest.raises(ValueError, match="lr_decay"):
+        ReconstructionSettings(lr_decay=0.0).resolved()
+    s = ReconstructionSettings(method="rbf", lr=1e-3).resolved()
+    assert s.lr == 1e-3 and s.reg_decay is True and s.optimizer == "uniform" and s.steps == 500
     with pytest.raises(ValueError, match="source"):
         source_mesh(42)
 

@@ -31,7 +31,7 @@ VARIANTS = {
     "rbf": ("rbf", {}),
     "vertex": ("vertex", {}),
     "largesteps": ("largesteps", {}),
-    "rbf-nolap": ("rbf", {"w_laplacian": 0.0}),
+    "rbf-nolap": ("rbf", {"w_laplacian": 0.0, "lr": 2e-3}),
 }
 TARGETS = {"bunny": 2e-6, "teapot": 5e-6}
 
@@ -62,6 +62,18 @@ def _fmt(x):
     return "-" if x is None else f"{x:.2e}"
 
 
+def _ordered(results):
+    """Results sorted by problem, resolution and variant, in the order the benchmark defines them."""
+    probs = [p for p, _ in PROBLEMS]
+    names = list(VARIANTS)
+
+    def key(k):
+        prob, n, name = k.split("|")
+        return (probs.index(prob) if prob in probs else 99, int(n), names.index(name) if name in names else 99)
+
+    return [(k, results[k]) for k in sorted(results, key=key)]
+
+
 def render(results, floors, quick, budgets=BUDGETS):
     lines = [
         "Written by `python -m meshmei.benchmarks.reconstruct`. " + machine_line() + ".",
@@ -81,7 +93,7 @@ def render(results, floors, quick, budgets=BUDGETS):
     header = (["problem", "n", "method"] + [f"CD-L2 @{t:g} s" for t in budgets]
               + [f"F @{T}", f"NC @{T}", f"SI @{T}", f"steps @{T}"])
     rows = []
-    for key, r in results.items():
+    for key, r in _ordered(results):
         prob, n, name = key.split("|")
         b = r["budgets"]
         last = b.get(str(budgets[-1]))
@@ -104,7 +116,7 @@ def render(results, floors, quick, budgets=BUDGETS):
                          f"{lim:.0e}: {'met' if c < lim else 'not met'}.")
     lines.append(f"- Time to reach the Chamfer levels that largesteps reaches (from the {budgets[-1]:g} s curves; "
                  "'yes' if the method gets to every such level no later than largesteps):")
-    for key, r in results.items():
+    for key, r in _ordered(results):
         prob, n, name = key.split("|")
         ls = results.get(f"{prob}|{n}|largesteps")
         if name == "largesteps" or ls is None:
@@ -203,9 +215,18 @@ def main(argv=None):
     ap.add_argument("--rbf-cost", action="store_true", help="only the RBF cost table (section reconstruction-rbf-cost)")
     ap.add_argument("--merge", action="store_true",
                     help="keep results of configurations not re-run from docs/reconstruction_benchmark.json")
+    ap.add_argument("--render-only", action="store_true",
+                    help="rewrite the section and plots from docs/reconstruction_benchmark.json without running")
+    ap.add_argument("--skip-existing", action="store_true",
+                    help="with --merge, do not re-run configurations already in the JSON")
     ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of " + ", ".join(VARIANTS))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.render_only:
+        raw = json.loads((docs_dir() / "reconstruction_benchmark.json").read_text())
+        write_section("reconstruction", render(raw["results"], raw["floors"], args.quick))
+        plot(raw["results"], raw["floors"], docs_dir())
+        return
     if args.rbf_cost:
         rbf_cost(args.quick)
         return
@@ -230,6 +251,8 @@ def main(argv=None):
             for name in names:
                 if name == "rbf-nolap" and n != resolutions[0]:
                     continue  # the trade-off is shown at the lower resolution only, to bound the run time
+                if args.skip_existing and f"{prob}|{n}|{name}" in results:
+                    continue
                 method, over = VARIANTS[name]
                 entry = {"budgets": {}, "curve": [], "metrics": []}
                 for budget in budgets:
