@@ -809,7 +809,13 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         raise
     except Exception as err:  # torch.load / load_state_dict errors on a damaged file
         raise MEIError(f"{directory} is corrupt: {type(err).__name__}: {err}") from None
-    if V.shape != state["V"].shape or not torch.allclose(V, state["V"], atol=1e-6, rtol=0):
+    # The rebuilt deformer truncates its kernels for the final scales, the optimised one for the scales at
+    # its last pair-list rebuild: each may drop weights up to exp(-r_cut^2 / 2), so the two meshes agree to
+    # twice that times the summed offset lengths (plus float round-off). The saved vertices are kept.
+    offsets = state["deformer"]["offsets"].double()
+    bound = 2 * math.exp(-rbf.r_cut**2 / 2) * float(offsets.norm(dim=-1).sum())
+    bound += 1e-5 * (1 + float(state["V"].abs().max()))
+    if V.shape != state["V"].shape or float((V.double() - state["V"].double()).abs().max()) > bound:
         raise MEIError(f"{directory}: the deformer state does not reproduce the saved vertices")
     res = MEIResult(
         V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
