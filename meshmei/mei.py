@@ -736,22 +736,22 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
 
 
 def _figures(result: MEIResult, out: Path):
-    import matplotlib
+    # the object-oriented API: no pyplot state, no backend switch in the caller's session
+    import matplotlib.image
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    plt.imsave(out / "render.png", result.image[0, 0].detach().cpu().numpy(), cmap="gray", vmin=0, vmax=1)
-    # three more views of the mesh, turned about the vertical axis
     from .render import camera_from_angles
 
+    matplotlib.image.imsave(out / "render.png", result.image[0, 0].detach().cpu().numpy(), cmap="gray", vmin=0, vmax=1)
     views = []
-    for az in (0.0, 45.0, 90.0):
+    for az in (0.0, 45.0, 90.0):  # three more views of the mesh, turned about the vertical axis
         cam = camera_from_angles(az, 30.0, result.settings.camera_distance, fov_degrees=result.settings.fov_degrees)
-        img = render(result.V, result.F, camera=cam, settings=result.settings.render_settings())
-        views.append(img[0, 0].detach().cpu().numpy())
-    fig, axes = plt.subplots(1, 4, figsize=(12, 3.2))
-    axes[0].imshow(result.image[0, 0].cpu().numpy(), cmap="gray", vmin=0, vmax=1)
+        with torch.no_grad():
+            img = render(result.V, result.F, camera=cam, settings=result.settings.render_settings())
+        views.append(img[0, 0].cpu().numpy())
+    fig = Figure(figsize=(12, 3.2))
+    axes = fig.subplots(1, 4)
+    axes[0].imshow(result.image[0, 0].detach().cpu().numpy(), cmap="gray", vmin=0, vmax=1)
     axes[0].set_title(f"MEI render, response {result.activation:.3f}")
     for ax, img, az in zip(axes[1:], views, (0, 45, 90)):
         ax.imshow(img, cmap="gray", vmin=0, vmax=1)
@@ -760,17 +760,16 @@ def _figures(result: MEIResult, out: Path):
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(out / "views.png", dpi=100)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    fig = Figure(figsize=(5, 3.2))
+    ax = fig.subplots()
     ub = result.encoder.get("upper_bound")
     y = [h / ub for h in result.history] if ub else result.history
-    ax.plot(range(len(y)), y)
+    ax.plot(range(1, len(y) + 1), y)
     ax.set_xlabel("step")
     ax.set_ylabel("fraction of upper bound" if ub else "response")
     ax.set_title(f"neuron {result.neuron}, seed {result.seed}")
     fig.tight_layout()
     fig.savefig(out / "activation.png", dpi=100)
-    plt.close(fig)
 
 
 def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool = False) -> MEIResult:

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 import torch
 
 from meshmei.benchmarks._report import docs_dir, machine_line, markdown_table, write_section
 from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
-from meshmei.mei import MEISettings, mesh_quality, optimize_mei, random_mesh_responses
+from meshmei.mei import MEISettings, grid_search, mesh_quality, optimize_mei, random_mesh_responses
 from meshmei.pixel_mei import pixel_mei
 
 
@@ -100,6 +101,15 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
     fig.tight_layout()
     fig.savefig(out_dir / "mei_vs_pixel.png", dpi=120)
     plt.close(fig)
+    grid_rows = []
+    for init in ("sphere", "sheet"):
+        rows_g = grid_search(GaborComplexCell(), 0, init, {"laplacian": [0.0, 30.0, 100.0], "area": [0.0, 1000.0]},
+                             replace(settings, steps=200, seeds=(0,), weights={"edge": 30.0}))
+        for r in rows_g:
+            w = r["weights"]
+            grid_rows.append([init, w["laplacian"], w["edge"], w["area"], f"{r['activation']:.3f}",
+                              f"{r['min_quality']:.3f}", f"{r['mean_quality']:.3f}", r["self_intersections"]])
+            print(grid_rows[-1], flush=True)
     speed = []
     for size, nv in ((64, 400), (64, 1500), (128, 400), (128, 1500)):
         med, low = time_per_step(size, nv)
@@ -122,6 +132,11 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
         "![curves](figures/mei_curves.png)",
         "",
         "![3D vs pixel MEI](figures/mei_vs_pixel.png)",
+        "",
+        "Grid search over regularizer weights (`grid_search`; complex cell, 200 steps, seed 0, edge weight 30):",
+        "",
+        markdown_table(["init", "laplacian", "edge", "area", "response", "min tri quality", "mean tri quality",
+                        "self-intersections"], grid_rows),
         "",
         "Time per optimisation step (render + encoder + regularizers + backward + Adam; sphere, simple cell):",
         "",
