@@ -25,6 +25,14 @@ from .regularizers import (
 )
 from .shapes import bunny_path, initial_mesh, target_mesh
 from .topology import MeshTopology, mesh_topology
+from .render import Camera, Fragments, RenderSettings, camera_from_angles, rasterize, render
+from .deform import RBFDeformer
+from .metrics import chamfer_distance, sample_points, surface_metrics
+from .reconstruct import reconstruct
+from .encoders import GaborComplexCell, GaborSimpleCell, CoreReadoutModel, load_demo_model
+from .pixel_mei import pixel_mei
+from .mei import MEISettings, optimize_mei, load_run, save_run
+from .tuning import light_sweep, pose_sweep
 
 __version__ = "0.1.0"
 
@@ -55,4 +63,26 @@ __all__ = [
     "target_mesh",
     "MeshTopology",
     "mesh_topology",
+    "Camera",
+    "Fragments",
+    "RenderSettings",
+    "camera_from_angles",
+    "rasterize",
+    "render",
+    "RBFDeformer",
+    "chamfer_distance",
+    "sample_points",
+    "surface_metrics",
+    "reconstruct",
+    "GaborSimpleCell",
+    "GaborComplexCell",
+    "CoreReadoutModel",
+    "load_demo_model",
+    "pixel_mei",
+    "MEISettings",
+    "optimize_mei",
+    "load_run",
+    "save_run",
+    "light_sweep",
+    "pose_sweep",
 ]

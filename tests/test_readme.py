@@ -34,3 +34,10 @@ def test_main_job_command_is_a_cli_command():
     assert job[0] == "meshmei"
     args = build_parser().parse_args(job[1:])
     assert callable(args.func)
+
+
+def test_package_exports_resolve():
+    import meshmei
+
+    missing = [n for n in meshmei.__all__ if not hasattr(meshmei, n)]
+    assert not missing and len(set(meshmei.__all__)) == len(meshmei.__all__)
