@@ -141,7 +141,6 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
     V, F = check_mesh(V, F, batched=V.ndim == 3)
     T = _corners(V, F)
     c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)  # (..., m, 3)
-    n = V.shape[-2]
     idx = F.reshape(-1)
     c3 = c.unsqueeze(-2).expand(*c.shape[:-1], 3, 3).reshape(*c.shape[:-2], -1, 3)  # (..., 3m, 3)
     acc = torch.zeros_like(V).index_add_(-2, idx, c3)

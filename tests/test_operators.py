@@ -7,7 +7,7 @@ import torch
 from meshmei import operators as ops
 from meshmei.topology import mesh_topology
 
-from conftest import grid_sheet, hard_cases, icosphere, perturbed_sphere, random_rotation
+from conftest import hard_cases, icosphere, perturbed_sphere, random_rotation
 
 
 @pytest.fixture(scope="module", params=["bunny", "teapot", "sheet", "perturbed_sphere"])

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["docs_dir", "write_section", "machine_line", "timeit", "markdown_table"]
+__all__ = ["docs_dir", "write_section", "machine_line", "timeit", "timings", "markdown_table"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
@@ -41,8 +41,11 @@ def write_section(name: str, body: str) -> Path:
     return path
 
 
-def timeit(fn, *, repeat: int = 5, warmup: int = 1) -> float:
-    """Median wall time of ``fn()`` in seconds."""
+def timings(fn, *, repeat: int = 5, warmup: int = 1) -> tuple[float, float]:
+    """Median and best wall time of ``fn()`` in seconds, after ``warmup`` calls.
+
+    The best is the time least disturbed by other jobs on a shared machine; report both.
+    """
     for _ in range(warmup):
         fn()
     ts = []
@@ -51,7 +54,12 @@ def timeit(fn, *, repeat: int = 5, warmup: int = 1) -> float:
         fn()
         ts.append(time.perf_counter() - t)
     ts.sort()
-    return ts[len(ts) // 2]
+    return ts[len(ts) // 2], ts[0]
+
+
+def timeit(fn, *, repeat: int = 5, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in seconds."""
+    return timings(fn, repeat=repeat, warmup=warmup)[0]
 
 
 def markdown_table(header: list[str], rows: list[list]) -> str:

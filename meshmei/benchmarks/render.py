@@ -13,12 +13,11 @@ import os
 import resource
 import subprocess
 import sys
-import time
 
 import numpy as np
 import torch
 
-from ._report import docs_dir, machine_line, markdown_table, timeit, write_section
+from ._report import docs_dir, machine_line, markdown_table, timeit, timings, write_section
 
 MESHES = {"sphere-1k": ("sphere", 500), "sphere-5k": ("sphere", 2500), "sphere-30k": ("sphere", 13000),
           "bunny": ("bunny", None)}
@@ -39,17 +38,6 @@ def _rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _times(fn, repeat):
-    """Median and best wall time of ``fn()`` after one warm-up call (best: least disturbed by other jobs)."""
-    fn()
-    ts = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts)), min(ts)
-
-
 def run_one(key: str, size: int, repeat: int) -> dict:
     """Time forward and forward+backward of one configuration in this process (call in a fresh one)."""
     from ..render import RenderSettings, render
@@ -67,8 +55,8 @@ def run_one(key: str, size: int, repeat: int) -> dict:
         X = V.clone().requires_grad_(True)
         (render(X, F, settings=st) * W).sum().backward()
 
-    t_f, best_f = _times(fwd, repeat)
-    t_fb, best_fb = _times(fwd_bwd, repeat)
+    t_f, best_f = timings(fwd, repeat=repeat)
+    t_fb, best_fb = timings(fwd_bwd, repeat=repeat)
     img = render(V, F, settings=st)
     covered = int((img != st.background).sum())
     return dict(mesh=key, size=size, faces=int(F.shape[0]), fwd=t_f, fwd_bwd=t_fb, best_fwd=best_f,
