@@ -124,7 +124,7 @@ class RBFDeformer(torch.nn.Module):
         centers=None,
         *,
         sigma: float | None = None,
-        sigma_factor: float = 2.0,
+        sigma_factor: float = 1.0,
         r_cut: float = 4.0,
         headroom: float = 1.25,
         learn_scales: bool = True,

@@ -34,6 +34,7 @@ VARIANTS = {
     "rbf-nolap": ("rbf", {"w_laplacian": 0.0, "lr": 2e-3}),
 }
 TARGETS = {"bunny": 2e-6, "teapot": 5e-6}
+COLORS = {"rbf": "tab:red", "vertex": "tab:blue", "largesteps": "tab:orange", "rbf-nolap": "tab:pink"}
 
 
 def decimation_floor(Vt, Ft, n_faces, *, n_samples=100_000):
@@ -142,14 +143,15 @@ def plot(results, floors, out):
         ns = sorted({int(k.split("|")[1]) for k in keys})
         fig, axs = plt.subplots(len(ns), 3, figsize=(14, 3.6 * len(ns)), squeeze=False)
         for row, n in enumerate(ns):
-            for key in keys:
+            for key, r in _ordered({k: results[k] for k in keys}):
                 _, kn, name = key.split("|")
                 if int(kn) != n:
                     continue
-                m = results[key]["metrics"]
+                m = r["metrics"]
                 t = [x["time"] for x in m]
+                color = COLORS.get(name)
                 for col, field in enumerate(("chamfer_l2", "fscore", "normal_consistency")):
-                    axs[row, col].plot(t, [x[field] for x in m], "o-", ms=3, label=name)
+                    axs[row, col].plot(t, [x[field] for x in m], "o-", ms=3, label=name, color=color)
             fl = floors.get(f"{prob}|{n}")
             for col, field in enumerate(("chamfer_l2", "fscore", "normal_consistency")):
                 ax = axs[row, col]
