@@ -63,9 +63,11 @@ def _base_meshset(kind, h):
 
     ms = pymeshlab.MeshSet()
     if kind == "sphere":
-        # An icosphere with subdivision level s has 10 * 4^s + 2 vertices.
+        # An icosphere with subdivision level s has 10 * 4^s + 2 vertices. Start at the first level at
+        # least as fine as the target, so the remesher has to collapse towards it: from a coarser level
+        # whose edges already lie within its [4/5, 4/3] tolerance it would leave the count where it was.
         n = _count_for_edge(kind, h)
-        subdiv = int(np.clip(round(math.log(max(n, 12.0) / 10.0, 4)), 1, 7))
+        subdiv = int(np.clip(math.ceil(math.log(max(n, 12.0) / 10.0, 4)), 1, 7))
         ms.create_sphere(radius=SPHERE_RADIUS, subdiv=subdiv)
     elif kind == "torus":
         ms.create_torus(
@@ -250,8 +252,16 @@ def initial_mesh(
             raise ValueError(f"n_vertices must lie between {MIN_VERTICES} and {MAX_VERTICES}, got {n!r}")
         h = _edge_for_count(kind, n)
         V, F = _remesh(kind, h, int(iterations))
-        if abs(len(V) - n) > 0.1 * n:
-            V, F = _remesh(kind, h * math.sqrt(len(V) / n), int(iterations))
+        # The remesher leaves edges alone inside [4/5, 4/3] of the target, so a count can land far off
+        # (e.g. on the icosphere level it started from). Rescale the target edge from the count reached,
+        # up to three times, and keep the closest mesh.
+        for _ in range(3):
+            if abs(len(V) - n) <= 0.1 * n:
+                break
+            h = h * math.sqrt(len(V) / n)
+            V2, F2 = _remesh(kind, h, int(iterations))
+            if abs(len(V2) - n) < abs(len(V) - n):
+                V, F = V2, F2
     V = torch.as_tensor(V * float(size), dtype=dtype, device=device)
     F = torch.as_tensor(F, dtype=torch.int64, device=device)
     return V, F

@@ -303,3 +303,11 @@ def test_bunny_missing_file(monkeypatch, tmp_path):
 
 def test_docstring_examples():
     assert doctest.testmod(shapes, raise_on_error=True).failed == 0
+
+
+@pytest.mark.parametrize("kind, n", [("sphere", 1000), ("sphere", 6000), ("sphere", 13000), ("torus", 1000),
+                                     ("torus", 6000), ("sheet", 1000), ("sheet", 6000)])
+def test_vertex_count_tracks_the_request_across_icosphere_levels(kind, n):
+    # 13000 sits between icosphere levels 5 (10242) and 6 (40962): it once came out 21 % high
+    V, _ = initial_mesh(kind, n_vertices=n)
+    assert abs(V.shape[0] - n) <= 0.11 * n
