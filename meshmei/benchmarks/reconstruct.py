@@ -103,7 +103,8 @@ def render(results, floors, quick, budgets=BUDGETS):
                         str(last["steps"])] if last else ["-"] * 4))
     for key, fl in floors.items():
         prob, n = key.split("|")
-        rows.append([prob, n, f"floor ({fl['faces']} faces)"] + [""] * (len(budgets) - 1) + [_fmt(fl["chamfer_l2"]), f"{fl['fscore']:.4f}",
+        what = "target itself" if fl["chamfer_l2"] < 1e-15 else "decimated"
+        rows.append([prob, n, f"floor ({what}, {fl['faces']} faces)"] + [""] * (len(budgets) - 1) + [_fmt(fl["chamfer_l2"]), f"{fl['fscore']:.4f}",
                      f"{fl['normal_consistency']:.4f}", str(fl["self_intersections"]), ""])
     lines.append(markdown_table(header, rows))
     # Targets of the issue
@@ -155,7 +156,8 @@ def plot(results, floors, out):
             fl = floors.get(f"{prob}|{n}")
             for col, field in enumerate(("chamfer_l2", "fscore", "normal_consistency")):
                 ax = axs[row, col]
-                if fl:
+                # a target with fewer faces than the result is its own floor (Chamfer 0): no line on a log axis
+                if fl and (field != "chamfer_l2" or fl[field] > 1e-15):
                     ax.axhline(fl[field], color="k", ls="--", lw=0.8, label="decimation floor")
                 ax.set_xscale("log")
                 if field == "chamfer_l2":
