@@ -24,7 +24,7 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import EPS, resolve_eps, _corners, _cot, _cot_apply, _doublearea, _uniform_laplacian, gather, massmatrix, safe_norm
+from .operators import EPS, resolve_eps, _corners, _cot, _cot_apply, _doublearea, _face_terms, _massmatrix, _uniform_laplacian, gather, safe_norm
 from .topology import mesh_topology
 
 __all__ = [
@@ -83,8 +83,9 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
         live = topo.degree > 0
         return ((d * d).sum(-1) * live).sum(-1) / live.sum().clamp_min(1)
     if method == "cotangent":
-        LV = _cot_apply(V, F, _cot(_corners(V, F), eps))
-        M = massmatrix(V, F, eps=eps)
+        terms = _face_terms(_corners(V, F), eps)  # shared by L and M
+        LV = _cot_apply(V, F, terms[3])
+        M = _massmatrix(F, V.shape[-2], terms)
         interior = ~topo.boundary_vertex
         total = (M * interior).sum(-1, keepdim=True)
         floor = (resolve_eps(eps, V.dtype) * M.sum(-1, keepdim=True) / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
