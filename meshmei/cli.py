@@ -37,7 +37,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, OSError, FloatingPointError) as err:
+        # bad input (every meshmei error is a ValueError), files that are missing or in the way, a
+        # diverging optimisation: one clear line, no traceback
         print(f"meshmei {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -12,17 +12,15 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import time
-import uuid
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
 
+from ._files import atomic_directory
 from .deform import RBFDeformer
-from .encoders import CoreReadoutModel, Encoder, EncoderError, GaborComplexCell, GaborSimpleCell
+from .encoders import Encoder, EncoderError, GaborComplexCell, GaborSimpleCell
 from .pixel_mei import eval_mode
 from .regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
 from .render import Camera, RenderSettings, axis_angle_to_matrix, render
@@ -706,13 +704,7 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
     directory that is renamed into place only when complete, so an interrupted save never leaves a
     directory that :func:`load_run` would take for a finished run.
     """
-    directory = Path(directory)
-    if directory.exists() and not overwrite:
-        raise MEIError(f"{directory} exists; pass overwrite=True (CLI: --overwrite) to replace it")
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    tmp = directory.parent / f".{directory.name}.partial-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    def write(tmp: Path):
         _write_obj(tmp / "mesh.obj", result.V, result.F)
         _write_obj(tmp / "rest.obj", result.V0, result.F)
         torch.save({"format": RUN_FORMAT, "V": result.V, "F": result.F, "V0": result.V0,
@@ -722,17 +714,8 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
             _figures(result, tmp)
         with open(tmp / "summary.json", "w") as fh:
             json.dump(_summary(result), fh, indent=1)
-        if directory.exists():
-            trash = directory.parent / f".{directory.name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(directory, trash)
-            os.replace(tmp, directory)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, directory)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return directory
+
+    return atomic_directory(directory, write, overwrite=overwrite, error=MEIError)
 
 
 def _figures(result: MEIResult, out: Path):

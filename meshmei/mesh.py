@@ -132,7 +132,10 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     F = np.asarray(mesh.faces, dtype=np.int64)
     if V.size == 0 or F.size == 0:
         raise MeshError(f"{path} holds an empty mesh ({len(V)} vertices, {len(F)} faces)")
-    V, F = check_mesh(V.reshape(-1, 3), F.reshape(-1, 3))
+    try:
+        V, F = check_mesh(V.reshape(-1, 3), F.reshape(-1, 3))
+    except MeshError as err:
+        raise MeshError(f"{path}: {err}") from None
     return V.to(dtype=dtype, device=device), F.to(device=device)
 
 

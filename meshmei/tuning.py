@@ -16,15 +16,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ._files import atomic_directory
 from .render import axis_angle_to_matrix, render
 
 __all__ = [
@@ -278,28 +276,6 @@ def response_groups(sweep: Sweep, neuron: int | None = None) -> dict:
 # ------------------------------------------------------------------------------------------- files
 
 
-def _atomic_dir(directory: Path, write, overwrite: bool):
-    """Write into a hidden temporary sibling and rename it into place only when ``write`` returns."""
-    if directory.exists() and not overwrite:
-        raise TuningError(f"{directory} exists; pass overwrite=True (CLI: --overwrite) to replace it")
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    tmp = directory.parent / f".{directory.name}.partial-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
-        write(tmp)
-        if directory.exists():
-            trash = directory.parent / f".{directory.name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(directory, trash)
-            os.replace(tmp, directory)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, directory)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return directory
-
-
 def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: bool = True, images=None) -> Path:
     """Write ``sweep.npz`` (responses and axes), ``sweep.json`` (metadata) and plots, atomically.
 
@@ -325,7 +301,7 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
         with open(tmp / "sweep.json", "w") as fh:
             json.dump(meta, fh, indent=1)
 
-    return _atomic_dir(Path(directory), write, overwrite)
+    return atomic_directory(directory, write, overwrite=overwrite, error=TuningError)
 
 
 def load_sweep(directory) -> Sweep:

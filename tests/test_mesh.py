@@ -87,7 +87,7 @@ def test_load_mesh_errors(tmp_path):
         load_mesh(empty)
     nan = tmp_path / "nan.obj"
     nan.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(MeshError, match="NaN"):
+    with pytest.raises(MeshError, match=r"nan\.obj: V holds NaN"):
         load_mesh(nan)
 
 

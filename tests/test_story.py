@@ -45,6 +45,12 @@ def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
     assert (tmp_path / "b" / "keep.txt").read_text() == "mine"
 
 
+def test_demo_cli_reports_an_occupied_output_without_traceback(tmp_path, capsys):
+    (tmp_path / "keep.txt").write_text("mine")
+    assert main(["demo", "--quick", "--out", str(tmp_path)]) == 2
+    assert "not empty" in capsys.readouterr().err
+
+
 def test_demo_cli_quick_on_the_shipped_model(tmp_path, capsys):
     from meshmei.encoders import DEMO_MODEL_PATH
 

@@ -154,7 +154,6 @@ def _raster(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices):
     Vc, z, u, v, ok = _project(Vw, eye, R, cam, S)
     out = _Raster()
     out.B, out.S, out.Vc, out.z, out.u, out.v = B, S, Vc, z, u, v
-    m = F.shape[0]
 
     with torch.no_grad():
         U, Vv, Z = u.detach(), v.detach(), z.detach()
