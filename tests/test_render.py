@@ -10,15 +10,6 @@ from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_
 from meshmei.shapes import initial_mesh, target_mesh
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Many small tensor ops: on shared cores, torch's thread pool costs more than it saves here."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 VIEWS = [(0.0, 0.0), (60.0, 20.0), (200.0, -30.0), (120.0, 70.0)]
 
 

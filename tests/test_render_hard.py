@@ -13,15 +13,6 @@ from meshmei.render import (Camera, RenderError, Renderer, RenderSettings, apply
 from meshmei.shapes import initial_mesh
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Many small tensor ops: on shared cores, torch's thread pool costs more than it saves here."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def uv_sphere(n_lat, n_lon, r=0.5, dtype=torch.float64):
     """A latitude-longitude sphere: sliver faces at the poles, 2 n_lon (n_lat - 1) faces."""
     th = torch.linspace(0, math.pi, n_lat + 1, dtype=dtype)[1:-1]
