@@ -85,7 +85,9 @@ def render(results, floors, quick, budgets=BUDGETS):
         "result (the teapot target has its own, see the floor rows). Time is optimisation wall time, single "
         "torch thread, metric evaluation excluded; each budget is a separate run whose schedule follows its "
         "budget (coarse-to-fine stages n/4, n, n with shares 0.25/0.45/0.3, learning rate decaying 10x). "
-        "The machine was shared with other jobs during the run, so times are pessimistic and noisy.",
+        "Each run uses one core; note the machine's load when comparing across runs (the rows of one run "
+        "share it). Last full run of rbf, vertex and largesteps on an idle machine; the rbf-nolap rows "
+        "(a no-Laplacian ablation) are kept from an earlier run under load (`--merge`).",
         "",
     ]
     if quick:
