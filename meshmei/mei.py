@@ -22,6 +22,7 @@ from ._files import atomic_directory
 from .deform import RBFDeformer
 from .encoders import Encoder, EncoderError, GaborComplexCell, GaborSimpleCell
 from .pixel_mei import eval_mode
+from .operators import doublearea
 from .regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
 from .render import Camera, RenderSettings, axis_angle_to_matrix, render
 from .shapes import INITIAL_KINDS, initial_mesh
@@ -345,10 +346,9 @@ def _encoder_from_spec(spec: dict) -> Encoder:
 def triangle_quality(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """Per-face quality ``4 sqrt(3) A / (l1^2 + l2^2 + l3^2)``: 1 for equilateral, 0 for degenerate, ``(m,)``."""
     T = V[F]  # (m, 3, 3)
-    e = T.roll(-1, dims=1) - T
+    e = T.roll(-1, dims=1) - T  # edge vectors
     l2 = (e * e).sum((1, 2))
-    A = 0.5 * torch.linalg.vector_norm(torch.linalg.cross(e[:, 0], -e[:, 2], dim=-1), dim=-1)
-    return 4.0 * math.sqrt(3.0) * A / l2.clamp_min(torch.finfo(V.dtype).tiny)
+    return 2.0 * math.sqrt(3.0) * doublearea(V, F) / l2.clamp_min(torch.finfo(V.dtype).tiny)
 
 
 def mesh_quality(V: torch.Tensor, F: torch.Tensor, *, self_intersections: bool = True) -> dict:

@@ -28,6 +28,7 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh, load_mesh, save_mesh
+from .operators import doublearea
 from .metrics import PointIndex, SurfaceMetrics, mesh_health, sample_points, surface_metrics
 from .regularizers import arap_direction_loss, edge_loss, laplacian_loss
 
@@ -289,8 +290,7 @@ def _pair(spec, role):
 
 
 def _area(V, F) -> float:
-    T = V.detach()[F].double()
-    return 0.5 * float(torch.linalg.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0], dim=-1).norm(dim=-1).sum())
+    return 0.5 * float(doublearea(V.detach().double(), F).sum())
 
 
 def _check_area(V, F, role):
