@@ -85,7 +85,19 @@ class ReconstructionSettings:
         Size of the fixed pool of target samples; the source-to-target direction uses all of it (through
         a KD-tree built once), so its resolution, not ``n_samples``, limits that direction.
     w_laplacian, w_edge, w_arap : float
-        Weights of the uniform Laplacian, edge-length and direction-preserving ARAP regularizers.
+        Weights of the uniform Laplacian, edge-length and direction-preserving ARAP regularizers, for a
+        mesh of ``reg_ref_vertices`` vertices (see there).
+    reg_ref_vertices : int or None
+        The regularizer weights are stated for a result of this many vertices (default 2,500). A run whose
+        final mesh has ``n`` vertices (the last of ``stages``, else the source's count) multiplies the
+        Laplacian weight by ``(n / reg_ref_vertices)^2`` and the edge and ARAP weights by
+        ``n / reg_ref_vertices``, in every stage: on an even mesh of edge length ``h ~ n^-1/2`` the
+        uniform Laplacian loss (squared umbrella vectors, ``~ h^4`` times the squared mean curvature) falls
+        like ``n^-2`` and the edge and direction terms (squared lengths) like ``n^-1``, so the scaled
+        weights ask for the same smoothness of the result at every resolution. The coarse stages keep the
+        final stage's weight, which makes them smoother in surface terms (a stage with 4x fewer vertices
+        is smoothed 16x more); scaling each stage by its own count instead let the coarse stage fold the
+        mesh (docs/reconstruction.md). ``None``: weights used as given.
     optimizer : {"adam", "uniform"}
         ``torch.optim.Adam`` (per-coordinate step normalisation) or :class:`~meshmei.largesteps.AdamUniform`
         (one normalisation per tensor, which keeps the smoothness of a preconditioned gradient).
@@ -120,6 +132,7 @@ class ReconstructionSettings:
     w_laplacian: float | None = None
     w_edge: float | None = None
     w_arap: float | None = None
+    reg_ref_vertices: int | None = 2500
     optimizer: str | None = None
     lam: float = 19.0
     sigma_factor: float = 1.0
@@ -149,6 +162,9 @@ class ReconstructionSettings:
         for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam"):
             if not getattr(s, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(s, name)!r}")
+        if s.reg_ref_vertices is not None and not (int(s.reg_ref_vertices) == s.reg_ref_vertices
+                                                    and s.reg_ref_vertices >= 1):
+            raise ValueError(f"reg_ref_vertices must be a positive integer or None, got {s.reg_ref_vertices!r}")
         if s.optimizer not in ("adam", "uniform"):
             raise ValueError(f"optimizer must be 'adam' or 'uniform', got {s.optimizer!r}")
         if not 0 < s.lr_decay <= 1:
@@ -479,6 +495,10 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         bar = tqdm(total=total, unit="step" if s.time_budget is None else "s", desc=f"reconstruct[{s.method}]",
                    bar_format=None if s.time_budget is None else "{l_bar}{bar}| {n:.1f}/{total:.0f} s {postfix}")
 
+    n_final = s.stages[-1] if s.stages else V.shape[0]
+    ratio = 1.0 if s.reg_ref_vertices is None else n_final / s.reg_ref_vertices
+    w_lap, w_edge, w_arap = s.w_laplacian * ratio**2, s.w_edge * ratio, s.w_arap * ratio
+    info.update(w_laplacian=w_lap, w_edge=w_edge, w_arap=w_arap)
     step = 0
     t_start = time.perf_counter()
     done = False
@@ -508,12 +528,12 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             i_qp = torch.from_numpy(PointIndex(P).query(Q))
             cd = ((P - pool[i_pq]) ** 2).sum(-1).mean() + ((Q - P[i_qp]) ** 2).sum(-1).mean()
             loss = cd
-            if s.w_laplacian > 0:
-                loss = loss + wr * s.w_laplacian * laplacian_loss(Vc, F)
-            if s.w_edge > 0:
-                loss = loss + wr * s.w_edge * edge_loss(Vc, F)
-            if s.w_arap > 0:
-                loss = loss + wr * s.w_arap * arap_direction_loss(Vc, _param_rest(param, V), F)
+            if w_lap > 0:
+                loss = loss + wr * w_lap * laplacian_loss(Vc, F)
+            if w_edge > 0:
+                loss = loss + wr * w_edge * edge_loss(Vc, F)
+            if w_arap > 0:
+                loss = loss + wr * w_arap * arap_direction_loss(Vc, _param_rest(param, V), F)
             loss.backward()
             param.opt.step()
             step += 1

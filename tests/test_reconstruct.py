@@ -204,3 +204,40 @@ def test_docstring_examples_run(module):
 
     res = doctest.testmod(importlib.import_module(module))
     assert res.attempted > 0 and res.failed == 0
+
+
+def test_regularizer_weights_follow_the_final_resolution(sphere, bunny):
+    from meshmei.regularizers import laplacian_loss
+
+    n = sphere[0].shape[0]
+    # One stage: the source's count; the first step's loss is Chamfer + weight * Laplacian at V0 (a large
+    # weight, so that the float32 difference loss - chamfer resolves the term).
+    res = reconstruct(sphere, bunny, "vertex", steps=1, w_laplacian=1e4, **SMALL)
+    w = 1e4 * (n / 2500) ** 2
+    assert res.info["w_laplacian"] == pytest.approx(w, rel=1e-12)
+    h = res.history[0]
+    assert h["loss"] - h["chamfer"] == pytest.approx(w * float(laplacian_loss(*sphere)), rel=1e-4)
+    # With stages: the last stage's count, in every stage; edge and ARAP weights scale linearly.
+    res = reconstruct(sphere, bunny, "rbf", steps=2, stages=(100, 400), w_laplacian=10.0, w_edge=2.0, w_arap=3.0,
+                      **SMALL)
+    r = 400 / 2500
+    assert (res.info["w_laplacian"], res.info["w_edge"], res.info["w_arap"]) == pytest.approx((10 * r**2, 2 * r, 3 * r))
+    # None: the weights as given.
+    res = reconstruct(sphere, bunny, "vertex", steps=1, w_laplacian=10.0, reg_ref_vertices=None, **SMALL)
+    assert res.info["w_laplacian"] == 10.0
+    with pytest.raises(ValueError, match="reg_ref_vertices"):
+        ReconstructionSettings(reg_ref_vertices=0).resolved()
+
+
+def test_laplacian_loss_falls_like_n_squared_which_the_weight_scaling_undoes():
+    # On icospheres (642 -> 10,242 vertices) the raw uniform Laplacian loss falls about 100x; times (n/ref)^2
+    # it changes 2.5x (the umbrella vectors' tangential part on an uneven mesh falls slower than h^2).
+    from meshmei.regularizers import edge_loss, laplacian_loss
+
+    (Va, Fa), (Vb, Fb) = icosphere(3), icosphere(5)
+    na, nb = Va.shape[0], Vb.shape[0]
+    raw = float(laplacian_loss(Va, Fa)) / float(laplacian_loss(Vb, Fb))
+    scaled = raw * (na / nb) ** 2
+    assert raw > 50 and 1 / 4 < scaled < 4
+    edge = float(edge_loss(Va, Fa)) / float(edge_loss(Vb, Fb)) * (na / nb)
+    assert raw > 50 and edge == pytest.approx(1.0, abs=0.05)
