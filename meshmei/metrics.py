@@ -29,6 +29,7 @@ __all__ = [
     "mesh_health",
     "MeshHealth",
     "error_by_part",
+    "hidden_surface",
 ]
 
 
@@ -505,3 +506,35 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
             "bbox_max": verts.max(0).tolist(),
         })
     return sorted(out, key=lambda r: -r["area_share"])
+
+
+def hidden_surface(V, F, *, n_samples: int = 100_000, seed: int = 0, offset: float = 1e-4) -> dict:
+    """The part of a surface buried inside its own solid, which no surface around the solid can touch.
+
+    A sample is *hidden* when the generalised winding number (``igl.fast_winding_number``) exceeds 0.5
+    at both points ``offset`` (times the bounding-box diagonal) off the surface along its normal: it is
+    inside the solid on both sides, like a spout's base that passes into the body of a teapot, or the
+    patch of body wall that the spout's base encloses. The samples are the target samples of
+    :func:`surface_metrics` (same ``seed``).
+
+    Returns
+    -------
+    dict with ``fraction`` (share of the area that is hidden) and ``completeness`` (the completeness
+    term of Chamfer-L2 that a surface covering exactly the visible part scores: the mean over all
+    samples of the squared distance from each hidden sample to the nearest visible sample), and
+    ``hidden`` (boolean mask over the samples) with ``points`` ``(n_samples, 3)``.
+    """
+    import igl
+    from scipy.spatial import cKDTree
+
+    V, F = _np_mesh(V, F)
+    Q, N = _sample_np(V, F, int(n_samples), seed + 1)
+    h = offset * float(np.linalg.norm(V.max(0) - V.min(0)))
+    w_out = igl.fast_winding_number(V, F, Q + h * N)
+    w_in = igl.fast_winding_number(V, F, Q - h * N)
+    hidden = (np.abs(w_out) > 0.5) & (np.abs(w_in) > 0.5)
+    completeness = 0.0
+    if hidden.any() and not hidden.all():
+        d, _ = cKDTree(Q[~hidden]).query(Q[hidden])
+        completeness = float((d**2).sum() / len(Q))
+    return {"fraction": float(hidden.mean()), "completeness": completeness, "hidden": hidden, "points": Q}

@@ -218,3 +218,26 @@ def test_error_by_part_charges_each_piece_and_adds_up():
     # the scaled sphere holds 1.05^2 / (1 + 1.05^2) of the mesh's area and its samples lie 0.05 times
     # their face-plane distance (0.98-1 on this icosphere) off the target: mean square about 0.05^2
     assert scaled["accuracy"] == pytest.approx(1.05**2 / (1 + 1.05**2) * 0.05**2, rel=0.03)
+
+
+def test_hidden_surface_of_two_overlapping_spheres():
+    from meshmei.metrics import hidden_surface
+
+    # Two unit spheres with centres 1 apart: each has the cap of height 1/2 inside the other, a quarter
+    # of its area (a cap's area is 2 pi r h). A single sphere hides nothing.
+    Vs, Fs = icosphere(4)
+    n = Vs.shape[0]
+    V = torch.cat([Vs, Vs + torch.tensor([1.0, 0, 0], dtype=Vs.dtype)])
+    F = torch.cat([Fs, Fs + n])
+    out = hidden_surface(V, F, n_samples=20_000)
+    assert out["fraction"] == pytest.approx(0.25, abs=0.01)
+    assert out["hidden"].shape == (20_000,) and out["points"].shape == (20_000, 3)
+    hidden_pts = out["points"][out["hidden"]]
+    # hidden points of the first sphere lie in x > 0.5, of the second in x < 0.5; all within both balls
+    r0 = np.linalg.norm(hidden_pts, axis=1)
+    r1 = np.linalg.norm(hidden_pts - np.array([1.0, 0, 0]), axis=1)
+    assert np.all(np.minimum(r0, r1) < 1.0) and np.all(np.maximum(r0, r1) > 0.97)
+    # the nearest visible point of a hidden one is at most the cap's chord away: completeness bounded
+    assert 0 < out["completeness"] < 0.25 * 0.75
+    alone = hidden_surface(Vs, Fs, n_samples=5000)
+    assert alone["fraction"] == 0.0 and alone["completeness"] == 0.0

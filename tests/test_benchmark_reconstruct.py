@@ -1,0 +1,33 @@
+"""The reconstruction benchmark's curve comparison (pure functions; the benchmark itself is not a test)."""
+
+from __future__ import annotations
+
+from meshmei.benchmarks.reconstruct import _teapot_piece_names, on_checkpoints, slower_levels, time_to_reach
+
+
+def test_checkpoints_absorb_the_step_after_each_evaluation_time():
+    curve = [(0.0, 1.0), (1.04, 0.5), (2.3, 0.2), (5.01, 0.1), (100.2, 0.01)]
+    assert on_checkpoints(curve) == [(0.0, 1.0), (1.0, 0.5), (2.0, 0.2), (5.0, 0.1), (100.0, 0.01)]
+
+
+def test_slower_levels_lists_exactly_the_levels_reached_later():
+    ref = [(0.0, 1.0), (1.0, 0.5), (2.0, 0.2), (5.0, 0.1), (100.0, 0.05)]
+    same_but_jittered = [(0.0, 1.0), (1.09, 0.5), (2.05, 0.2), (5.3, 0.1), (100.1, 0.05)]
+    assert slower_levels(same_but_jittered, ref) == []
+    faster = [(0.0, 1.0), (1.0, 0.1), (2.0, 0.05), (5.0, 0.04), (100.0, 0.01)]
+    assert slower_levels(faster, ref) == []
+    # late in the middle: 0.2 is reached at 5 s instead of 2 s; 0.05 never (inf)
+    late = [(0.0, 1.0), (1.0, 0.45), (2.0, 0.3), (5.0, 0.09), (100.0, 0.06)]
+    assert slower_levels(late, ref) == [(0.2, 5.0, 2.0), (0.05, float("inf"), 100.0)]
+    assert time_to_reach(late, 0.3) == 2.0 and time_to_reach(late, 1e-9) == float("inf")
+
+
+def test_teapot_pieces_are_named_by_their_boxes():
+    parts = [
+        {"area_share": 0.73, "bbox_min": [-0.27, -0.24, -0.19], "bbox_max": [0.22, 0.24, 0.11]},
+        {"area_share": 0.13, "bbox_min": [-0.18, -0.16, 0.10], "bbox_max": [0.13, 0.16, 0.19]},
+        {"area_share": 0.08, "bbox_min": [0.18, -0.06, -0.12], "bbox_max": [0.39, 0.06, 0.11]},
+        {"area_share": 0.06, "bbox_min": [-0.39, -0.03, -0.12], "bbox_max": [-0.21, 0.03, 0.08]},
+    ]
+    named = _teapot_piece_names(parts)
+    assert [named[k]["area_share"] for k in ("body", "lid", "spout", "handle")] == [0.73, 0.13, 0.08, 0.06]
