@@ -49,7 +49,9 @@ __all__ = [
 METHODS = ("rbf", "vertex", "largesteps")
 
 # Per-method defaults, tuned on sphere -> bunny and torus -> teapot at 2.5k and 10k vertices
-# (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal target.
+# (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal
+# target, for a 2,500-vertex result; reconstruct scales them to the run's final resolution
+# (ReconstructionSettings.reg_ref_vertices).
 DEFAULTS = {
     "rbf": dict(optimizer="uniform", lr=6e-3, reg_decay=True, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0),
     "vertex": dict(optimizer="adam", reg_decay=False, lr=1e-3, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0),

@@ -171,10 +171,10 @@ def render(results, floors, quick, budgets=BUDGETS):
             c, key = min(best)
             lines.append(f"- rbf on {prob}: best Chamfer-L2 {c:.2e} ({key.split('|')[1]} vertices) against the target "
                          f"{lim:.0e}: {'met' if c < lim else 'not met'}.")
-    lines.append(f"- Time to reach the Chamfer levels that largesteps reaches (its {budgets[-1]:g} s curve, evaluated at "
-                 "the first step past each of 1, 2, 5, 10, 20, 30, 50 and 70 s and at the end, plus the starting mesh at "
-                 "0 s); 'yes' if the method gets to every such level at the same checkpoint as largesteps or an "
-                 "earlier one, else the levels where it is later:")
+    lines.append(f"- Time to reach the Chamfer levels that largesteps reaches (its {budgets[-1]:g} s curve, "
+                 "evaluated at the first step past each of 1, 2, 5, 10, 20, 30, 50 and 70 s and at the end, plus "
+                 "the starting mesh at 0 s); 'yes' if the method gets to every such level at the same checkpoint "
+                 "as largesteps or an earlier one, else the levels where it is later:")
     for key, r in _ordered(results):
         prob, n, name = key.split("|")
         ls = results.get(f"{prob}|{n}|largesteps")
@@ -190,8 +190,9 @@ def render(results, floors, quick, budgets=BUDGETS):
     parts = [(key, r["budgets"][str(budgets[-1])]["by_part"]) for key, r in _ordered(results)
              if str(budgets[-1]) in r["budgets"] and "by_part" in r["budgets"][str(budgets[-1])]]
     if parts:
-        lines += ["", f"**Where the teapot error sits** ({budgets[-1]:g} s results; `meshmei.metrics.error_by_part`: each "
-                  "result sample is charged to the teapot piece nearest to it, each teapot sample to its own piece).",
+        lines += ["", f"**Where the teapot error sits** ({budgets[-1]:g} s results; "
+                  "`meshmei.metrics.error_by_part`: each result sample is charged to the teapot piece nearest "
+                  "to it, each teapot sample to its own piece).",
                   ""]
         rows = []
         for key, pp in parts:
@@ -200,7 +201,8 @@ def render(results, floors, quick, budgets=BUDGETS):
             comp = sum(p["completeness"] for p in pp)
             _, n, name = key.split("|")
             rows.append([n, name, _fmt(acc), _fmt(comp)]
-                        + [f"{named[k]['accuracy']:.1e} ({named[k]['area_share']:.0%})" for k in ("body", "lid", "spout", "handle")])
+                        + [f"{named[k]['accuracy']:.1e} ({named[k]['area_share']:.0%})"
+                           for k in ("body", "lid", "spout", "handle")])
         lines.append(markdown_table(["n", "method", "accuracy (result to teapot)", "completeness (teapot to result)",
                                      "accuracy on body (area share)", "lid", "spout", "handle"], rows))
     lines += ["", "Curves: `docs/reconstruction_bunny.png`, `docs/reconstruction_teapot.png`. "
@@ -342,7 +344,8 @@ def main(argv=None):
                     continue
                 entry = {"budgets": {}, "curve": [], "metrics": []}
                 for budget in budgets:
-                    evals = tuple(t for t in (1, 2, 5, 10, 20, 30, 50, 70) if t < budget) if budget == budgets[-1] else ()
+                    last = budget == budgets[-1]
+                    evals = tuple(t for t in CHECKPOINTS[1:] if t < budget) if last else ()
                     res = reconstruct(src, (Vt, Ft), method, time_budget=budget, stages=stages,
                                       stage_fractions=fractions, eval_times=evals, eval_samples=eval_samples, **over)
                     f = res.final.as_dict()
@@ -355,7 +358,8 @@ def main(argv=None):
                             f["by_part"] = error_by_part(res.V, res.F, Vt, Ft, n_samples=eval_samples)
                         entry["metrics"] = res.metrics
                         # every method starts from the same mesh at time 0
-                        entry["curve"] = [(0.0, start[f"{prob}|{n}"])] + [(m["time"], m["chamfer_l2"]) for m in res.metrics]
+                        entry["curve"] = ([(0.0, start[f"{prob}|{n}"])]
+                                          + [(m["time"], m["chamfer_l2"]) for m in res.metrics])
                         entry["settings"] = res.to_json()["settings"]
                         if f"{prob}|{n}" not in floors:
                             fl, nv, nf = decimation_floor(Vt, Ft, res.F.shape[0], n_samples=eval_samples)
