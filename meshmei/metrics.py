@@ -483,8 +483,8 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
     V, F = _np_mesh(V, F)
     Vt, Ft = _np_mesh(Vt, Ft)
     P, _ = _sample_np(V, F, int(n_samples), seed)
-    Q, _, fq = sample_points(torch.from_numpy(Vt), torch.from_numpy(Ft), int(n_samples), generator=seed + 1,
-                             return_normals=True, return_faces=True)
+    Q, fq = sample_points(torch.from_numpy(Vt), torch.from_numpy(Ft), int(n_samples), generator=seed + 1,
+                          return_faces=True)
     Q, fq = Q.numpy(), fq.numpy()
     d_pq, f_pq, _ = igl.point_mesh_squared_distance(P, Vt, Ft)
     d_qp, _, _ = igl.point_mesh_squared_distance(Q, V, F)

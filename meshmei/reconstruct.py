@@ -164,8 +164,8 @@ class ReconstructionSettings:
         for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam"):
             if not getattr(s, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(s, name)!r}")
-        if s.reg_ref_vertices is not None and not (int(s.reg_ref_vertices) == s.reg_ref_vertices
-                                                    and s.reg_ref_vertices >= 1):
+        ref = s.reg_ref_vertices
+        if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, np.integer)) or ref < 1):
             raise ValueError(f"reg_ref_vertices must be a positive integer or None, got {s.reg_ref_vertices!r}")
         if s.optimizer not in ("adam", "uniform"):
             raise ValueError(f"optimizer must be 'adam' or 'uniform', got {s.optimizer!r}")
@@ -205,7 +205,8 @@ class ReconstructionResult:
     final : SurfaceMetrics, the metrics of the returned mesh
     wall_time : float, optimisation seconds (remeshing between stages included, evaluation excluded)
     eval_time : float, seconds spent evaluating metrics
-    info : dict, e.g. the RBF truncation error and pair counts per stage
+    info : dict, e.g. the regularizer weights used (``w_laplacian``, ``w_edge``, ``w_arap``, scaled to the
+        resolution) and per stage the RBF truncation error and pair counts
     """
 
     V: torch.Tensor

@@ -225,8 +225,9 @@ def test_regularizer_weights_follow_the_final_resolution(sphere, bunny):
     # None: the weights as given.
     res = reconstruct(sphere, bunny, "vertex", steps=1, w_laplacian=10.0, reg_ref_vertices=None, **SMALL)
     assert res.info["w_laplacian"] == 10.0
-    with pytest.raises(ValueError, match="reg_ref_vertices"):
-        ReconstructionSettings(reg_ref_vertices=0).resolved()
+    for bad in (0, -5, 2.5, True, "2500"):
+        with pytest.raises(ValueError, match="reg_ref_vertices"):
+            ReconstructionSettings(reg_ref_vertices=bad).resolved()
 
 
 def test_laplacian_loss_falls_like_n_squared_which_the_weight_scaling_undoes():
