@@ -29,6 +29,7 @@ __all__ = [
     "mesh_health",
     "MeshHealth",
     "error_by_part",
+    "face_components",
     "hidden_surface",
 ]
 
@@ -461,6 +462,21 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
     )
 
 
+def face_components(F, n_vertices: int) -> np.ndarray:
+    """Label each face with its piece: faces that share a vertex, directly or through other faces, are in
+    the same piece. Returns an ``(m,)`` int array of labels ``0 .. pieces - 1``."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(F.cpu() if isinstance(F, torch.Tensor) else F, dtype=np.int64)
+    i = F[:, [0, 1, 2]].ravel()
+    j = F[:, [1, 2, 0]].ravel()
+    graph = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(int(n_vertices), int(n_vertices)))
+    _, vertex_label = connected_components(graph, directed=False)
+    _, label = np.unique(vertex_label[F[:, 0]], return_inverse=True)
+    return label.ravel()
+
+
 def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> list[dict]:
     """Where the Chamfer error of ``(V, F)`` sits on a target made of several pieces.
 
@@ -477,8 +493,6 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
     ``bbox_min`` and ``bbox_max`` (of the piece's vertices).
     """
     import igl
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
 
     V, F = _np_mesh(V, F)
     Vt, Ft = _np_mesh(Vt, Ft)
@@ -488,10 +502,7 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
     Q, fq = Q.numpy(), fq.numpy()
     d_pq, f_pq, _ = igl.point_mesh_squared_distance(P, Vt, Ft)
     d_qp, _, _ = igl.point_mesh_squared_distance(Q, V, F)
-    m, nv = len(Ft), len(Vt)
-    incidence = sp.coo_matrix((np.ones(3 * m), (np.repeat(np.arange(m), 3), Ft.ravel())), shape=(m, nv)).tocsr()
-    _, vertex_label = connected_components((incidence.T @ incidence) > 0, directed=False)
-    face_label = vertex_label[Ft[:, 0]]
+    face_label = face_components(Ft, len(Vt))
     _, area = _face_normals_np(Vt, Ft)
     out = []
     for c in np.unique(face_label):

@@ -241,3 +241,18 @@ def test_hidden_surface_of_two_overlapping_spheres():
     assert 0 < out["completeness"] < 0.25 * 0.75
     alone = hidden_surface(Vs, Fs, n_samples=5000)
     assert alone["fraction"] == 0.0 and alone["completeness"] == 0.0
+
+
+def test_face_components_labels_pieces_that_share_no_vertex():
+    from meshmei.metrics import face_components
+
+    Vs, Fs = icosphere(1)
+    n = Vs.shape[0]
+    # two spheres, faces interleaved, plus an unreferenced vertex at the end
+    F = torch.stack([Fs, Fs + n], 1).reshape(-1, 3)
+    labels = face_components(F, 2 * n + 1)
+    assert labels.shape == (F.shape[0],) and set(labels.tolist()) == {0, 1}
+    assert (labels[0::2] == labels[0]).all() and (labels[1::2] == labels[1]).all() and labels[0] != labels[1]
+    # one face bridging the two spheres makes them one piece
+    bridged = torch.cat([F, torch.tensor([[0, n, 1]])])
+    assert set(face_components(bridged, 2 * n + 1).tolist()) == {0}
