@@ -1,10 +1,12 @@
 """Reconstruction benchmark: sphere -> bunny and torus -> teapot, each method, Chamfer-L2 / F-score / normal
 consistency against wall time, at about 2.5k and 10k vertices, with the decimation floor.
 
-Run ``python -m meshmei.benchmarks.reconstruct`` (about 40 minutes on a 2-core CPU); it writes the section
-"reconstruction" of ``docs/benchmarks.md``, ``docs/reconstruction_<target>.png`` and the raw numbers in
-``docs/reconstruction_benchmark.json``. ``--quick`` runs a few-second smoke version into a temporary
-folder. Each (problem, resolution, method) is run separately at each time budget (10, 30, 100 s): the
+Three problems: bunny (from a sphere), teapot (from the centred torus) and teapot-handle (the torus started
+with its hole through the teapot's handle). Run ``python -m meshmei.benchmarks.reconstruct`` (about 55
+minutes on a 2-core CPU; ``--problems`` and ``--variants`` pick a subset, ``--merge`` keeps the rest); it
+writes the section "reconstruction" of ``docs/benchmarks.md``, ``docs/reconstruction_<problem>.png`` and
+the raw numbers in ``docs/reconstruction_benchmark.json``. ``--quick`` runs a few-second smoke version
+into a temporary folder. Each (problem, resolution, method) is run separately at each time budget (10, 30, 100 s): the
 schedule (coarse-to-fine stages, learning-rate decay) follows the budget, as a user would set it; the 100 s
 run is also evaluated at intermediate times for the curves.
 """
