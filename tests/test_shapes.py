@@ -311,3 +311,50 @@ def test_vertex_count_tracks_the_request_across_icosphere_levels(kind, n):
     # 13000 sits between icosphere levels 5 (10242) and 6 (40962): it once came out 21 % high
     V, _ = initial_mesh(kind, n_vertices=n)
     assert abs(V.shape[0] - n) <= 0.11 * n
+
+
+def test_find_opening_finds_a_torus_hole_whatever_its_axis_and_place():
+    from meshmei.shapes import find_opening
+
+    V, F = initial_mesh("torus", n_vertices=1500, dtype=torch.float64)
+    centre, axis, clearance = find_opening(V, F)
+    assert axis == 2
+    np.testing.assert_allclose(centre, [0, 0, 0], atol=0.02)
+    assert clearance == pytest.approx(0.2, abs=0.01)  # hole radius 0.35 - 0.15
+    # turned to axis x and moved: the same hole, found there
+    shift = np.array([0.3, -0.2, 0.1])
+    W = V[:, [2, 0, 1]] + torch.from_numpy(shift)
+    centre, axis, clearance = find_opening(W, F)
+    assert axis == 0
+    np.testing.assert_allclose(centre, shift, atol=0.02)
+    assert clearance == pytest.approx(0.2, abs=0.01)
+
+
+def test_find_opening_on_a_sphere_is_none_and_the_placed_torus_says_why():
+    from meshmei.errors import MeshError
+    from meshmei.shapes import find_opening, torus_through_opening
+
+    V, F = initial_mesh("sphere", n_vertices=800, dtype=torch.float64)
+    assert find_opening(V, F) is None
+    with pytest.raises(MeshError, match="no through-hole"):
+        torus_through_opening(V, F)
+
+
+def test_torus_through_the_teapots_opening_goes_through_the_handle():
+    import igl
+
+    from meshmei.shapes import find_opening, torus_through_opening
+
+    Vt, Ft = target_mesh("teapot", dtype=torch.float64)
+    centre, axis, clearance = find_opening(Vt, Ft)
+    # the handle's opening: left of the body, in the handle's plane y = 0, axis y, empty space
+    assert axis == 1 and centre[0] < -0.25 and abs(centre[1]) < 0.01 and 0.03 < clearance < 0.06
+    assert abs(igl.fast_winding_number(Vt.numpy(), Ft.numpy(), centre[None])[0]) < 0.5
+    V, F = torus_through_opening(Vt, Ft, n_vertices=800)
+    assert V.dtype == torch.float32 and F.shape == initial_mesh("torus", n_vertices=800)[1].shape
+    Vd = V.double().numpy()
+    np.testing.assert_allclose(0.5 * (Vd.min(0) + Vd.max(0)), centre, atol=2e-3)
+    # axis y: the torus is thin along y (tube diameter 0.3 * scale) and its hole has radius 2 * clearance
+    scale = 2 * clearance / 0.2
+    np.testing.assert_allclose(Vd.max(0) - Vd.min(0), [scale, 0.3 * scale, scale], atol=5e-3)
+    assert np.linalg.norm(Vd - centre, axis=1).min() == pytest.approx(2 * clearance, rel=0.02)

@@ -22,15 +22,15 @@ import time
 import numpy as np
 import torch
 
-from ..metrics import error_by_part, face_components, surface_metrics
+from ..metrics import error_by_part, surface_metrics
 from ..reconstruct import default_stages, reconstruct
-from ..shapes import initial_mesh, target_mesh
+from ..shapes import initial_mesh, target_mesh, torus_through_opening
 from ._report import docs_dir, machine_line, markdown_table, write_section
 
-# name -> (target, start). "teapot-handle" starts the same torus with its hole through the teapot's handle
-# (see torus_through_handle): it separates what the handle's topology costs from what the method does.
+# name -> (target, start). "teapot-handle" starts the same torus with its hole through the teapot's handle,
+# found by meshmei.shapes.find_opening: it separates what the handle's topology costs from what the method does.
 PROBLEMS = {"bunny": ("bunny", "sphere"), "teapot": ("teapot", "torus"),
-            "teapot-handle": ("teapot", "torus-through-handle")}
+            "teapot-handle": ("teapot", "torus-through-opening")}
 RESOLUTIONS = (2500, 10000)
 BUDGETS = (10.0, 30.0, 100.0)
 # name -> (method, overrides, resolutions it runs at (None: all)). "rbf-nolap" (no Laplacian regularizer)
@@ -48,22 +48,11 @@ COLORS = {"rbf": "tab:red", "vertex": "tab:blue", "largesteps": "tab:orange", "l
           "rbf-nolap": "tab:pink"}
 
 
-def torus_through_handle(n_vertices, Vt, Ft):
-    """The starting torus of ``initial_mesh("torus")``, turned so that its axis is y, scaled by 0.5 (hole
-    radius 0.1, about the handle's opening) and centred on the middle of the bounding box of the target's
-    piece that lies furthest to -x (the teapot's handle). Its hole then goes through the handle."""
-    V, F = initial_mesh("torus", n_vertices=n_vertices)
-    labels = face_components(Ft, Vt.shape[0])
-    pieces = [Vt[Ft[torch.from_numpy(labels == c)].reshape(-1)] for c in range(int(labels.max()) + 1)]
-    handle = min(pieces, key=lambda P: float(P[:, 0].max()))
-    centre = 0.5 * (handle.min(0).values + handle.max(0).values)
-    return torch.stack([V[:, 0], V[:, 2], -V[:, 1]], 1) * 0.5 + centre.to(V.dtype), F
-
-
 def start_mesh(init, n_vertices, Vt, Ft):
-    """The starting mesh of a problem: an ``initial_mesh`` kind, or ``"torus-through-handle"``."""
-    if init == "torus-through-handle":
-        return torus_through_handle(n_vertices, Vt, Ft)
+    """The starting mesh of a problem: an ``initial_mesh`` kind, or ``"torus-through-opening"``
+    (:func:`meshmei.shapes.torus_through_opening`)."""
+    if init == "torus-through-opening":
+        return torus_through_opening(Vt, Ft, n_vertices=n_vertices)
     return initial_mesh(init, n_vertices=n_vertices)
 
 
@@ -165,7 +154,8 @@ def render(results, floors, quick, budgets=BUDGETS):
         "Laplacian weight is 16x larger at 10k vertices). rbf-nolap is rbf without the Laplacian term "
         "(lr 2e-3), at 2.5k vertices only; largesteps-lr0.025 is large steps at half the default learning "
         "rate, at 10k vertices only. teapot-handle is the teapot from the same torus turned and placed with its "
-        "hole through the handle (`torus_through_handle`: axis y, half size, centred on the handle's box): "
+        "hole through the handle (`meshmei.shapes.torus_through_opening`: the through-hole found by "
+        "`find_opening`, the torus's axis along it, its hole twice the opening's clearance): "
         "it shows what the handle's topology costs the centred start.",
         "",
     ]
@@ -229,7 +219,8 @@ def render(results, floors, quick, budgets=BUDGETS):
             rows.append([prob, n, name, _fmt(acc), _fmt(comp)]
                         + [f"{named[k]['accuracy']:.1e} ({named[k]['area_share']:.0%})"
                            for k in ("body", "lid", "spout", "handle")])
-        lines.append(markdown_table(["problem", "n", "method", "accuracy (result to teapot)", "completeness (teapot to result)",
+        lines.append(markdown_table(["problem", "n", "method", "accuracy (result to teapot)",
+                                     "completeness (teapot to result)",
                                      "accuracy on body (area share)", "lid", "spout", "handle"], rows))
     shown = [p for p in PROBLEMS if any(k.startswith(p + "|") for k in results)]
     lines += ["", "Curves: " + ", ".join(f"`docs/reconstruction_{p}.png`" for p in shown)
