@@ -638,7 +638,10 @@ def add_parser(subparsers) -> None:
         description="Deform a starting mesh into a target by Chamfer minimisation; writes mesh.obj, "
                     "history.json, loss.png and metrics.png to --out.",
     )
-    p.add_argument("--init", default="sphere", help="sphere, torus, sheet, or a mesh file (default sphere)")
+    p.add_argument("--init", default="sphere",
+                   help="sphere, torus, sheet, torus-through-opening (the torus started through the target's most "
+                        "open hole, e.g. a teapot's handle; meshmei.shapes.torus_through_opening), or a mesh file "
+                        "(default sphere)")
     p.add_argument("--target", required=True, help="bunny, teapot, or a mesh file (normalised to unit diagonal)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--method", choices=METHODS, default="rbf")
@@ -659,7 +662,12 @@ def add_parser(subparsers) -> None:
 def _run_cli(args) -> int:
     # Resolve and check both meshes first: bad input fails before any optimisation starts.
     target = target_surface(args.target)
-    source = source_mesh(args.init, n_vertices=args.n_vertices)
+    if args.init == "torus-through-opening":
+        from .shapes import torus_through_opening
+
+        source = torus_through_opening(*target, n_vertices=args.n_vertices)
+    else:
+        source = source_mesh(args.init, n_vertices=args.n_vertices)
     stages, fractions = None, None
     if args.stages == "auto":
         stages, fractions = default_stages(source[0].shape[0])

@@ -449,7 +449,8 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24):
 
     Points of a ``grid^3`` lattice over the bounding box that lie outside the solid (generalised winding
     number below 1/2) are tested for each coordinate axis: ``rays`` rays in the plane normal to the axis
-    all but one hit the surface (libigl's AABB ray caster misses a hit now and then). Among such points the
+    all but one hit the surface (libigl's AABB ray caster misses a hit now and then), and the two rays
+    along the axis both miss it (a bowl or a dent is surrounded in a plane but closed along the axis). Among such points the
     one farthest from the surface wins. It is then moved in the plane to a local maximum of that distance
     (the middle of the opening) and along the axis to the middle of the run of surrounded points through
     it, so that it sits in the plane of the loop.
@@ -474,11 +475,14 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24):
     angle = 2 * np.pi * np.arange(rays) / rays
 
     def surrounded(Q, axis):
+        # surrounded in the plane normal to the axis, and open both ways along it (a bowl is not a hole)
         u, v = [e for e in range(3) if e != axis]
-        D = np.zeros((rays, 3))
-        D[:, u], D[:, v] = np.cos(angle), np.sin(angle)
-        I, _, _ = tree.intersect_ray_first(Vn, Fn, np.repeat(Q, rays, 0), np.tile(D, (len(Q), 1)))
-        return (I >= 0).reshape(len(Q), rays).sum(1) >= rays - 1
+        D = np.zeros((rays + 2, 3))
+        D[:rays, u], D[:rays, v] = np.cos(angle), np.sin(angle)
+        D[rays, axis], D[rays + 1, axis] = 1.0, -1.0
+        I, _, _ = tree.intersect_ray_first(Vn, Fn, np.repeat(Q, rays + 2, 0), np.tile(D, (len(Q), 1)))
+        hit = (I >= 0).reshape(len(Q), rays + 2)
+        return (hit[:, :rays].sum(1) >= rays - 1) & ~hit[:, rays:].any(1)
 
     clearance = np.sqrt(igl.point_mesh_squared_distance(P, Vn, Fn)[0])
     best = None

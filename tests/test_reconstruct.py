@@ -188,6 +188,23 @@ def test_cli_writes_mesh_history_and_plots(tmp_path, capsys):
     assert V.shape[0] == rec["n_vertices"]
 
 
+def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
+    from meshmei.mesh import load_mesh
+
+    out_dir = tmp_path / "teapot"
+    rc, out = _cli(["--init", "torus-through-opening", "--n-vertices", 300, "--target", "teapot", "--out", out_dir,
+                    "--steps", 3, "--samples", 500, "--eval-samples", 2000, "--stages", "none", "--no-progress"],
+                   capsys)
+    assert rc == 0, out.err
+    V, _ = load_mesh(out_dir / "mesh.obj")
+    centre = 0.5 * (V.min(0).values + V.max(0).values)
+    assert float(centre[0]) < -0.2  # the start sat at the handle, left of the body, and three steps keep it there
+    # a target without a hole: a clear error and exit status 2, before any optimisation
+    rc, out = _cli(["--init", "torus-through-opening", "--target", "bunny", "--out", tmp_path / "b", "--steps", 3,
+                    "--no-progress"], capsys)
+    assert rc == 2 and "no through-hole" in out.err and not (tmp_path / "b" / "mesh.obj").exists()
+
+
 @pytest.mark.slow
 def test_torus_to_teapot_with_default_stages():
     src = initial_mesh("torus", n_vertices=1000)

@@ -358,3 +358,10 @@ def test_torus_through_the_teapots_opening_goes_through_the_handle():
     scale = 2 * clearance / 0.2
     np.testing.assert_allclose(Vd.max(0) - Vd.min(0), [scale, 0.3 * scale, scale], atol=5e-3)
     assert np.linalg.norm(Vd - centre, axis=1).min() == pytest.approx(2 * clearance, rel=0.02)
+
+
+def test_find_opening_ignores_dents_closed_along_the_axis():
+    from meshmei.shapes import find_opening
+
+    # The bunny (closed, genus 0) has dents that are surrounded in a plane but closed along its normal.
+    assert find_opening(*target_mesh("bunny")) is None
