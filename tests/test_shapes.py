@@ -365,3 +365,16 @@ def test_find_opening_ignores_dents_closed_along_the_axis():
 
     # The bunny (closed, genus 0) has dents that are surrounded in a plane but closed along its normal.
     assert find_opening(*target_mesh("bunny")) is None
+
+
+def test_find_opening_rejects_an_invalid_mesh():
+    from meshmei.errors import MeshError
+    from meshmei.shapes import find_opening
+
+    V, F = initial_mesh("torus", n_vertices=600, dtype=torch.float64)
+    V = V.clone()
+    V[5, 0] = float("nan")
+    with pytest.raises(MeshError, match="NaN"):
+        find_opening(V, F)
+    with pytest.raises(MeshError):
+        find_opening(V[:, :2], F)
