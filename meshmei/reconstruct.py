@@ -37,6 +37,7 @@ __all__ = [
     "ReconstructionSettings",
     "ReconstructionResult",
     "METHODS",
+    "STAGE_FIELDS",
     "DEFAULTS",
     "remesh",
     "source_mesh",
@@ -47,15 +48,21 @@ __all__ = [
 ]
 
 METHODS = ("rbf", "vertex", "largesteps")
+# The settings ReconstructionSettings.stage_overrides may change from one stage to the next.
+STAGE_FIELDS = ("method", "lr", "lr_scale", "reg_decay", "w_laplacian", "w_edge", "w_arap", "optimizer", "lam",
+                "sigma_factor", "r_cut", "centers", "coarse_ratio", "coarse_lr")
 
 # Per-method defaults, tuned on sphere -> bunny and torus -> teapot at 2.5k and 10k vertices
 # (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal
 # target, for a 2,500-vertex result; reconstruct scales them to the run's final resolution
 # (ReconstructionSettings.reg_ref_vertices).
 DEFAULTS = {
-    "rbf": dict(optimizer="uniform", lr=6e-3, reg_decay=True, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0),
-    "vertex": dict(optimizer="adam", reg_decay=False, lr=1e-3, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0),
-    "largesteps": dict(optimizer="uniform", reg_decay=False, lr=5e-2, lr_scale=0.0, w_laplacian=0.0, w_edge=0.0, w_arap=0.0),
+    "rbf": dict(optimizer="uniform", lr=6e-3, reg_decay=True, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0,
+                coarse_ratio=0, coarse_lr=3.0),
+    "vertex": dict(optimizer="adam", reg_decay=False, lr=1e-3, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0,
+                   coarse_ratio=0, coarse_lr=0.0),
+    "largesteps": dict(optimizer="uniform", reg_decay=False, lr=5e-2, lr_scale=0.0, w_laplacian=0.0, w_edge=0.0,
+                       w_arap=0.0, coarse_ratio=0, coarse_lr=0.0),
 }
 
 
@@ -107,11 +114,29 @@ class ReconstructionSettings:
         Smoothing weight of the large-steps parameterisation ``I + lam L``.
     sigma_factor, r_cut, centers : RBF kernel scale (in centre spacings), truncation radius (in scales) and
         number of kernels (None: all vertices).
+    coarse_ratio : int
+        rbf only (default 0, off: the paper's kernels alone). Above 0, add a second, coarse set of Gaussian kernels
+        at ``n / coarse_ratio`` farthest points of each stage's mesh, each as wide as the spacing of those
+        points (about ``sqrt(coarse_ratio)`` edges, 8 at 64), with offsets of their own. The map stays
+        ``V0 + sum_k delta_k w_k`` over both sets. The coarse offsets are a separate tensor, so the uniform
+        step normalises them on their own: they move the shape in smooth, wide steps while the fine
+        kernels fit detail. Faster early on a compact target (the bunny), but the kernels are Euclidean:
+        they tie together surface that is near in space and far along the surface, such as the two sides
+        of a torus threaded through a teapot's handle, so they are off by default
+        (docs/reconstruction.md, *Coarse kernels*).
+    coarse_lr : float
+        Learning rate of the coarse offsets as a multiple of ``lr`` (default 3).
     stages : tuple of int, or None
         Vertex counts of coarse-to-fine stages; the source is remeshed to ``stages[0]`` at the start and the
         current shape to each next count between stages. None: one stage at the source's resolution.
     stage_fractions : tuple of float or None
         Share of the steps / budget of each stage (default equal shares).
+    stage_overrides : tuple of (dict or None), or None
+        Settings that differ in one stage (needs ``stages``; one entry per stage), e.g.
+        ``({"w_laplacian": 0.0, "lr": 0.02}, None, None)`` or ``({"method": "largesteps"}, None)``. Keys
+        are among :data:`STAGE_FIELDS`. A stage's settings are these overrides, then the values set
+        explicitly for the run, then its method's defaults. The learning-rate decay and the regularizer
+        scaling follow the whole run (the fraction of the budget used; the final vertex count).
     seed : int
         Seed of all sampling (runs with ``steps`` are then bitwise repeatable).
     eval_every : int or None
@@ -140,8 +165,11 @@ class ReconstructionSettings:
     sigma_factor: float = 1.0
     r_cut: float = 4.0
     centers: int | None = None
+    coarse_ratio: int | None = None
+    coarse_lr: float | None = None
     stages: tuple | None = None
     stage_fractions: tuple | None = None
+    stage_overrides: tuple | None = None
     seed: int = 0
     eval_every: int | None = None
     eval_times: tuple = ()
@@ -161,7 +189,14 @@ class ReconstructionSettings:
         for name in ("lr", "n_samples", "target_pool", "eval_samples", "r_cut", "sigma_factor"):
             if not getattr(s, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(s, name)!r}")
-        for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam"):
+        cr = s.coarse_ratio
+        if isinstance(cr, bool) or not isinstance(cr, (int, np.integer)) or cr < 0 or cr == 1:
+            raise ValueError(f"coarse_ratio must be 0 (off) or an integer of at least 2, got {cr!r}")
+        if cr and s.method != "rbf":
+            raise ValueError(f"coarse_ratio applies to the rbf method only, not {s.method!r}; set it to 0")
+        if cr and not s.coarse_lr > 0:
+            raise ValueError(f"coarse_lr must be positive with coarse kernels, got {s.coarse_lr!r}")
+        for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam", "coarse_lr"):
             if not getattr(s, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(s, name)!r}")
         ref = s.reg_ref_vertices
@@ -184,7 +219,28 @@ class ReconstructionSettings:
             s = replace(s, stages=stages, stage_fractions=tuple(float(f) / tot for f in fr))
         elif s.stage_fractions is not None:
             raise ValueError("stage_fractions needs stages")
+        if s.stage_overrides is not None:
+            ov = tuple(s.stage_overrides)
+            if s.stages is None or len(ov) != len(s.stages):
+                raise ValueError(f"stage_overrides must give one entry per stage (stages={s.stages!r}), "
+                                 f"got {s.stage_overrides!r}")
+            for o in ov:
+                if o is not None and not isinstance(o, dict):
+                    raise ValueError(f"each entry of stage_overrides must be a dict or None, got {o!r}")
+                bad = sorted(set(o or {}) - set(STAGE_FIELDS))
+                if bad:
+                    raise ValueError(f"stage_overrides cannot set {bad[0]!r}; settable per stage: {STAGE_FIELDS}")
+            s = replace(s, stage_overrides=tuple(dict(o) if o else None for o in ov))
+            self.stage_settings()  # every stage's own values are checked too
         return replace(s, eval_times=tuple(float(t) for t in s.eval_times))
+
+    def stage_settings(self) -> list:
+        """The resolved settings of each stage (one entry when there are no ``stage_overrides``): for
+        stage ``k``, ``stage_overrides[k]``, then the values set here, then the stage's method's defaults.
+        Call it on the settings as given (unresolved), where unset values are still None."""
+        if self.stage_overrides is None:
+            return [self.resolved()]
+        return [replace(self, stage_overrides=None, **(o or {})).resolved() for o in self.stage_overrides]
 
 
 @dataclass(frozen=True)
@@ -372,6 +428,13 @@ class _Param:
             if s.lr_scale > 0:
                 groups.append({"params": [self.rbf.log_sigma], "lr": s.lr_scale})
             self.info = {"n_kernels": self.rbf.n_kernels, "n_pairs_initial": self.rbf.n_pairs}
+            self.coarse = None
+            k = round(V0.shape[0] / s.coarse_ratio) if s.coarse_ratio else 0
+            if k >= 4:  # fewer coarse kernels than that would only translate the shape
+                self.coarse = RBFDeformer(V0, k, r_cut=s.r_cut, learn_scales=False)
+                groups.append({"params": [self.coarse.offsets], "lr": s.lr * s.coarse_lr})
+                self.info.update(n_coarse_kernels=k, n_coarse_pairs=self.coarse.n_pairs,
+                                 coarse_sigma=float(self.coarse.sigma[0]))
         else:
             from .largesteps import DifferentialSolver, system_matrix
 
@@ -388,7 +451,7 @@ class _Param:
         if self.method == "vertex":
             return self.V0 + self.D
         if self.method == "rbf":
-            return self.rbf()
+            return self.rbf() if self.coarse is None else self.rbf() + self.coarse.displacement()
         return self.solver.solve(self.u)
 
     def set_lr_factor(self, f):
@@ -397,8 +460,11 @@ class _Param:
 
     def finish(self):
         if self.method == "rbf":
+            trunc = self.rbf.truncation_error
+            if self.coarse is not None:
+                trunc = max(trunc, self.coarse.truncation_error)
             self.info.update(n_pairs_final=self.rbf.n_pairs, n_rebuilds=self.rbf.n_rebuilds,
-                             truncation_error=self.rbf.truncation_error,
+                             truncation_error=trunc,
                              sigma_median=float(self.rbf.sigma.detach().median()))
         return self.info
 
@@ -451,7 +517,9 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
     >>> len(res.history), res.V.shape[1], res.final.chamfer_l2 > 0
     (5, 3, True)
     """
-    s = replace(settings or ReconstructionSettings(), method=method, **kwargs).resolved()
+    given = replace(settings or ReconstructionSettings(), method=method, **kwargs)
+    s = given.resolved()
+    per_stage = given.stage_settings()  # each stage's own settings (all equal to s without stage_overrides)
     Vt, Ft = target_surface(target)
     V, F = source_mesh(source)
     Vt = Vt.to(V.dtype)
@@ -500,7 +568,11 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
 
     n_final = s.stages[-1] if s.stages else V.shape[0]
     ratio = 1.0 if s.reg_ref_vertices is None else n_final / s.reg_ref_vertices
-    w_lap, w_edge, w_arap = s.w_laplacian * ratio**2, s.w_edge * ratio, s.w_arap * ratio
+
+    def weights(sk):
+        return sk.w_laplacian * ratio**2, sk.w_edge * ratio, sk.w_arap * ratio
+
+    w_lap, w_edge, w_arap = weights(s)
     info.update(w_laplacian=w_lap, w_edge=w_edge, w_arap=w_arap)
     step = 0
     t_start = time.perf_counter()
@@ -510,7 +582,9 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         t0 = time.perf_counter()
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
             V, F = remesh(V, F, n_stage)
-        param = _Param(s.method, V.detach(), F, s)
+        sk = per_stage[k] if s.stage_overrides else s
+        w_lap, w_edge, w_arap = weights(sk)
+        param = _Param(sk.method, V.detach(), F, sk)
         opt_time += time.perf_counter() - t0
         last_stage = k == len(stages) - 1
         while True:
@@ -521,7 +595,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             t0 = time.perf_counter()
             decay = s.lr_decay ** f
             param.set_lr_factor(decay)
-            wr = decay if s.reg_decay else 1.0
+            wr = decay if sk.reg_decay else 1.0
             param.opt.zero_grad(set_to_none=True)
             Vc = param.vertices()
             P = sample_points(Vc, F, s.n_samples, generator=g)
@@ -544,7 +618,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             opt_time += dt
             lv = float(loss.detach())
             if not math.isfinite(lv):
-                raise FloatingPointError(f"loss became {lv} at step {step}; lower the learning rate (lr={s.lr})")
+                raise FloatingPointError(f"loss became {lv} at step {step}; lower the learning rate (lr={sk.lr})")
             history.append({"step": step, "stage": k, "time": opt_time, "loss": lv, "chamfer": float(cd.detach()),
                             "lr": param.opt.param_groups[0]["lr"]})
             if bar is not None:
@@ -563,7 +637,8 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
                 last_eval_step = step
         with torch.no_grad():
             V = param.vertices().detach()
-        info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": step, **param.finish()})
+        info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": step, "method": sk.method,
+                               "w_laplacian": w_lap, **param.finish()})
         if done:
             break
     if bar is not None:

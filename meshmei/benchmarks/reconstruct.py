@@ -35,17 +35,19 @@ RESOLUTIONS = (2500, 10000)
 BUDGETS = (10.0, 30.0, 100.0)
 # name -> (method, overrides, resolutions it runs at (None: all)). "rbf-nolap" (no Laplacian regularizer)
 # shows the accuracy/health trade-off of the default weight; "largesteps-lr0.025" is large steps with the
-# learning rate that suits 10k vertices better than the default (tuned at 2.5k).
+# learning rate that suits 10k vertices better than the default (tuned at 2.5k); "rbf-coarse" adds the coarse
+# kernel set (ReconstructionSettings.coarse_ratio).
 VARIANTS = {
     "rbf": ("rbf", {}, None),
     "vertex": ("vertex", {}, None),
     "largesteps": ("largesteps", {}, None),
     "largesteps-lr0.025": ("largesteps", {"lr": 0.025}, (10000,)),
     "rbf-nolap": ("rbf", {"w_laplacian": 0.0, "lr": 2e-3}, (2500,)),
+    "rbf-coarse": ("rbf", {"coarse_ratio": 64}, None),
 }
 TARGETS = {"bunny": 2e-6, "teapot": 5e-6, "teapot-handle": 5e-6}
 COLORS = {"rbf": "tab:red", "vertex": "tab:blue", "largesteps": "tab:orange", "largesteps-lr0.025": "tab:brown",
-          "rbf-nolap": "tab:pink"}
+          "rbf-nolap": "tab:pink", "rbf-coarse": "tab:purple"}
 
 
 def start_mesh(init, n_vertices, Vt, Ft):
@@ -153,7 +155,8 @@ def render(results, floors, quick, budgets=BUDGETS):
         "defaults stated for 2,500 vertices and scaled to the final resolution (`reg_ref_vertices`: the "
         "Laplacian weight is 16x larger at 10k vertices). rbf-nolap is rbf without the Laplacian term "
         "(lr 2e-3), at 2.5k vertices only; largesteps-lr0.025 is large steps at half the default learning "
-        "rate, at 10k vertices only. teapot-handle is the teapot from the same torus turned and placed with its "
+        "rate, at 10k vertices only. rbf-coarse is rbf with a second set of kernels at one vertex in 64, about 8 "
+        "edges wide, with their own offsets (`coarse_ratio=64`). teapot-handle is the teapot from the same torus turned and placed with its "
         "hole through the handle (`meshmei.shapes.torus_through_opening`: the through-hole found by "
         "`find_opening`, the torus's axis along it, its hole twice the opening's clearance): "
         "it shows what the handle's topology costs the centred start.",
