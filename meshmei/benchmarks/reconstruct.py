@@ -162,7 +162,8 @@ def render(results, floors, quick, budgets=BUDGETS):
         "result (the teapot target has its own, see the floor rows). Time is optimisation wall time, single "
         "torch thread, metric evaluation excluded; each budget is a separate run whose schedule follows its "
         "budget (coarse-to-fine stages n/4, n, n with shares 0.25/0.45/0.3, learning rate decaying 10x). "
-        "Each run uses one core of an otherwise idle machine, one run at a time. Regularizer weights are the "
+        "Each run uses one core of an otherwise idle machine, one run at a time, after a few warm-up steps of "
+        "each method on a tiny problem (so that no timed run pays the process's one-off costs). Regularizer weights are the "
         "defaults stated for 2,500 vertices and scaled to the final resolution (`reg_ref_vertices`: the "
         "Laplacian weight is 16x larger at 10k vertices). rbf-nolap is rbf without the Laplacian term "
         "(lr 2e-3), at 2.5k vertices only; largesteps-lr0.025 is large steps at half the default learning "
@@ -175,6 +176,12 @@ def render(results, floors, quick, budgets=BUDGETS):
     ]
     if quick:
         lines.insert(0, "**Quick smoke run: budgets in seconds are tiny; numbers are not meaningful.**\n")
+    runs = {}
+    for key, r in _ordered(results):
+        runs.setdefault(r.get("run", "an earlier run"), set()).add(key.split("|")[2])
+    if len(runs) > 1:
+        lines += ["Rows from more than one run (`--merge`): " + "; ".join(
+            f"{', '.join(sorted(v))} from {k}" for k, v in sorted(runs.items())) + ". Compare times within one run.", ""]
     T = f"{budgets[-1]:g} s"
     header = (["problem", "n", "method"] + [f"CD-L2 @{t:g} s" for t in budgets]
               + [f"F @{T}", f"NC @{T}", f"SI @{T}", f"steps @{T}"])
@@ -209,6 +216,9 @@ def render(results, floors, quick, budgets=BUDGETS):
         prob, n, name = key.split("|")
         ls = results.get(f"{prob}|{n}|largesteps")
         if name == "largesteps" or ls is None:
+            continue
+        if r.get("run") != ls.get("run"):
+            lines.append(f"  - {prob}, {n} vertices, {name}: not compared (measured in a different run from largesteps)")
             continue
         late = slower_levels(r["curve"], ls["curve"])
         if not late:
@@ -365,6 +375,7 @@ def main(argv=None):
         # keep the configurations not re-run now, so a subset (--variants) can be refreshed on its own
         old = json.loads(raw_path.read_text())
         results, floors = old["results"], old["floors"]
+    run_label = time.strftime("%Y-%m-%d %H:%M")  # which run wrote an entry (--merge keeps older ones)
     warm_up({VARIANTS[name][0] for name in names})
     t_all = time.perf_counter()
     for prob in problems:
@@ -380,7 +391,7 @@ def main(argv=None):
                     continue  # shown at one resolution only, to bound the run time
                 if args.skip_existing and f"{prob}|{n}|{name}" in results:
                     continue
-                entry = {"budgets": {}, "curve": [], "metrics": []}
+                entry = {"budgets": {}, "curve": [], "metrics": [], "run": run_label}
                 for budget in budgets:
                     last = budget == budgets[-1]
                     evals = tuple(t for t in CHECKPOINTS[1:] if t < budget) if last else ()
