@@ -262,7 +262,8 @@ class ReconstructionResult:
     wall_time : float, optimisation seconds (remeshing between stages included, evaluation excluded)
     eval_time : float, seconds spent evaluating metrics
     info : dict, e.g. the regularizer weights used (``w_laplacian``, ``w_edge``, ``w_arap``, scaled to the
-        resolution) and per stage the RBF truncation error and pair counts
+        resolution) and per stage (``info["stages"]``) its method, Laplacian weight, and for rbf the
+        truncation error and pair counts
     """
 
     V: torch.Tensor
@@ -519,7 +520,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
     """
     given = replace(settings or ReconstructionSettings(), method=method, **kwargs)
     s = given.resolved()
-    per_stage = given.stage_settings()  # each stage's own settings (all equal to s without stage_overrides)
+    per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
     Vt, Ft = target_surface(target)
     V, F = source_mesh(source)
     Vt = Vt.to(V.dtype)
@@ -582,7 +583,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         t0 = time.perf_counter()
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
             V, F = remesh(V, F, n_stage)
-        sk = per_stage[k] if s.stage_overrides else s
+        sk = per_stage[k] if per_stage else s
         w_lap, w_edge, w_arap = weights(sk)
         param = _Param(sk.method, V.detach(), F, sk)
         opt_time += time.perf_counter() - t0
