@@ -4,14 +4,18 @@ The deformed vertices are ``V = V0 + sum_k delta_k * exp(-|V0 - c_k|^2 / (2 sigm
 centres ``c_k`` on the rest mesh (all vertices by default, as in the paper, or ``K`` farthest points).
 Both ends of every kernel distance live on the rest mesh, so the distances never change: only (vertex,
 kernel) pairs closer than ``r_cut * sigma_k`` are kept, found once with a KD-tree on the rest positions,
-and the list is rebuilt only when a learnable scale grows past the radius the list covers. Evaluation is
-one gather and one ``index_add`` over the pairs: memory and time are linear in the number of pairs.
+and the list is rebuilt only when a learnable scale grows past the radius the list covers. With fixed
+scales (the default in reconstruction) the map is a constant sparse matrix ``W`` (vertices x kernels):
+evaluation is one CSR product ``W @ offsets`` forward and one ``W^T @ grad`` backward, both cached until
+the pair list or the scales change. With learnable scales it is one gather and one ``index_add`` over the
+pairs, differentiable in the scales. Either way memory and time are linear in the number of pairs.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -74,6 +78,31 @@ def rbf_dense(V0: torch.Tensor, C: torch.Tensor, offsets: torch.Tensor, sigma: t
     d2 = torch.cdist(V0, C) ** 2  # (n, K)
     W = torch.exp(-d2 / (2.0 * sigma * sigma))
     return V0 + W @ offsets
+
+
+def _csr(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: tuple) -> torch.Tensor:
+    """A CSR matrix from (row, col, value) triples without duplicates, column indices sorted in each row."""
+    order = torch.from_numpy(np.lexsort((cols.cpu().numpy(), rows.cpu().numpy()))).to(rows.device)
+    counts = torch.bincount(rows, minlength=shape[0])
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=rows.device)
+    crow[1:] = torch.cumsum(counts, 0)
+    with warnings.catch_warnings():  # torch flags every CSR tensor as a beta feature
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
+        return torch.sparse_csr_tensor(crow, cols[order], values[order], shape)
+
+
+class _FixedMap(torch.autograd.Function):
+    """``W @ x`` for a constant sparse ``W``, with ``W^T`` (also CSR) for the backward pass."""
+
+    @staticmethod
+    def forward(ctx, x, W, Wt):
+        ctx.Wt = Wt
+        return W @ x
+
+    @staticmethod
+    def backward(ctx, grad):
+        return ctx.Wt @ grad.contiguous(), None, None
 
 
 class RBFDeformer(torch.nn.Module):
@@ -243,9 +272,24 @@ class RBFDeformer(torch.nn.Module):
         inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)
         return torch.exp(-self._d2 * inv[self._cols])  # (P,)
 
+    def _fixed_matrices(self) -> tuple:
+        """``W`` and ``W^T`` as CSR tensors at the current scales, cached until the pairs or scales change."""
+        key = (self.n_rebuilds, self.log_sigma._version, self.log_sigma.data_ptr(), self._rows.data_ptr(),
+               self.offsets.dtype)
+        if getattr(self, "_fixed_key", None) != key:
+            with torch.no_grad():
+                w = self._pair_weights().to(self.offsets.dtype)
+            n, K = self.V0.shape[0], self.n_kernels
+            self._fixed = (_csr(self._rows, self._cols, w, (n, K)), _csr(self._cols, self._rows, w, (K, n)))
+            self._fixed_key = key
+        return self._fixed
+
     def displacement(self) -> torch.Tensor:
         """``sum_k delta_k w_k(V0)``, ``(n, 3)``."""
         self._ensure_covered()
+        if not self.log_sigma.requires_grad:  # fixed scales: a constant sparse matrix
+            W, Wt = self._fixed_matrices()
+            return _FixedMap.apply(self.offsets, W, Wt).to(self.V0.dtype)
         w = self._pair_weights()
         contrib = w.unsqueeze(1) * self.offsets[self._cols]  # (P, 3)
         return torch.zeros_like(self.V0).index_add(0, self._rows, contrib.to(self.V0.dtype))

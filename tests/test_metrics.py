@@ -123,9 +123,16 @@ def test_point_index_is_exact_near_and_close_to_exact_far():
     torch.testing.assert_close(torch.from_numpy(index.query(near)), nearest_neighbors(near, Q), rtol=0, atol=0)
     far = torch.randn(2000, 3, dtype=V.dtype, generator=torch.Generator().manual_seed(2))
     far = far / far.norm(dim=1, keepdim=True) * (1.2 + torch.rand(2000, 1, dtype=V.dtype))
-    got = (far - Q[torch.from_numpy(index.query(far))]).norm(dim=1)
     best = (far - Q[nearest_neighbors(far, Q)]).norm(dim=1)
-    assert float((got / best).max()) < 1.5
+    exact = nearest_neighbors(near, Q)
+    # the search order follows the last call (bounded finest search after near queries, levels first after
+    # far ones): both orders give exact answers near and close answers far
+    for queries in (far, far, near, near, far):
+        got = torch.from_numpy(index.query(queries))
+        if queries is near:
+            assert torch.equal(got, exact)
+        else:
+            assert float(((far - Q[got]).norm(dim=1) / best).max()) < 1.5
     with pytest.raises(ValueError):
         PointIndex(np.zeros((0, 3)))
 

@@ -310,17 +310,25 @@ def rbf_cost(quick=False):
             t0 = time.perf_counter()
             rbf = RBFDeformer(V0, sigma_factor=sigma_factor, r_cut=r_cut)
             build = time.perf_counter() - t0
-            with torch.no_grad():
-                rbf.offsets.normal_(std=1e-3)
+            fixed = RBFDeformer(V0, sigma_factor=sigma_factor, r_cut=r_cut, learn_scales=False)
+            times = []
+            for m in (fixed, rbf):
+                with torch.no_grad():
+                    m.offsets.normal_(std=1e-3, generator=torch.Generator().manual_seed(0))
 
-            def step():
-                rbf.zero_grad(set_to_none=True)
-                (rbf() ** 2).sum().backward()
+                def step(m=m):
+                    m.zero_grad(set_to_none=True)
+                    (m() ** 2).sum().backward()
 
-            t = timeit(step, repeat=3 if quick else 5)
-            mb = rbf.n_pairs * (8 + 8 + 4 * 2 + 4 * 3 * 2) / 2**20  # indices, distance, weight, (P, 3) fwd/bwd
+                times.append(timeit(step, repeat=3 if quick else 5))
+            # pair buffers (two int64 indices, a distance) plus, with fixed scales, W and W^T in CSR (int64
+            # column index and a float32 value per pair each) or, with learnable scales, the per-pair
+            # temporaries of one forward and backward pass (a weight, (P, 3) products forward and backward)
+            mb_fixed = rbf.n_pairs * (8 + 8 + 4 + 2 * (8 + 4)) / 2**20
+            mb_learn = rbf.n_pairs * (8 + 8 + 4 + 4 + 4 * 3 * 2) / 2**20
             rows.append([f"{kind} {V0.shape[0]}", sigma_factor, r_cut, f"{rbf.truncation_error:.1e}", rbf.n_pairs,
-                         f"{rbf.n_pairs / V0.shape[0]:.0f}", f"{mb:.0f}", f"{build:.2f}", f"{1e3 * t:.1f}"])
+                         f"{rbf.n_pairs / V0.shape[0]:.0f}", f"{mb_fixed:.0f} / {mb_learn:.0f}", f"{build:.2f}",
+                         f"{1e3 * times[0]:.1f}", f"{1e3 * times[1]:.1f}", f"{times[1] / times[0]:.1f}"])
             print(rows[-1], flush=True)
     body = [
         "Written by `python -m meshmei.benchmarks.reconstruct --rbf-cost`. " + machine_line() + ".",
@@ -328,11 +336,15 @@ def rbf_cost(quick=False):
         "All-vertex Gaussian kernels (`RBFDeformer(V0, sigma_factor=..., r_cut=...)`, headroom 1.25). "
         "`sigma` is `sigma_factor` times the mean centre spacing; pairs within `1.25 * r_cut * sigma` are kept, "
         "so the largest dropped weight is at most `exp(-r_cut^2 / 2)` (the column shows the value at build). "
-        "Memory: pair indices and distances plus the per-pair temporaries of one forward and backward pass "
-        "(float32). Time: one forward and backward pass, single thread, median of 5.",
+        "Fixed scales (`learn_scales=False`, what `reconstruct` uses unless `lr_scale > 0`): the map is a "
+        "constant sparse matrix, one CSR product forward and one with its transpose backward. Learnable scales: "
+        "a gather and an `index_add` over the pairs, differentiable in the scales. Memory (fixed / learnable): "
+        "pair indices and distances plus the two CSR matrices, or plus the per-pair temporaries of one forward "
+        "and backward pass (float32). Time: one forward and backward pass, single thread, median of 5.",
         "",
         markdown_table(["mesh", "sigma_factor", "r_cut", "max dropped weight", "pairs", "pairs / kernel",
-                        "memory (MiB)", "build (s)", "fwd+bwd (ms)"], rows),
+                        "memory (MiB), fixed / learnable", "build (s)", "fwd+bwd fixed (ms)",
+                        "fwd+bwd learnable (ms)", "ratio"], rows),
     ]
     write_section("reconstruction-rbf-cost", "\n".join(body))
 
