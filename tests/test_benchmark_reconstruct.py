@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from meshmei.benchmarks.reconstruct import _teapot_piece_names, on_checkpoints, slower_levels, time_to_reach
+from meshmei.benchmarks.reconstruct import (_teapot_piece_names, best_of_runs, on_checkpoints, slower_levels,
+                                            time_to_reach)
 
 
 def test_checkpoints_absorb_the_step_after_each_evaluation_time():
@@ -20,6 +21,17 @@ def test_slower_levels_lists_exactly_the_levels_reached_later():
     late = [(0.0, 1.0), (1.0, 0.45), (2.0, 0.3), (5.0, 0.09), (100.0, 0.06)]
     assert slower_levels(late, ref) == [(0.2, 5.0, 2.0), (0.05, float("inf"), 100.0)]
     assert time_to_reach(late, 0.3) == 2.0 and time_to_reach(late, 1e-9) == float("inf")
+
+
+def test_best_of_runs_takes_the_lowest_value_reached_by_each_time():
+    # the 100 s run's curve, and a 30 s run that ended lower than the long run was at 30 s
+    entry = {"curve": [(0.0, 1.0), (10.2, 0.5), (30.1, 0.3), (50.0, 0.2), (100.3, 0.05)],
+             "budgets": {"10.0": {"chamfer_l2": 0.6}, "30.0": {"chamfer_l2": 0.1}, "100.0": {"chamfer_l2": 0.05}}}
+    assert best_of_runs(entry, (10.0, 30.0, 100.0)) == [(0.0, 1.0), (10.0, 0.5), (30.0, 0.1), (50.0, 0.1),
+                                                         (100.0, 0.05)]
+    # the short run is what makes 0.1 reachable at 30 s; the long run alone gets there at 100 s
+    assert time_to_reach(best_of_runs(entry, (10.0, 30.0, 100.0)), 0.1) == 30.0
+    assert time_to_reach(on_checkpoints(entry["curve"]), 0.1) == 100.0
 
 
 def test_teapot_pieces_are_named_by_their_boxes():

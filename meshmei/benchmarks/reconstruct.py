@@ -111,6 +111,23 @@ def slower_levels(curve, reference):
     return out
 
 
+def best_of_runs(entry, budgets=BUDGETS):
+    """The lowest Chamfer-L2 a method has reached by each time, over its runs: the checkpoints of its
+    longest run and the ends of its shorter runs (a shorter budget decays its learning rate and
+    regularizers sooner, so it can be ahead of the long run at its end). [(t, chamfer)], non-increasing.
+    This is what a user who picks the budget for a level gets."""
+    pts = on_checkpoints(entry["curve"]) + [(float(b), entry["budgets"][str(b)]["chamfer_l2"])
+                                            for b in budgets[:-1] if str(b) in entry["budgets"]]
+    out, best = [], float("inf")
+    for t, c in sorted(pts):
+        best = min(best, c)
+        if out and out[-1][0] == t:
+            out[-1] = (t, best)
+        else:
+            out.append((t, best))
+    return out
+
+
 def warm_up(methods):
     """Run each method for a few steps on a tiny problem, so that the first timed run does not pay the
     process's one-off costs (library loading, first calls into pymeshlab, scipy and torch: about a second,
@@ -214,7 +231,11 @@ def render(results, floors, quick, budgets=BUDGETS):
     lines.append(f"- Time to reach the Chamfer levels that largesteps reaches (its {budgets[-1]:g} s curve, "
                  "evaluated at the first step past each of 1, 2, 5, 10, 20, 30, 50 and 70 s and at the end, plus "
                  "the starting mesh at 0 s); 'yes' if the method gets to every such level at the same checkpoint "
-                 "as largesteps or an earlier one, else the levels where it is later:")
+                 "as largesteps or an earlier one, else the levels where it is later. Two readings: the "
+                 f"longest run's curve alone, and the best of the runs (the lowest value reached by each "
+                 f"time over the {budgets[-1]:g} s curve and the ends of the shorter runs, for both methods: "
+                 "what a user who picks the budget for a level gets; the levels are then largesteps' own "
+                 "best of the runs):")
     for key, r in _ordered(results):
         prob, n, name = key.split("|")
         ls = results.get(f"{prob}|{n}|largesteps")
@@ -223,13 +244,15 @@ def render(results, floors, quick, budgets=BUDGETS):
         if r.get("run") != ls.get("run"):
             lines.append(f"  - {prob}, {n} vertices, {name}: not compared (measured in a different run from largesteps)")
             continue
-        late = slower_levels(r["curve"], ls["curve"])
-        if not late:
-            lines.append(f"  - {prob}, {n} vertices, {name}: yes")
-        else:
-            shown = "; ".join(f"{c:.1e} at {t:.0f} s against {t_ls:.0f} s" for c, t, t_ls in late[:4])
-            lines.append(f"  - {prob}, {n} vertices, {name}: no, later at {len(late)} of {len(ls['curve'])} levels "
-                         f"({shown}{'; ...' if len(late) > 4 else ''})")
+        for label, mine, ref in (("longest run", r["curve"], ls["curve"]),
+                                 ("best of the runs", best_of_runs(r, budgets), best_of_runs(ls, budgets))):
+            late = slower_levels(mine, ref)
+            if not late:
+                lines.append(f"  - {prob}, {n} vertices, {name}, {label}: yes")
+            else:
+                shown = "; ".join(f"{c:.1e} at {t:.0f} s against {t_ls:.0f} s" for c, t, t_ls in late[:4])
+                lines.append(f"  - {prob}, {n} vertices, {name}, {label}: no, later at {len(late)} of {len(ref)} "
+                             f"levels ({shown}{'; ...' if len(late) > 4 else ''})")
     parts = [(key, r["budgets"][str(budgets[-1])]["by_part"]) for key, r in _ordered(results)
              if str(budgets[-1]) in r["budgets"] and "by_part" in r["budgets"][str(budgets[-1])]]
     if parts:
