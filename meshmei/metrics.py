@@ -186,15 +186,24 @@ class PointIndex:
     factor : int
         Size ratio of consecutive levels.
     min_points : int
-        Size of the coarsest level.
+        Size of the coarsest level (at least this many points, fewer than ``factor`` times as many).
+    far_eps : float
+        Searches of the coarser levels (never of the finest) return a point at most ``1 + far_eps`` times
+        as far as the nearest of that level (scipy's ``eps``). Those answers are approximate anyway; the
+        slack makes the worst queries, from inside a closed surface, where every point is nearly
+        equidistant, 2x cheaper.
     """
 
-    def __init__(self, Q, *, exact_within: float | None = None, factor: int = 4, min_points: int = 2000):
+    def __init__(self, Q, *, exact_within: float | None = None, factor: int = 4, min_points: int = 500,
+                 far_eps: float = 0.5):
         from scipy.spatial import cKDTree
 
         Qn = np.ascontiguousarray(Q.detach().cpu().numpy() if isinstance(Q, torch.Tensor) else np.asarray(Q))
         if Qn.ndim != 2 or Qn.shape[1] != 3 or len(Qn) == 0:
             raise ValueError(f"Q must be a non-empty (k, 3) point array, got shape {Qn.shape}")
+        if not far_eps >= 0:
+            raise ValueError(f"far_eps must be non-negative, got {far_eps!r}")
+        self.far_eps = float(far_eps)
         self.n = len(Qn)
         sizes = [self.n]
         while sizes[-1] // factor >= min_points:
@@ -208,12 +217,19 @@ class PointIndex:
         # A query at distance d is cheap on level l when d < exact_within * sqrt(n_l / n) (spacing grows
         # with the square root of the thinning).
         self.cheap = [self.exact_within * np.sqrt(self.n / m) for m in self.sizes]
-        self._far_share = 0.0  # share of the last call's queries farther than exact_within (picks the search)
+        self.far_share = 0.0  # share of the last call's queries farther than exact_within (picks the search)
 
-    def query(self, P) -> np.ndarray:
-        """Index into ``Q`` of the (near-)nearest point for each row of ``P`` ``(n, 3)``; ``(n,)`` int64."""
+    def query(self, P, *, near_first: bool | None = None) -> np.ndarray:
+        """Index into ``Q`` of the (near-)nearest point for each row of ``P`` ``(n, 3)``; ``(n,)`` int64.
+
+        ``near_first``: start with the bounded search of the finest tree (worth it when most queries are
+        near the points); ``None`` decides from the previous call (:attr:`far_share` below one half). A
+        caller that builds a new index for each batch can pass what the last index's ``far_share`` said.
+        """
         Pn = np.ascontiguousarray(P.detach().cpu().numpy() if isinstance(P, torch.Tensor) else np.asarray(P))
-        if self._far_share < 0.5:
+        if near_first is None:
+            near_first = self.far_share < 0.5
+        if near_first:
             # most queries were near the points last time (a fit that is close): one search of the finest
             # tree bounded at exact_within answers those exactly and gives up early on the rest
             d, idx = self.trees[-1].query(Pn, k=1, distance_upper_bound=self.exact_within)
@@ -221,17 +237,18 @@ class PointIndex:
             far = np.flatnonzero(~np.isfinite(d))
             if len(far):
                 idx[far] = self._cascade(Pn[far])[1]
-            self._far_share = len(far) / max(len(Pn), 1)
+            self.far_share = len(far) / max(len(Pn), 1)
             return idx
         d, idx = self._cascade(Pn)
-        self._far_share = float(np.mean(d >= self.exact_within)) if len(Pn) else 0.0
+        self.far_share = float(np.mean(d >= self.exact_within)) if len(Pn) else 0.0
         return idx
 
     def _cascade(self, Pn):
         """Distances and indices, searching the coarsest level first and then, for each query, the finest
         level where it is still cheap (its nearest point there is no farther than the one found so far,
         since each level holds the coarser ones), until no query can go finer."""
-        d, idx = self.trees[0].query(Pn, k=1)
+        last = len(self.trees) - 1
+        d, idx = self.trees[0].query(Pn, k=1, eps=self.far_eps if last > 0 else 0.0)
         idx = np.asarray(idx, dtype=np.int64)
         level = np.zeros(len(Pn), dtype=np.int64)
         cheap = np.asarray(self.cheap)
@@ -242,7 +259,7 @@ class PointIndex:
                 return d, idx
             for lvl in np.unique(finest[todo]):
                 sel = todo[finest[todo] == lvl]
-                d[sel], idx[sel] = self.trees[lvl].query(Pn[sel], k=1)
+                d[sel], idx[sel] = self.trees[lvl].query(Pn[sel], k=1, eps=self.far_eps if lvl < last else 0.0)
                 level[sel] = lvl
 
 

@@ -531,6 +531,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
     # Nearest neighbours are exact within 10 sample spacings of a surface and near-nearest beyond (where
     # exact KD-tree queries get slow and the neighbour's exact identity hardly matters).
     pool_index = PointIndex(pool)
+    qp_far_share = 1.0  # share of target samples far from the current samples at the last step (a start is far)
 
     stages = s.stages or (None,)
     bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
@@ -603,7 +604,9 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             sub = torch.randint(0, s.target_pool, (s.n_samples,), generator=g, device=V.device)
             Q = pool[sub]
             i_pq = torch.from_numpy(pool_index.query(P))
-            i_qp = torch.from_numpy(PointIndex(P).query(Q))
+            samples_index = PointIndex(P)
+            i_qp = torch.from_numpy(samples_index.query(Q, near_first=qp_far_share < 0.5))
+            qp_far_share = samples_index.far_share
             cd = ((P - pool[i_pq]) ** 2).sum(-1).mean() + ((Q - P[i_qp]) ** 2).sum(-1).mean()
             loss = cd
             if w_lap > 0:

@@ -127,12 +127,13 @@ def test_point_index_is_exact_near_and_close_to_exact_far():
     exact = nearest_neighbors(near, Q)
     # the search order follows the last call (bounded finest search after near queries, levels first after
     # far ones): both orders give exact answers near and close answers far
-    for queries in (far, far, near, near, far):
-        got = torch.from_numpy(index.query(queries))
+    for queries, near_first in ((far, None), (far, None), (near, None), (near, None), (far, None), (near, False),
+                                (far, True)):
+        got = torch.from_numpy(index.query(queries, near_first=near_first))
         if queries is near:
-            assert torch.equal(got, exact)
+            assert torch.equal(got, exact) and index.far_share == 0.0
         else:
-            assert float(((far - Q[got]).norm(dim=1) / best).max()) < 1.5
+            assert float(((far - Q[got]).norm(dim=1) / best).max()) < 1.5 and index.far_share > 0.9
     with pytest.raises(ValueError):
         PointIndex(np.zeros((0, 3)))
 
