@@ -162,18 +162,27 @@ class PointIndex:
     """Nearest-neighbour queries into a fixed point set, fast at any query distance.
 
     A KD-tree query at distance ``d`` from points spaced ``h`` apart visits about ``(d / h)^2`` points,
-    which makes queries far from a dense target slow. This index keeps KD-trees on nested prefixes of the
-    (randomly ordered) points, each ``factor`` times smaller than the last, and answers each query at the
-    finest level where it is still cheap: exactly (the true nearest of all points) when it lies within
-    ``exact_within`` of a point, otherwise with the nearest point of a coarser prefix, whose distance
-    exceeds the true one by at most about that prefix's spacing (a relative error of ``~ factor / 10``).
-    A query goes from the coarsest level straight to the finest level where it is cheap, so one near the
-    points costs two searches, not one per level. When most of the previous call's queries lay within
-    ``exact_within`` (an optimisation that has closed in on its target), each call first searches the
-    finest tree bounded at ``exact_within``, which answers those queries exactly in one search and gives
-    up early on the others; only those go through the levels. Measured on the bunny's 200,000-point pool
-    with 10,000 queries (one thread): 11 ms for queries about 1e-3 from the surface (a full-tree search:
-    12 ms; one search per level, as before: 30 ms), 24 ms at 0.1 (full tree: 440 ms).
+    which makes queries far from a dense target slow, and a query from inside a closed surface, where
+    every point is nearly equidistant, visits most of them. This index keeps KD-trees on nested prefixes of
+    the (randomly ordered) points, each ``factor`` times smaller than the last. A query searches the
+    coarsest level, then goes straight to the finest level where it is still cheap (its distance so far
+    below ``exact_within * sqrt(n / n_level)``), and again from there, until no query can go finer. A query
+    that reaches the finest level gets the true nearest point; the others get a point of a coarser prefix
+    at most ``1 + far_eps`` times as far as that prefix's nearest, which exceeds the true distance by at
+    most about the prefix's spacing.
+
+    With ``near_first`` (by default when most of the previous call's queries lay within
+    ``exact_within``, as in an optimisation that has closed in on its target), a call first searches the
+    finest tree bounded at ``exact_within``: every query within ``exact_within`` of a point gets the true
+    nearest in that one search, and the search gives up early on the others, which then go through the
+    levels.
+
+    Measured with 10,000 queries, one thread: into the bunny's 200,000-point pool, 7 to 9 ms for queries
+    about 1e-3 from the surface (one full-tree search: 8 to 12 ms; one search per level, as this index
+    did before: 30 ms) and 17 ms at 0.1 (full tree: 350 ms). From the bunny's samples into the samples of
+    a sphere around it (the start of a reconstruction; index built per call, as there): 17 ms, 35 ms with
+    ``near_first``, 85 ms with one search per level. Far answers are at most 1.5x the true distance in
+    the tests (median 1.02x from the sphere into the pool).
 
     Parameters
     ----------
@@ -181,8 +190,8 @@ class PointIndex:
         The points, in random order (e.g. from :func:`sample_points`), so that every prefix covers the
         surface evenly.
     exact_within : float
-        Queries whose nearest point is closer than this get exact answers. Default: 10 times the mean
-        spacing of ``Q`` estimated from its nearest-neighbour distances.
+        Radius of exact answers (above). Default: 10 times the mean spacing of ``Q`` estimated from its
+        nearest-neighbour distances.
     factor : int
         Size ratio of consecutive levels.
     min_points : int
