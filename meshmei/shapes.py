@@ -499,7 +499,7 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24, directions: int = 64):
     normal to the loop (its largest component positive), and the point's distance to the surface. ``None``
     if no point is surrounded (a surface without a hole, at this grid). Cost: ``grid^3`` winding numbers
     and distances, then two rays per outside point and candidate axis plus ``rays`` more for the points
-    that pass the first test: about 2 s at the defaults on the teapot.
+    that pass the first test: 2.5 to 3 s at the defaults on the teapot (docs/shapes.md).
 
     Raises
     ------
