@@ -200,3 +200,27 @@ def test_bad_input_raises(kwargs, match):
 def test_bad_mesh_is_a_mesh_error():
     with pytest.raises(MeshError):
         RBFDeformer(torch.zeros(0, 3))
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.3])
+def test_pair_list_is_every_pair_within_each_kernels_radius(spread):
+    # All-vertex kernels (the default) list their pairs with one query_pairs call; given centres use a ball
+    # query per kernel. Both must list exactly the (vertex, kernel) pairs within headroom * r_cut * sigma_k.
+    V0, _ = icosphere(3)  # 642 vertices
+    default = RBFDeformer(V0, r_cut=2.0)
+    given = RBFDeformer(V0, torch.arange(V0.shape[0]), r_cut=2.0)
+    for rbf in (default, given):
+        _random_params(rbf, seed=3, spread=spread)
+        rbf._build(rbf.sigma.detach())  # the pairs for these (possibly unequal) scales
+    d = torch.cdist(V0, V0)  # (vertex, kernel) distances
+    expected = d <= default._radius[None, :]
+    # the brute-force set, up to pairs within rounding of a radius
+    edge = (d - default._radius[None, :]).abs() < 1e-12
+    for rbf in (default, given):
+        got = torch.zeros_like(expected)
+        got[rbf._rows, rbf._cols] = True
+        assert rbf.n_pairs == int(got.sum())  # no pair listed twice
+        assert torch.equal(got | edge, expected | edge)
+        torch.testing.assert_close(rbf._d2, d[rbf._rows, rbf._cols] ** 2)
+    assert 0 < default.n_pairs < V0.shape[0] ** 2
+    assert (default._radius.min() < default._radius.max()) == (spread > 0)
