@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from meshmei.benchmarks.reconstruct import (_teapot_piece_names, best_of_runs, on_checkpoints, slower_levels,
                                             time_to_reach)
 
@@ -44,3 +46,13 @@ def test_teapot_pieces_are_named_by_their_boxes():
     named = _teapot_piece_names(parts)
     assert [named[k]["area_share"] for k in ("body", "lid", "spout", "handle")] == [0.73, 0.13, 0.08, 0.06]
 
+
+
+def test_bad_resolutions_are_refused_before_any_run(capsys):
+    from meshmei.benchmarks.reconstruct import main
+
+    for bad in ("2500,abc", "5000"):
+        with pytest.raises(SystemExit) as exc:
+            main(["--resolutions", bad])
+        assert exc.value.code == 2
+        assert "--resolutions" in capsys.readouterr().err

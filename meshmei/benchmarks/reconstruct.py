@@ -3,8 +3,8 @@ consistency against wall time, at about 2.5k and 10k vertices, with the decimati
 
 Three problems: bunny (from a sphere), teapot (from the centred torus) and teapot-handle (the torus started
 with its hole through the teapot's handle). Run ``python -m meshmei.benchmarks.reconstruct`` (about 55
-minutes on a 2-core CPU; ``--problems`` and ``--variants`` pick a subset, ``--merge`` keeps the rest); it
-writes the section "reconstruction" of ``docs/benchmarks.md``, ``docs/reconstruction_<problem>.png`` and
+minutes on a 2-core CPU; ``--problems``, ``--resolutions`` and ``--variants`` pick a subset, ``--merge``
+keeps the rest); it writes the section "reconstruction" of ``docs/benchmarks.md``, ``docs/reconstruction_<problem>.png`` and
 the raw numbers in ``docs/reconstruction_benchmark.json``. ``--quick`` runs a few-second smoke version
 into a temporary folder. Each (problem, resolution, method) is run separately at each time budget (10, 30, 100 s): the
 schedule (coarse-to-fine stages, learning-rate decay) follows the budget, as a user would set it; the 100 s
@@ -384,6 +384,8 @@ def main(argv=None):
                     help="with --merge, do not re-run configurations already in the JSON")
     ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of " + ", ".join(VARIANTS))
     ap.add_argument("--problems", default=",".join(PROBLEMS), help="comma-separated subset of " + ", ".join(PROBLEMS))
+    ap.add_argument("--resolutions", default=",".join(map(str, RESOLUTIONS)),
+                    help="comma-separated subset of " + ", ".join(map(str, RESOLUTIONS)))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.render_only:
@@ -399,7 +401,13 @@ def main(argv=None):
         os.environ["MESHMEI_DOCS"] = tempfile.mkdtemp(prefix="meshmei-quick-")
         print(f"--quick: writing to {os.environ['MESHMEI_DOCS']}")
     budgets = (1.0, 2.0, 3.0) if args.quick else BUDGETS
-    resolutions = (300,) if args.quick else RESOLUTIONS
+    try:
+        chosen = tuple(int(r) for r in args.resolutions.split(","))
+    except ValueError:
+        ap.error(f"--resolutions must be comma-separated integers, got {args.resolutions!r}")
+    if not args.quick and any(r not in RESOLUTIONS for r in chosen):
+        ap.error(f"--resolutions must be among {RESOLUTIONS}, got {args.resolutions!r}")
+    resolutions = (300,) if args.quick else chosen
     eval_samples = 5000 if args.quick else 100_000
     names = [v.strip() for v in args.variants.split(",")]
     problems = [p.strip() for p in args.problems.split(",")]
