@@ -97,16 +97,17 @@ class ReconstructionSettings:
         Weights of the uniform Laplacian, edge-length and direction-preserving ARAP regularizers, for a
         mesh of ``reg_ref_vertices`` vertices (see there).
     reg_ref_vertices : int or None
-        The regularizer weights are stated for a result of this many vertices (default 2,500). A run whose
-        final mesh has ``n`` vertices (the last of ``stages``, else the source's count) multiplies the
-        Laplacian weight by ``(n / reg_ref_vertices)^2`` and the edge and ARAP weights by
-        ``n / reg_ref_vertices``, in every stage: on an even mesh of edge length ``h ~ n^-1/2`` the
+        The regularizer weights are stated for a mesh of this many vertices (default 2,500). A stage of
+        ``n`` vertices multiplies the Laplacian weight by ``(n / reg_ref_vertices)^2`` and the edge and
+        ARAP weights by ``n / reg_ref_vertices``: on an even mesh of edge length ``h ~ n^-1/2`` the
         uniform Laplacian loss (squared umbrella vectors, ``~ h^4`` times the squared mean curvature) falls
         like ``n^-2`` and the edge and direction terms (squared lengths) like ``n^-1``, so the scaled
-        weights ask for the same smoothness of the result at every resolution. The coarse stages keep the
-        final stage's weight, which makes them smoother in surface terms (a stage with 4x fewer vertices
-        is smoothed 16x more); scaling each stage by its own count instead let the coarse stage fold the
-        mesh (docs/reconstruction.md). ``None``: weights used as given.
+        weights ask for the same smoothness at every resolution. The first stage takes the second stage's
+        count instead of its own: it moves the shape farthest, and with its own count it folds the mesh
+        (docs/reconstruction.md); with ``n/4`` vertices it is smoothed 16x more in surface terms. So the
+        stages ``(n/4, n, n)`` all use ``n``, and ``(625, 2500, 10000, 10000)`` uses 2,500, 2,500,
+        10,000, 10,000: a 10k run starts with the weights of a 2.5k run. Without ``stages``, the
+        source's count. ``None``: weights used as given.
     optimizer : {"adam", "uniform"}
         ``torch.optim.Adam`` (per-coordinate step normalisation) or :class:`~meshmei.largesteps.AdamUniform`
         (one normalisation per tensor, which keeps the smoothness of a preconditioned gradient).
@@ -136,7 +137,8 @@ class ReconstructionSettings:
         ``({"w_laplacian": 0.0, "lr": 0.02}, None, None)`` or ``({"method": "largesteps"}, None)``. Keys
         are among :data:`STAGE_FIELDS`. A stage's settings are these overrides, then the values set
         explicitly for the run, then its method's defaults. The learning-rate decay and the regularizer
-        scaling follow the whole run (the fraction of the budget used; the final vertex count).
+        scaling follow the whole run (the fraction of the budget used; the stage counts, see
+        ``reg_ref_vertices``).
     seed : int
         Seed of all sampling (runs with ``steps`` are then bitwise repeatable).
     eval_every : int or None
@@ -375,12 +377,22 @@ def _check_area(V, F, role):
         raise MeshError(f"{role} mesh has zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
 
 
-def default_stages(n_vertices: int) -> tuple:
-    """The coarse-to-fine schedule used by the benchmark and the CLI: ``(n/4, n, n)`` with shares
-    ``(0.25, 0.45, 0.3)`` of the budget; the last stage restarts on a fresh isotropic remesh of the shape,
-    which clears folds and slivers left by the second. Returns ``(stages, stage_fractions)``."""
+def default_stages(n_vertices: int, levels: int = 2) -> tuple:
+    """The coarse-to-fine schedule used by the benchmark and the CLI. Returns ``(stages, stage_fractions)``.
+
+    ``levels=2`` (the default): ``(n/4, n, n)`` with shares ``(0.25, 0.45, 0.3)`` of the budget.
+    ``levels=3``: ``(n/16, n/4, n, n)`` with shares ``(0.15, 0.25, 0.35, 0.25)``, so that a 10k run
+    starts as a 2.5k run does (from 625 vertices, where the shape travels at little cost) and then refines.
+    Either way the last stage restarts on a fresh isotropic remesh of the shape, which clears folds and
+    slivers left by the one before. At 10k vertices three levels helped large steps on the bunny a lot and
+    hurt both methods on the teapot (docs/reconstruction.md, *Coarse-to-fine*), so two is the default.
+    """
     n = int(n_vertices)
-    return (max(32, n // 4), n, n), (0.25, 0.45, 0.3)
+    if levels == 3:
+        return (max(32, n // 16), max(32, n // 4), n, n), (0.15, 0.25, 0.35, 0.25)
+    if levels == 2:
+        return (max(32, n // 4), n, n), (0.25, 0.45, 0.3)
+    raise ValueError(f"levels must be 2 or 3, got {levels!r}")
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):
@@ -569,9 +581,14 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
                    bar_format=None if s.time_budget is None else "{l_bar}{bar}| {n:.1f}/{total:.0f} s {postfix}")
 
     n_final = s.stages[-1] if s.stages else V.shape[0]
-    ratio = 1.0 if s.reg_ref_vertices is None else n_final / s.reg_ref_vertices
 
-    def weights(sk):
+    def weights(sk, k=None):
+        # The weights are set for reg_ref_vertices vertices and scaled to the count each stage's weights
+        # are stated for: its own, except the first stage, which takes the second's (see reg_ref_vertices).
+        if s.reg_ref_vertices is None:
+            return sk.w_laplacian, sk.w_edge, sk.w_arap
+        n_k = n_final if k is None else max(s.stages[k], s.stages[min(1, len(s.stages) - 1)])
+        ratio = n_k / s.reg_ref_vertices
         return sk.w_laplacian * ratio**2, sk.w_edge * ratio, sk.w_arap * ratio
 
     w_lap, w_edge, w_arap = weights(s)
@@ -585,7 +602,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
             V, F = remesh(V, F, n_stage)
         sk = per_stage[k] if per_stage else s
-        w_lap, w_edge, w_arap = weights(sk)
+        w_lap, w_edge, w_arap = weights(sk, k if n_stage is not None else None)
         param = _Param(sk.method, V.detach(), F, sk)
         opt_time += time.perf_counter() - t0
         last_stage = k == len(stages) - 1
@@ -642,7 +659,8 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         with torch.no_grad():
             V = param.vertices().detach()
         info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": step, "method": sk.method,
-                               "w_laplacian": w_lap, **param.finish()})
+                               "w_laplacian": w_lap, "w_edge": w_edge, "w_arap": w_arap,
+                               **param.finish()})
         if done:
             break
     if bar is not None:

@@ -60,6 +60,15 @@ def test_stages_remesh_between_stages(sphere, bunny):
     assert abs(res.V.shape[0] - 300) < 60
     assert res.info["stages"][1]["truncation_error"] <= 3.4e-4
     assert default_stages(2500) == ((625, 2500, 2500), (0.25, 0.45, 0.3))
+    assert default_stages(10000, levels=3) == ((625, 2500, 10000, 10000), (0.15, 0.25, 0.35, 0.25))
+    for n in (100, 2500, 10000, 40000):
+        for levels in (2, 3):  # a ladder up to n, then n once more; one share per stage
+            stages, shares = default_stages(n, levels)
+            assert len(stages) == levels + 1 and stages[-2:] == (n, n) and list(stages) == sorted(stages)
+            assert len(shares) == len(stages) and sum(shares) == pytest.approx(1.0)
+    for bad in (1, 4, "3"):
+        with pytest.raises(ValueError, match="levels"):
+            default_stages(2500, bad)
 
 
 def test_settings_per_stage(sphere, bunny):
@@ -296,6 +305,12 @@ def test_regularizer_weights_follow_the_final_resolution(sphere, bunny):
                       **SMALL)
     r = 400 / 2500
     assert (res.info["w_laplacian"], res.info["w_edge"], res.info["w_arap"]) == pytest.approx((10 * r**2, 2 * r, 3 * r))
+    # Three counts: each stage its own, except the first, which takes the second's.
+    res = reconstruct(sphere, bunny, "rbf", steps=3, stages=(50, 100, 400), w_laplacian=10.0, w_edge=2.0,
+                      **SMALL)
+    got = [(st["w_laplacian"], st["w_edge"]) for st in res.info["stages"]]
+    want = [(10 * (c / 2500) ** 2, 2 * c / 2500) for c in (100, 100, 400)]
+    assert got == pytest.approx(want, rel=1e-12)
     # None: the weights as given.
     res = reconstruct(sphere, bunny, "vertex", steps=1, w_laplacian=10.0, reg_ref_vertices=None, **SMALL)
     assert res.info["w_laplacian"] == 10.0

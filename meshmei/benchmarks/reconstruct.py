@@ -36,7 +36,8 @@ BUDGETS = (10.0, 30.0, 100.0)
 # name -> (method, overrides, resolutions it runs at (None: all)). "rbf-nolap" (no Laplacian regularizer)
 # shows the accuracy/health trade-off of the default weight; "largesteps-lr0.025" is large steps with the
 # learning rate that suits 10k vertices better than the default (tuned at 2.5k); "rbf-coarse" adds the coarse
-# kernel set (ReconstructionSettings.coarse_ratio).
+# kernel set (ReconstructionSettings.coarse_ratio). The "-3levels" variants use default_stages(n, levels=3):
+# at 10k vertices, stages of 625, 2,500 and 10,000 vertices instead of 2,500 and 10,000.
 VARIANTS = {
     "rbf": ("rbf", {}, None),
     "vertex": ("vertex", {}, None),
@@ -44,10 +45,13 @@ VARIANTS = {
     "largesteps-lr0.025": ("largesteps", {"lr": 0.025}, (10000,)),
     "rbf-nolap": ("rbf", {"w_laplacian": 0.0, "lr": 2e-3}, (2500,)),
     "rbf-coarse": ("rbf", {"coarse_ratio": 64}, None),
+    "rbf-3levels": ("rbf", {"levels": 3}, (10000,)),
+    "largesteps-3levels": ("largesteps", {"levels": 3}, (10000,)),
 }
 TARGETS = {"bunny": 2e-6, "teapot": 5e-6, "teapot-handle": 5e-6}
 COLORS = {"rbf": "tab:red", "vertex": "tab:blue", "largesteps": "tab:orange", "largesteps-lr0.025": "tab:brown",
-          "rbf-nolap": "tab:pink", "rbf-coarse": "tab:purple"}
+          "rbf-nolap": "tab:pink", "rbf-coarse": "tab:purple", "rbf-3levels": "tab:olive",
+          "largesteps-3levels": "tab:green"}
 
 
 def start_mesh(init, n_vertices, Vt, Ft):
@@ -181,11 +185,15 @@ def render(results, floors, quick, budgets=BUDGETS):
         "budget (coarse-to-fine stages n/4, n, n with shares 0.25/0.45/0.3, learning rate decaying 10x). "
         "Each run uses one core of an otherwise idle machine, one run at a time, after a few warm-up steps of "
         "each method on a tiny problem (so that no timed run pays the process's one-off costs). Regularizer weights are the "
-        "defaults stated for 2,500 vertices and scaled to the final resolution (`reg_ref_vertices`: the "
-        "Laplacian weight is 16x larger at 10k vertices). rbf-nolap is rbf without the Laplacian term "
+        "defaults stated for 2,500 vertices and scaled to each stage's vertex count, the first stage taking the "
+        "second's (`reg_ref_vertices`; with stages n/4, n, n every stage uses n, and the Laplacian weight is 16x "
+        "larger at 10k vertices). rbf-nolap is rbf without the Laplacian term "
         "(lr 2e-3), at 2.5k vertices only; largesteps-lr0.025 is large steps at half the default learning "
         "rate, at 10k vertices only. rbf-coarse is rbf with a second set of kernels at one vertex in 64, about 8 "
-        "edges wide, with their own offsets (`coarse_ratio=64`). teapot-handle is the teapot from the same torus turned and placed with its "
+        "edges wide, with their own offsets (`coarse_ratio=64`). rbf-3levels and largesteps-3levels (10k vertices "
+        "only) start one level coarser: stages n/16, n/4, n, n with shares 0.15/0.25/0.35/0.25 "
+        "(`default_stages(n, levels=3)`; the Laplacian weight of rbf is then that of 2,500 vertices in the first "
+        "two stages, `reg_ref_vertices`). teapot-handle is the teapot from the same torus turned and placed with its "
         "hole through the handle (`meshmei.shapes.torus_through_opening`: the through-hole found by "
         "`find_opening`, the torus's axis along it, its hole twice the opening's clearance): "
         "it shows what the handle's topology costs the centred start.",
@@ -430,9 +438,10 @@ def main(argv=None):
         for n in resolutions:
             src = start_mesh(init, n, Vt, Ft)
             start[f"{prob}|{n}"] = surface_metrics(*src, Vt, Ft, n_samples=eval_samples, health=False).chamfer_l2
-            stages, fractions = default_stages(n)
             for name in names:
                 method, over, only = VARIANTS[name]
+                over = dict(over)
+                stages, fractions = default_stages(n, over.pop("levels", 2))
                 if only is not None and n not in only and not args.quick:
                     continue  # shown at one resolution only, to bound the run time
                 if args.skip_existing and f"{prob}|{n}|{name}" in results:
