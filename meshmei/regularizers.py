@@ -66,7 +66,8 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
         of the current ``V``; it is insensitive to the mesh's sampling and equals ``4 H^2`` averaged over
         the area on smooth surfaces (``4 / r^2`` on a sphere of radius ``r``). Boundary vertices are left
         out of it: there ``L V`` measures the in-plane curvature of the boundary curve, not bending, so a
-        flat sheet scores 0.
+        flat sheet scores 0, and so does a mesh without interior mass (every vertex on the boundary, or
+        zero area), with a zero gradient.
     eps : float, optional
         Guard on the cotangent weights (see :func:`meshmei.operators.cot_weights`) and on the mass:
         ``M_i`` is held above ``eps`` times the mean vertex mass. Default: from the dtype
@@ -88,9 +89,15 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
         M = _massmatrix(F, V.shape[-2], terms)
         interior = ~topo.boundary_vertex
         total = (M * interior).sum(-1, keepdim=True)
-        floor = (resolve_eps(eps, V.dtype) * M.sum(-1, keepdim=True) / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
-        e = (((LV * LV).sum(-1) / torch.maximum(M, floor)) * interior).sum(-1, keepdim=True)
-        return (e / total.clamp_min(torch.finfo(V.dtype).tiny)).squeeze(-1)
+        mean_mass = M.sum(-1, keepdim=True) / M.shape[-1]
+        # A mesh of zero area has no mass to weigh bending by: a floor of 1 keeps the quotients (and their
+        # gradients) finite there, and the loss is 0 anyway, since no interior vertex has mass.
+        floor = torch.where(mean_mass > 0, resolve_eps(eps, V.dtype) * mean_mass, torch.ones_like(mean_mass))
+        floor = floor.clamp_min(torch.finfo(V.dtype).tiny)
+        # where, not a product with the mask: a huge term at a boundary vertex times 0 would be NaN
+        e = torch.where(interior, (LV * LV).sum(-1) / torch.maximum(M, floor), 0.0).sum(-1, keepdim=True)
+        some = total > 0  # no interior mass (all boundary, or zero area): the loss is 0, with zero gradient
+        return torch.where(some, e / torch.where(some, total, torch.ones_like(total)), 0.0).squeeze(-1)
     raise ValueError(f"method must be 'uniform' or 'cotangent', got {method!r}")
 
 

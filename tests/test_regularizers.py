@@ -351,6 +351,30 @@ def test_finite_on_hard_cases(name, case, dtype):
     assert torch.isfinite(g).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cotangent_laplacian_zero_without_interior_mass(dtype):
+    # A zero-area face whose corners are all on the boundary, a face repeating one index (no edges, no
+    # area) and a sphere collapsed to a point: no interior vertex has mass, so the loss is 0 (it was NaN,
+    # or its gradient was), and a batch member like that leaves the others alone.
+    Vs, Fs = icosphere(1, dtype=dtype)
+    cases = [
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]], dtype=dtype), torch.tensor([[0, 1, 2]])),
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=dtype), torch.tensor([[0, 0, 0]])),
+        (Vs * 0, Fs),
+    ]
+    for V, F in cases:
+        V = V.clone().requires_grad_(True)
+        out = reg.laplacian_loss(V, F, method="cotangent")
+        (g,) = torch.autograd.grad(out, V)
+        assert out.item() == 0.0
+        assert torch.equal(g, torch.zeros_like(g))
+    Vb = torch.stack([Vs, Vs * 0]).requires_grad_(True)
+    out = reg.laplacian_loss(Vb, Fs, method="cotangent")
+    torch.testing.assert_close(out, torch.stack([reg.laplacian_loss(Vs, Fs, method="cotangent"), out[1] * 0]))
+    (g,) = torch.autograd.grad(out.sum(), Vb)
+    assert torch.isfinite(g).all() and torch.equal(g[1], torch.zeros_like(g[1]))
+
+
 def test_bad_input():
     V, F = icosphere(1)
     with pytest.raises(ValueError, match="method must be 'uniform' or 'cotangent', got 'umbrella'"):
