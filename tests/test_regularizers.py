@@ -375,6 +375,22 @@ def test_cotangent_laplacian_zero_without_interior_mass(dtype):
     assert torch.isfinite(g).all() and torch.equal(g[1], torch.zeros_like(g[1]))
 
 
+@pytest.mark.parametrize("scale", [1e-9, 1e6])
+def test_cotangent_laplacian_float32_far_from_unit_scale(scale):
+    # in float32 the squared terms of a 1e-9 mesh used to leave the range (NaN gradient); values and
+    # gradients must match float64 at every scale
+    V, F = perturbed_sphere(2)
+    V = V * scale
+    X32 = V.float().requires_grad_(True)
+    X64 = V.clone().requires_grad_(True)
+    out32 = reg.laplacian_loss(X32, F, method="cotangent")
+    out64 = reg.laplacian_loss(X64, F, method="cotangent")
+    (g32,) = torch.autograd.grad(out32, X32)
+    (g64,) = torch.autograd.grad(out64, X64)
+    torch.testing.assert_close(out32.double(), out64, rtol=1e-4, atol=0)
+    torch.testing.assert_close(g32.double(), g64, rtol=1e-3, atol=1e-4 * float(g64.abs().max()))
+
+
 def test_bad_input():
     V, F = icosphere(1)
     with pytest.raises(ValueError, match="method must be 'uniform' or 'cotangent', got 'umbrella'"):
