@@ -170,3 +170,19 @@ def test_cotmatrix_gradcheck():
     assert torch.autograd.gradcheck(lambda V: ops.cot_laplacian(V, F, X), (V,))
     assert torch.autograd.gradcheck(lambda V: ops.massmatrix(V, F), (V,))
     assert torch.autograd.gradcheck(lambda V: ops.vertex_normals(V, F), (V,))
+
+
+ARRAY_OPS = [ops.doublearea, ops.face_areas, ops.massmatrix, ops.vertex_normals, ops.face_normals,
+             ops.uniform_laplacian, ops.cot_laplacian, ops.cot_weights]
+
+
+@pytest.mark.parametrize("fn", ARRAY_OPS)
+def test_operators_take_nested_lists_and_reject_non_arrays(fn):
+    # check_mesh takes lists, so every operator does (they stopped at V.ndim with an AttributeError)
+    from meshmei.errors import MeshError
+
+    V, F = icosphere(1)
+    torch.testing.assert_close(fn(V.tolist(), F.tolist()), fn(V, F))
+    torch.testing.assert_close(fn(V.expand(2, -1, -1).tolist(), F), fn(V.expand(2, -1, -1), F))
+    with pytest.raises(MeshError, match="V must be a torch tensor or numpy array, got NoneType"):
+        fn(None, F)
