@@ -388,14 +388,27 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
 
     The target edge length is ``sqrt(2 A / (sqrt(3) n))`` for total area ``A`` (a near-equilateral closed
     mesh has two triangles per vertex). Returns float tensors in the dtype of ``V`` and int64 faces.
+
+    Raises
+    ------
+    ValueError
+        ``n_vertices`` or ``iterations`` is not a positive integer.
+    MeshError
+        An invalid mesh, or one of zero area.
     """
     import pymeshlab
 
+    from .shapes import _check_positive
+
+    _check_positive("n_vertices", n_vertices, integer=True)
+    _check_positive("iterations", iterations, integer=True)
     V, F = check_mesh(V, F)
     Vn = V.detach().cpu().double().numpy()
     Fn = F.cpu().numpy().astype(np.int32)
     T = Vn[Fn]
     area = 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1).sum()
+    if not area > 0:  # pymeshlab would return an empty mesh
+        raise MeshError(f"cannot remesh a mesh of zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
     h = math.sqrt(2.0 * area / (math.sqrt(3.0) * n_vertices))
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vn, face_matrix=Fn))

@@ -160,10 +160,10 @@ def _remesh(kind, h, iterations):
 def _check_positive(name, value, *, integer=False):
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
-    if integer and int(value) != value:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if not (math.isfinite(float(value)) and value > 0):
         raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    if integer and int(value) != value:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
 
 def initial_mesh(

@@ -156,6 +156,21 @@ def test_remesh_reaches_about_the_requested_count(sphere):
     assert F.dtype == torch.int64
 
 
+def test_remesh_rejects_bad_counts_and_zero_area(sphere):
+    # n_vertices=0 returned the input unchanged (with a division warning), NaN returned a coarse mesh,
+    # -5 said 'math domain error'; a zero-area mesh came back from pymeshlab empty ('mesh is empty')
+    V, F = sphere
+    for n in (0, -5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=f"n_vertices must be positive and finite, got {n!r}"):
+            remesh(V, F, n)
+    with pytest.raises(ValueError, match="n_vertices must be a positive integer, got 2.5"):
+        remesh(V, F, 2.5)
+    with pytest.raises(ValueError, match="iterations must be positive and finite, got 0"):
+        remesh(V, F, 200, iterations=0)
+    with pytest.raises(MeshError, match=r"cannot remesh a mesh of zero surface area \(\d+ vertices"):
+        remesh(V * 0, F, 200)
+
+
 def _write(path, text):
     path.write_text(text)
     return path
