@@ -11,6 +11,7 @@ Two kinds of function live here:
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -89,6 +90,9 @@ def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False,
     total = float(dbl.sum())
     if not total > 0:
         raise MeshError(f"cannot sample a mesh whose {F.shape[0]} faces all have zero area")
+    if not math.isfinite(total):  # squared coordinates beyond the dtype's range (float32: about 1e19)
+        raise MeshError(f"the face areas overflow {V.dtype} (largest coordinate {float(V.detach().abs().max()):.3g}, "
+                        f"shape {tuple(V.shape)}); rescale the mesh or use float64")
     if n == 0:
         face = torch.zeros(0, dtype=torch.int64, device=V.device)
     else:

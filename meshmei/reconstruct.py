@@ -521,7 +521,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         (empty, NaN coordinates, zero area); ``FileNotFoundError`` for a missing file. All before the
         first step.
     FloatingPointError
-        The loss became NaN or Inf during the run (a learning rate far too large).
+        The loss or the mesh became NaN or Inf during the run (a learning rate far too large).
 
     Examples
     --------
@@ -613,7 +613,14 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             wr = decay if sk.reg_decay else 1.0
             param.opt.zero_grad(set_to_none=True)
             Vc = param.vertices()
-            P = sample_points(Vc, F, s.n_samples, generator=g)
+            try:
+                P = sample_points(Vc, F, s.n_samples, generator=g)
+            except MeshError as err:
+                if step == 0:
+                    raise
+                # the last step sent vertices to NaN or Inf, out of the dtype's range, or onto one point
+                raise FloatingPointError(f"the mesh became unusable after step {step} ({err}); lower the learning "
+                                         f"rate (lr={sk.lr})") from None
             sub = torch.randint(0, s.target_pool, (s.n_samples,), generator=g, device=V.device)
             Q = pool[sub]
             i_pq = torch.from_numpy(pool_index.query(P))

@@ -79,6 +79,10 @@ def test_sample_edge_cases():
         sample_points(V, torch.tensor([[0, 1, 99]]), 10)
     with pytest.raises(TypeError, match="generator"):
         sample_points(V, F, 5, generator="seed")
+    # finite float32 coordinates whose squares overflow: torch.multinomial used to stop on an Inf weight
+    with pytest.raises(MeshError, match=r"face areas overflow torch.float32 \(largest coordinate \S+e\+19, shape \(12, 3\)\)"):
+        sample_points(V.float() * 1e20, F, 5)
+    assert torch.isfinite(sample_points(V * 1e20, F, 5)).all()  # float64 has the range
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

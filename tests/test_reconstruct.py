@@ -171,6 +171,14 @@ def test_remesh_rejects_bad_counts_and_zero_area(sphere):
         remesh(V * 0, F, 200)
 
 
+@pytest.mark.parametrize("method", ["vertex", "largesteps"])
+def test_a_diverging_run_is_a_floating_point_error(sphere, method):
+    # one step at lr=1e30 throws the vertices to ~1e30: the next step's sampling stopped deep in
+    # torch.multinomial (an Inf area weight) instead of the documented FloatingPointError
+    with pytest.raises(FloatingPointError, match=r"mesh became unusable after step 1 .*lower the learning rate"):
+        reconstruct(sphere, "bunny", method, steps=3, lr=1e30, n_samples=500, target_pool=2000, eval_samples=500)
+
+
 def _write(path, text):
     path.write_text(text)
     return path
