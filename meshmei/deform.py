@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .errors import MeshError
+from .metrics import _nn_spacing
 
 __all__ = ["RBFDeformer", "farthest_point_sampling", "rbf_dense"]
 
@@ -119,7 +120,8 @@ class RBFDeformer(torch.nn.Module):
         by farthest-point sampling, or explicit vertex indices.
     sigma : float, optional
         Initial scale of every kernel, in the units of ``V0``. Default ``sigma_factor`` times the mean
-        distance from a centre to its nearest other centre (for all-vertex centres, about one edge).
+        distance from a centre to its nearest other centre at a different position (for all-vertex
+        centres, about one edge); with one kernel, or all at one point, the diagonal of ``V0``'s box.
     sigma_factor : float
         See ``sigma``.
     r_cut : float
@@ -197,10 +199,9 @@ class RBFDeformer(torch.nn.Module):
         self._tree = cKDTree(self._v0_np)
         K = cidx.numel()
         if sigma is None:
-            if K > 1:
-                dnn, _ = cKDTree(self._c_np).query(self._c_np, k=2)
-                spacing = float(np.mean(dnn[:, 1]))
-            else:
+            # to the nearest distinct centre: duplicated vertices (seams, STL files) gave a spacing of 0
+            spacing = _nn_spacing(self._c_np) if K > 1 else math.inf
+            if not math.isfinite(spacing):  # one kernel, or all at one point
                 spacing = float(np.linalg.norm(self._v0_np.max(0) - self._v0_np.min(0))) or 1.0
             sigma = sigma_factor * spacing
         if not (sigma > 0 and math.isfinite(sigma)):

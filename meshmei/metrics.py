@@ -11,6 +11,7 @@ Two kinds of function live here:
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -89,6 +90,9 @@ def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False,
     total = float(dbl.sum())
     if not total > 0:
         raise MeshError(f"cannot sample a mesh whose {F.shape[0]} faces all have zero area")
+    if not math.isfinite(total):  # squared coordinates beyond the dtype's range (float32: about 1e19)
+        raise MeshError(f"the face areas overflow {V.dtype} (largest coordinate {float(V.detach().abs().max()):.3g}, "
+                        f"shape {tuple(V.shape)}); rescale the mesh or use float64")
     if n == 0:
         face = torch.zeros(0, dtype=torch.int64, device=V.device)
     else:
@@ -158,6 +162,26 @@ def nearest_neighbors(P: torch.Tensor, Q: torch.Tensor, *, tree=None, exact_with
     return torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(P.device)
 
 
+def _nn_spacing(X: np.ndarray, tree=None, sample: int | None = None) -> float:
+    """Mean distance from each point of ``X`` (the first ``sample`` of them) to its nearest *distinct* point.
+
+    Duplicated points (a mesh's seams, an STL file's vertices) would otherwise measure a spacing of 0.
+    Returns inf when ``X`` holds fewer than two distinct points. ``tree`` is a KD-tree on ``X``, if built.
+    """
+    from scipy.spatial import cKDTree
+
+    head = X if sample is None else X[:sample]
+    d, _ = (tree if tree is not None else cKDTree(X)).query(head, k=2)
+    d = d[:, 1]
+    if (d == 0).any():
+        U = np.unique(X, axis=0)
+        if len(U) < 2:
+            return float("inf")
+        d, _ = cKDTree(U).query(np.unique(head, axis=0), k=2)
+        d = d[:, 1]
+    return float(np.mean(d))
+
+
 class PointIndex:
     """Nearest-neighbour queries into a fixed point set, fast at any query distance.
 
@@ -190,8 +214,8 @@ class PointIndex:
         The points, in random order (e.g. from :func:`sample_points`), so that every prefix covers the
         surface evenly.
     exact_within : float
-        Radius of exact answers (above). Default: 10 times the mean spacing of ``Q`` estimated from its
-        nearest-neighbour distances.
+        Radius of exact answers (above), positive. Default: 10 times the mean spacing of ``Q`` estimated from
+        its nearest-neighbour distances (to the nearest distinct point: duplicated points do not shrink it).
     factor : int
         Size ratio of consecutive levels.
     min_points : int
@@ -210,8 +234,18 @@ class PointIndex:
         Qn = np.ascontiguousarray(Q.detach().cpu().numpy() if isinstance(Q, torch.Tensor) else np.asarray(Q))
         if Qn.ndim != 2 or Qn.shape[1] != 3 or len(Qn) == 0:
             raise ValueError(f"Q must be a non-empty (k, 3) point array, got shape {Qn.shape}")
+        bad = ~np.isfinite(Qn).all(1)
+        if bad.any():
+            raise ValueError(f"Q holds NaN or Inf ({int(bad.sum())} of {len(Qn)} points, first at index "
+                             f"{int(np.flatnonzero(bad)[0])})")
         if not far_eps >= 0:
             raise ValueError(f"far_eps must be non-negative, got {far_eps!r}")
+        for name, value, least in (("factor", factor, 2), ("min_points", min_points, 1)):
+            # factor 1 or min_points 0 would add levels forever
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ValueError(f"{name} must be an integer of at least {least}, got {value!r}")
+        if exact_within is not None and not exact_within > 0:
+            raise ValueError(f"exact_within must be positive, got {exact_within!r}")
         self.far_eps = float(far_eps)
         self.n = len(Qn)
         sizes = [self.n]
@@ -220,8 +254,7 @@ class PointIndex:
         self.sizes = sizes[::-1]  # coarse to fine
         self.trees = [cKDTree(Qn[:m]) for m in self.sizes]
         if exact_within is None:
-            d, _ = self.trees[-1].query(Qn[: min(self.n, 2000)], k=2)
-            exact_within = 10.0 * float(np.mean(d[:, 1])) if self.n > 1 else np.inf
+            exact_within = 10.0 * _nn_spacing(Qn, self.trees[-1], 2000) if self.n > 1 else np.inf
         self.exact_within = float(exact_within)
         # A query at distance d is cheap on level l when d < exact_within * sqrt(n_l / n) (spacing grows
         # with the square root of the thinning).
@@ -236,6 +269,12 @@ class PointIndex:
         caller that builds a new index for each batch can pass what the last index's ``far_share`` said.
         """
         Pn = np.ascontiguousarray(P.detach().cpu().numpy() if isinstance(P, torch.Tensor) else np.asarray(P))
+        if Pn.ndim != 2 or Pn.shape[1] != 3:
+            raise ValueError(f"P must be an (n, 3) point array, got shape {Pn.shape}")
+        bad = ~np.isfinite(Pn).all(1)
+        if bad.any():
+            raise ValueError(f"P holds NaN or Inf ({int(bad.sum())} of {len(Pn)} points, first at index "
+                             f"{int(np.flatnonzero(bad)[0])})")
         if near_first is None:
             near_first = self.far_share < 0.5
         if near_first:

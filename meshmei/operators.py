@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from .mesh import check_mesh
+from .mesh import _as_tensor, check_mesh
 from .topology import mesh_topology
 
 __all__ = [
@@ -96,6 +96,12 @@ def _face_terms(T: torch.Tensor, eps):
     return l2, dot, dbl, dot / den
 
 
+def _check(V, F):
+    # arrays and nested lists are welcome, as check_mesh takes them; a leading batch axis is optional
+    V = _as_tensor(V, "V")
+    return check_mesh(V, F, batched=V.ndim == 3)
+
+
 def _corners(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     return gather(V, F)  # (..., m, 3, 3): face, corner, xyz
 
@@ -118,7 +124,7 @@ def adjacency_list(F, n_vertices: int | None = None) -> list[list[int]]:
 
 def doublearea(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """Twice the area of each face, ``(..., m)``; 0 for degenerate faces, with a finite gradient."""
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     return _doublearea(_corners(V, F))
 
 
@@ -143,7 +149,7 @@ def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -
     A face whose double area is below ``eps`` times its summed squared edge lengths gets a normal
     shrunk towards zero (exactly zero for a fully degenerate face) instead of NaN.
     """
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     T = _corners(V, F)
     c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
     return _normalize(c, resolve_eps(eps, V.dtype) * _sq_edge_scale(T))
@@ -156,7 +162,7 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
     ``eps`` times the summed double areas around the vertex (so cancelling normals give a short vector,
     not NaN).
     """
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     T = _corners(V, F)
     c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)  # (..., m, 3)
     idx = F.reshape(-1)
@@ -169,7 +175,7 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
 
 def uniform_laplacian(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """Uniform (umbrella) Laplacian ``v_i - mean_{j in N(i)} v_j``, ``(..., n, 3)``; zero for isolated vertices."""
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     topo = mesh_topology(F, V.shape[-2])
     return _uniform_laplacian(V, topo)
 
@@ -187,7 +193,7 @@ def cot_weights(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) ->
     ``cot = (u . w) / |u x w|`` with the denominator held above ``eps * (|u|^2 + |w|^2)`` so that
     degenerate faces give large but finite weights rather than Inf.
     """
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     return _cot(_corners(V, F), eps)
 
 
@@ -212,7 +218,7 @@ def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = Non
     Same sign convention as ``igl.cotmatrix`` (negative semi-definite): ``cot_laplacian(V, F, X) ==
     cotmatrix(V, F) @ X``. Returns ``(..., n, d)``.
     """
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     C = _cot(_corners(V, F), eps)
     return _cot_apply(V if X is None else X, F, C)
 
@@ -238,7 +244,7 @@ def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> 
     ``(l_ij^2 cot_k + l_ik^2 cot_j) / 8``; in an obtuse triangle the obtuse corner gets half the
     face area and the other two a quarter each. Unreferenced vertices get 0.
     """
-    V, F = check_mesh(V, F, batched=V.ndim == 3)
+    V, F = _check(V, F)
     return _massmatrix(F, V.shape[-2], _face_terms(_corners(V, F), eps))
 
 

@@ -400,14 +400,27 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
 
     The target edge length is ``sqrt(2 A / (sqrt(3) n))`` for total area ``A`` (a near-equilateral closed
     mesh has two triangles per vertex). Returns float tensors in the dtype of ``V`` and int64 faces.
+
+    Raises
+    ------
+    ValueError
+        ``n_vertices`` or ``iterations`` is not a positive integer.
+    MeshError
+        An invalid mesh, or one of zero area.
     """
     import pymeshlab
 
+    from .shapes import _check_positive
+
+    _check_positive("n_vertices", n_vertices, integer=True)
+    _check_positive("iterations", iterations, integer=True)
     V, F = check_mesh(V, F)
     Vn = V.detach().cpu().double().numpy()
     Fn = F.cpu().numpy().astype(np.int32)
     T = Vn[Fn]
     area = 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1).sum()
+    if not area > 0:  # pymeshlab would return an empty mesh
+        raise MeshError(f"cannot remesh a mesh of zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
     h = math.sqrt(2.0 * area / (math.sqrt(3.0) * n_vertices))
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vn, face_matrix=Fn))
@@ -520,7 +533,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
         (empty, NaN coordinates, zero area); ``FileNotFoundError`` for a missing file. All before the
         first step.
     FloatingPointError
-        The loss became NaN or Inf during the run (a learning rate far too large).
+        The loss or the mesh became NaN or Inf during the run (a learning rate far too large).
 
     Examples
     --------
@@ -617,7 +630,14 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             wr = decay if sk.reg_decay else 1.0
             param.opt.zero_grad(set_to_none=True)
             Vc = param.vertices()
-            P = sample_points(Vc, F, s.n_samples, generator=g)
+            try:
+                P = sample_points(Vc, F, s.n_samples, generator=g)
+            except MeshError as err:
+                if step == 0:
+                    raise
+                # the last step sent vertices to NaN or Inf, out of the dtype's range, or onto one point
+                raise FloatingPointError(f"the mesh became unusable after step {step} ({err}); lower the learning "
+                                         f"rate (lr={sk.lr})") from None
             sub = torch.randint(0, s.target_pool, (s.n_samples,), generator=g, device=V.device)
             Q = pool[sub]
             i_pq = torch.from_numpy(pool_index.query(P))

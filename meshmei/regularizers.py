@@ -54,6 +54,14 @@ def _check_rest(V, V0, F):
     return V, V0.to(V.dtype), F
 
 
+def _pow2_extent(V):
+    """A power of two near the extent of each mesh in ``V``, ``(..., 1, 1)``, without gradient (1 if flat)."""
+    X = V.detach()
+    ext = (X.amax(-2) - X.amin(-2)).amax(-1)
+    _, e = torch.frexp(torch.where(ext > 0, ext, torch.ones_like(ext)))
+    return torch.ldexp(torch.ones_like(ext), e - 1)[..., None, None]
+
+
 def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) -> torch.Tensor:
     """Laplacian smoothness.
 
@@ -66,7 +74,8 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
         of the current ``V``; it is insensitive to the mesh's sampling and equals ``4 H^2`` averaged over
         the area on smooth surfaces (``4 / r^2`` on a sphere of radius ``r``). Boundary vertices are left
         out of it: there ``L V`` measures the in-plane curvature of the boundary curve, not bending, so a
-        flat sheet scores 0.
+        flat sheet scores 0, and so does a mesh without interior mass (every vertex on the boundary, or
+        zero area), with a zero gradient.
     eps : float, optional
         Guard on the cotangent weights (see :func:`meshmei.operators.cot_weights`) and on the mass:
         ``M_i`` is held above ``eps`` times the mean vertex mass. Default: from the dtype
@@ -83,14 +92,26 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
         live = topo.degree > 0
         return ((d * d).sum(-1) * live).sum(-1) / live.sum().clamp_min(1)
     if method == "cotangent":
+        # The loss has units of 1 / length^2 and its terms of length^2 / area: at a far-from-unit scale their
+        # squares leave the float32 range (at 1e-9, NaN gradients). Dividing V by a power of two near its
+        # extent is exact, so the loss is computed at unit scale and brought back, with identical values.
+        s = _pow2_extent(V)
+        V = V / s
         terms = _face_terms(_corners(V, F), eps)  # shared by L and M
         LV = _cot_apply(V, F, terms[3])
         M = _massmatrix(F, V.shape[-2], terms)
         interior = ~topo.boundary_vertex
         total = (M * interior).sum(-1, keepdim=True)
-        floor = (resolve_eps(eps, V.dtype) * M.sum(-1, keepdim=True) / M.shape[-1]).clamp_min(torch.finfo(V.dtype).tiny)
-        e = (((LV * LV).sum(-1) / torch.maximum(M, floor)) * interior).sum(-1, keepdim=True)
-        return (e / total.clamp_min(torch.finfo(V.dtype).tiny)).squeeze(-1)
+        mean_mass = M.sum(-1, keepdim=True) / M.shape[-1]
+        # A mesh of zero area has no mass to weigh bending by: a floor of 1 keeps the quotients (and their
+        # gradients) finite there, and the loss is 0 anyway, since no interior vertex has mass.
+        floor = torch.where(mean_mass > 0, resolve_eps(eps, V.dtype) * mean_mass, torch.ones_like(mean_mass))
+        floor = floor.clamp_min(torch.finfo(V.dtype).tiny)
+        # where, not a product with the mask: a huge term at a boundary vertex times 0 would be NaN
+        e = torch.where(interior, (LV * LV).sum(-1) / torch.maximum(M, floor), 0.0).sum(-1, keepdim=True)
+        some = total > 0  # no interior mass (all boundary, or zero area): the loss is 0, with zero gradient
+        loss = torch.where(some, e / torch.where(some, total, torch.ones_like(total)), 0.0).squeeze(-1)
+        return loss / s.reshape(loss.shape) ** 2
     raise ValueError(f"method must be 'uniform' or 'cotangent', got {method!r}")
 
 

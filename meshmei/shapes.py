@@ -160,10 +160,10 @@ def _remesh(kind, h, iterations):
 def _check_positive(name, value, *, integer=False):
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
-    if integer and int(value) != value:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if not (math.isfinite(float(value)) and value > 0):
         raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    if integer and int(value) != value:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
 
 def initial_mesh(
@@ -518,6 +518,12 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24, directions: int = 64):
     V, F = check_mesh(torch.as_tensor(V), torch.as_tensor(F))
     Vn = np.ascontiguousarray(V.detach().cpu().double().numpy())
     Fn = np.ascontiguousarray(F.cpu().numpy())
+    # libigl's ray caster has absolute tolerances: on a mesh under about 1e-2 across it misses every hit, so
+    # no opening was found. Search at about unit size: a power-of-two scale is exact, so a unit-size mesh
+    # is searched exactly as before, and the results are scaled back.
+    diag = float(np.linalg.norm(Vn.max(0) - Vn.min(0)))
+    unit = float(np.ldexp(1.0, int(np.round(np.log2(diag))))) if diag > 0 else 1.0
+    Vn = Vn / unit
     lo, hi = Vn.min(0), Vn.max(0)
     axes = [np.linspace(lo[i], hi[i], grid) for i in range(3)]
     P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (grid^3, 3) lattice
@@ -621,7 +627,7 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24, directions: int = 64):
         axis = turned
         centre = along(climb(centre, axis), axis)
     d = float(np.sqrt(igl.point_mesh_squared_distance(centre[None], Vn, Fn)[0][0]))
-    return centre, _canonical_axis(axis), d
+    return centre * unit, _canonical_axis(axis), d * unit
 
 
 def _rotation_between(a, b):

@@ -8,6 +8,8 @@ from functools import cached_property
 
 import torch
 
+from .errors import MeshError
+
 __all__ = ["MeshTopology", "mesh_topology"]
 
 
@@ -116,13 +118,30 @@ def mesh_topology(F: torch.Tensor, n_vertices: int | None = None) -> MeshTopolog
     F : (m, 3) int64 tensor
     n_vertices : int, optional
         Number of vertices (unreferenced trailing vertices count); defaults to ``F.max() + 1``.
+
+    Raises
+    ------
+    MeshError
+        ``F`` is not a non-empty ``(m, 3)`` int64 (or int32) tensor, or holds an index outside
+        ``[0, n_vertices)``.
     """
+    if not isinstance(F, torch.Tensor) or F.dtype not in (torch.int64, torch.int32):
+        got = f"{F.dtype} tensor" if isinstance(F, torch.Tensor) else type(F).__name__
+        raise MeshError(f"F must be an (m, 3) int64 tensor, got a {got}")
+    if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] == 0:
+        raise MeshError(f"F must be a non-empty (m, 3) int64 tensor, got shape {tuple(F.shape)}")
     n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
     key = (id(F), n)
     hit = _CACHE.get(key)
     if hit is not None and hit[0] is F and hit[1] == F._version:
         _CACHE.move_to_end(key)
         return hit[2]
+    # checked on a miss only: a hit is the very tensor that passed, unmodified
+    fmin, fmax = int(F.min()), int(F.max())
+    if fmin < 0:
+        raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
+    if fmax >= n:
+        raise MeshError(f"F holds vertex index {fmax}, out of range for n_vertices={n}")
     topo = _build(F, n)
     _CACHE[key] = (F, F._version, topo)
     _CACHE.move_to_end(key)

@@ -224,3 +224,18 @@ def test_pair_list_is_every_pair_within_each_kernels_radius(spread):
         torch.testing.assert_close(rbf._d2, d[rbf._rows, rbf._cols] ** 2)
     assert 0 < default.n_pairs < V0.shape[0] ** 2
     assert (default._radius.min() < default._radius.max()) == (spread > 0)
+
+
+def test_default_scale_ignores_duplicated_vertices():
+    # a mesh with every vertex twice (seams, STL files) measured a spacing of 0 and was refused with
+    # "sigma must be positive and finite, got 0.0", a sigma the caller never gave
+    V, _ = icosphere(2)
+    single = RBFDeformer(V)
+    double = RBFDeformer(torch.cat([V, V]))
+    torch.testing.assert_close(double.sigma, single.sigma.repeat(2))
+    with torch.no_grad():
+        double.offsets.normal_(generator=torch.Generator().manual_seed(0))
+    out = double()
+    assert torch.isfinite(out).all() and not torch.equal(out, double.V0)
+    # all vertices at one point: the one-kernel rule (box diagonal, else 1)
+    assert torch.equal(RBFDeformer(torch.zeros(4, 3, dtype=torch.float64)).sigma, torch.ones(4, dtype=torch.float64))

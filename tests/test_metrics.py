@@ -79,6 +79,10 @@ def test_sample_edge_cases():
         sample_points(V, torch.tensor([[0, 1, 99]]), 10)
     with pytest.raises(TypeError, match="generator"):
         sample_points(V, F, 5, generator="seed")
+    # finite float32 coordinates whose squares overflow: torch.multinomial used to stop on an Inf weight
+    with pytest.raises(MeshError, match=r"face areas overflow torch.float32 \(largest coordinate \S+e\+19, shape \(12, 3\)\)"):
+        sample_points(V.float() * 1e20, F, 5)
+    assert torch.isfinite(sample_points(V * 1e20, F, 5)).all()  # float64 has the range
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -136,6 +140,40 @@ def test_point_index_is_exact_near_and_close_to_exact_far():
             assert float(((far - Q[got]).norm(dim=1) / best).max()) < 1.5 and index.far_share > 0.9
     with pytest.raises(ValueError):
         PointIndex(np.zeros((0, 3)))
+
+
+def test_point_index_on_duplicated_points_stays_exact_near():
+    # every point twice (as a mesh's seams or an STL file's vertices give them): the spacing estimate was
+    # 0, so no answer was exact and near queries got points of the coarsest level, up to 20x too far
+    V, F = icosphere(3)
+    Q = sample_points(V, F, 20_000, generator=0)
+    Qd = torch.cat([Q, Q])[torch.randperm(40_000, generator=torch.Generator().manual_seed(1))]
+    index = PointIndex(Qd, min_points=1000)
+    assert index.exact_within > 0
+    near = sample_points(V, F, 2000, generator=1) * 1.001
+    got = torch.from_numpy(index.query(near))
+    want = nearest_neighbors(near, Qd)
+    assert torch.equal((near - Qd[got]).norm(dim=1), (near - Qd[want]).norm(dim=1))
+    # a single distinct point: every answer is that point, exactly
+    assert PointIndex(np.zeros((10, 3))).exact_within == np.inf
+
+
+def test_point_index_rejects_bad_input():
+    Q = np.random.default_rng(0).normal(size=(100, 3))
+    for kw, msg in (({"factor": 1}, "factor must be an integer of at least 2, got 1"),  # used to loop forever
+                    ({"min_points": 0}, "min_points must be an integer of at least 1, got 0"),  # so did this
+                    ({"exact_within": 0.0}, "exact_within must be positive, got 0.0"),
+                    ({"exact_within": float("nan")}, "exact_within must be positive, got nan")):
+        with pytest.raises(ValueError, match=msg):
+            PointIndex(Q, **kw)
+    bad = Q.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(ValueError, match=r"Q holds NaN or Inf \(1 of 100 points, first at index 7\)"):
+        PointIndex(bad)
+    with pytest.raises(ValueError, match=r"P holds NaN or Inf \(1 of 100 points, first at index 7\)"):
+        PointIndex(Q).query(bad)
+    with pytest.raises(ValueError, match=r"P must be an \(n, 3\) point array, got shape \(5, 2\)"):
+        PointIndex(Q).query(np.zeros((5, 2)))
 
 
 def _offset_sheets(delta):

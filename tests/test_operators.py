@@ -150,6 +150,28 @@ def test_topology_face_edges_and_degree():
     assert torch.equal(topo.degree, torch.bincount(E.reshape(-1), minlength=V.shape[0]))
 
 
+def test_topology_rejects_bad_face_arrays():
+    # these went on into torch and stopped there (bincount, max of an empty tensor, a size mismatch)
+    from meshmei.errors import MeshError
+
+    V, F = icosphere(1)
+    with pytest.raises(MeshError, match=r"negative vertex index \(-1\)"):
+        ops.edges(torch.tensor([[0, 1, -1]]))
+    with pytest.raises(MeshError, match=r"negative vertex index \(-1\)"):
+        ops.adjacency_list(torch.tensor([[0, 1, -1], [1, 2, 3]]), 4)
+    with pytest.raises(MeshError, match="vertex index 41, out of range for n_vertices=5"):
+        ops.adjacency_list(F, 5)
+    with pytest.raises(MeshError, match=r"got shape \(0, 3\)"):
+        ops.adjacency_list(torch.zeros(0, 3, dtype=torch.int64))
+    with pytest.raises(MeshError, match=r"got shape \(1, 4\)"):
+        mesh_topology(torch.tensor([[0, 1, 2, 3]]))
+    with pytest.raises(MeshError, match="int64 tensor, got a ndarray"):
+        mesh_topology(F.numpy())
+    with pytest.raises(MeshError, match="int64 tensor, got a torch.float32 tensor"):
+        mesh_topology(F.float())
+    assert len(ops.adjacency_list(F, V.shape[0] + 2)) == V.shape[0] + 2  # unreferenced trailing vertices
+
+
 @pytest.mark.parametrize("fn", [ops.doublearea, ops.massmatrix, ops.vertex_normals, ops.face_normals, ops.uniform_laplacian, ops.cot_laplacian, ops.cot_weights])
 @pytest.mark.parametrize("case", sorted(hard_cases()))
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -170,3 +192,19 @@ def test_cotmatrix_gradcheck():
     assert torch.autograd.gradcheck(lambda V: ops.cot_laplacian(V, F, X), (V,))
     assert torch.autograd.gradcheck(lambda V: ops.massmatrix(V, F), (V,))
     assert torch.autograd.gradcheck(lambda V: ops.vertex_normals(V, F), (V,))
+
+
+ARRAY_OPS = [ops.doublearea, ops.face_areas, ops.massmatrix, ops.vertex_normals, ops.face_normals,
+             ops.uniform_laplacian, ops.cot_laplacian, ops.cot_weights]
+
+
+@pytest.mark.parametrize("fn", ARRAY_OPS)
+def test_operators_take_nested_lists_and_reject_non_arrays(fn):
+    # check_mesh takes lists, so every operator does (they stopped at V.ndim with an AttributeError)
+    from meshmei.errors import MeshError
+
+    V, F = icosphere(1)
+    torch.testing.assert_close(fn(V.tolist(), F.tolist()), fn(V, F))
+    torch.testing.assert_close(fn(V.expand(2, -1, -1).tolist(), F), fn(V.expand(2, -1, -1), F))
+    with pytest.raises(MeshError, match="V must be a torch tensor or numpy array, got NoneType"):
+        fn(None, F)

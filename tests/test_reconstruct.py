@@ -165,6 +165,29 @@ def test_remesh_reaches_about_the_requested_count(sphere):
     assert F.dtype == torch.int64
 
 
+def test_remesh_rejects_bad_counts_and_zero_area(sphere):
+    # n_vertices=0 returned the input unchanged (with a division warning), NaN returned a coarse mesh,
+    # -5 said 'math domain error'; a zero-area mesh came back from pymeshlab empty ('mesh is empty')
+    V, F = sphere
+    for n in (0, -5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=f"n_vertices must be positive and finite, got {n!r}"):
+            remesh(V, F, n)
+    with pytest.raises(ValueError, match="n_vertices must be a positive integer, got 2.5"):
+        remesh(V, F, 2.5)
+    with pytest.raises(ValueError, match="iterations must be positive and finite, got 0"):
+        remesh(V, F, 200, iterations=0)
+    with pytest.raises(MeshError, match=r"cannot remesh a mesh of zero surface area \(\d+ vertices"):
+        remesh(V * 0, F, 200)
+
+
+@pytest.mark.parametrize("method", ["vertex", "largesteps"])
+def test_a_diverging_run_is_a_floating_point_error(sphere, method):
+    # one step at lr=1e30 throws the vertices to ~1e30: the next step's sampling stopped deep in
+    # torch.multinomial (an Inf area weight) instead of the documented FloatingPointError
+    with pytest.raises(FloatingPointError, match=r"mesh became unusable after step 1 .*lower the learning rate"):
+        reconstruct(sphere, "bunny", method, steps=3, lr=1e30, n_samples=500, target_pool=2000, eval_samples=500)
+
+
 def _write(path, text):
     path.write_text(text)
     return path

@@ -351,6 +351,46 @@ def test_finite_on_hard_cases(name, case, dtype):
     assert torch.isfinite(g).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cotangent_laplacian_zero_without_interior_mass(dtype):
+    # A zero-area face whose corners are all on the boundary, a face repeating one index (no edges, no
+    # area) and a sphere collapsed to a point: no interior vertex has mass, so the loss is 0 (it was NaN,
+    # or its gradient was), and a batch member like that leaves the others alone.
+    Vs, Fs = icosphere(1, dtype=dtype)
+    cases = [
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]], dtype=dtype), torch.tensor([[0, 1, 2]])),
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=dtype), torch.tensor([[0, 0, 0]])),
+        (Vs * 0, Fs),
+    ]
+    for V, F in cases:
+        V = V.clone().requires_grad_(True)
+        out = reg.laplacian_loss(V, F, method="cotangent")
+        (g,) = torch.autograd.grad(out, V)
+        assert out.item() == 0.0
+        assert torch.equal(g, torch.zeros_like(g))
+    Vb = torch.stack([Vs, Vs * 0]).requires_grad_(True)
+    out = reg.laplacian_loss(Vb, Fs, method="cotangent")
+    torch.testing.assert_close(out, torch.stack([reg.laplacian_loss(Vs, Fs, method="cotangent"), out[1] * 0]))
+    (g,) = torch.autograd.grad(out.sum(), Vb)
+    assert torch.isfinite(g).all() and torch.equal(g[1], torch.zeros_like(g[1]))
+
+
+@pytest.mark.parametrize("scale", [1e-9, 1e6])
+def test_cotangent_laplacian_float32_far_from_unit_scale(scale):
+    # in float32 the squared terms of a 1e-9 mesh used to leave the range (NaN gradient); values and
+    # gradients must match float64 at every scale
+    V, F = perturbed_sphere(2)
+    V = V * scale
+    X32 = V.float().requires_grad_(True)
+    X64 = V.clone().requires_grad_(True)
+    out32 = reg.laplacian_loss(X32, F, method="cotangent")
+    out64 = reg.laplacian_loss(X64, F, method="cotangent")
+    (g32,) = torch.autograd.grad(out32, X32)
+    (g64,) = torch.autograd.grad(out64, X64)
+    torch.testing.assert_close(out32.double(), out64, rtol=1e-4, atol=0)
+    torch.testing.assert_close(g32.double(), g64, rtol=1e-3, atol=1e-4 * float(g64.abs().max()))
+
+
 def test_bad_input():
     V, F = icosphere(1)
     with pytest.raises(ValueError, match="method must be 'uniform' or 'cotangent', got 'umbrella'"):

@@ -243,6 +243,10 @@ def test_bad_mesh_and_scene_input():
         render(torch.tensor([[0.0, 0, 0], [1, 0, 0], [float("nan"), 1, 0]]), F)
     with pytest.raises(MeshError, match="out of range"):
         render(V, torch.tensor([[0, 1, 3]]))
+    with pytest.raises(MeshError, match="V must be a torch tensor or numpy array, got NoneType"):
+        render(None, F)
+    with pytest.raises(MeshError, match="V must be a torch tensor or numpy array, got NoneType"):
+        rasterize(None, F)
     with pytest.raises(RenderError, match="rotation"):
         render(V, F, rotation=torch.zeros(3))
     with pytest.raises(RenderError, match="translation"):

@@ -330,6 +330,21 @@ def test_find_opening_finds_a_torus_hole_whatever_its_axis_and_place():
     assert clearance == pytest.approx(0.2, abs=0.01)
 
 
+@pytest.mark.parametrize("size", [1e-2, 1e-6, 1e3])
+def test_find_opening_is_the_same_at_any_size(size):
+    # libigl's ray caster missed every hit on a mesh 1e-2 across, so a small mesh had no opening at all
+    from meshmei.shapes import find_opening
+
+    V, F = initial_mesh("torus", n_vertices=800, dtype=torch.float64)
+    c1, a1, r1 = find_opening(V, F, grid=12, directions=8)
+    found = find_opening(V * size, F, grid=12, directions=8)
+    assert found is not None
+    centre, axis, clearance = found
+    assert np.array_equal(axis, a1)
+    assert clearance == pytest.approx(r1 * size, rel=1e-6)
+    np.testing.assert_allclose(centre, c1 * size, rtol=0, atol=1e-3 * size)
+
+
 @pytest.mark.parametrize("seed", [0, 4])
 def test_find_opening_finds_a_tilted_hole_and_its_axis(seed):
     from scipy.spatial.transform import Rotation

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as nnf
 
-from ..mesh import check_mesh
+from ..mesh import _as_tensor, check_mesh
 from ..topology import mesh_topology
 from .camera import Camera
 from .settings import RenderError, RenderSettings
@@ -308,8 +308,7 @@ def _prepare(V, F, camera, rotation, translation, settings):
         camera = Camera()
     if not isinstance(camera, Camera):
         raise RenderError(f"camera must be a Camera, got {type(camera).__name__}")
-    if not isinstance(V, torch.Tensor):
-        V = torch.as_tensor(V)
+    V = _as_tensor(V, "V")
     V, F = check_mesh(V, F, batched=V.ndim == 3)
     n = V.shape[-2]
     Vb = apply_pose(V, rotation, translation)  # (Bv, n, 3)
