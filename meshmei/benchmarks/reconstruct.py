@@ -37,7 +37,9 @@ BUDGETS = (10.0, 30.0, 100.0)
 # shows the accuracy/health trade-off of the default weight; "largesteps-lr0.025" is large steps with the
 # learning rate that suits 10k vertices better than the default (tuned at 2.5k); "rbf-coarse" adds the coarse
 # kernel set (ReconstructionSettings.coarse_ratio). The "-3levels" variants use default_stages(n, levels=3):
-# at 10k vertices, stages of 625, 2,500 and 10,000 vertices instead of 2,500 and 10,000.
+# at 10k vertices, stages of 625, 2,500 and 10,000 vertices instead of 2,500 and 10,000; rbf-3levels also
+# sets the Laplacian weight of its two 10k stages to 2.5 (40 after scaling, a quarter of the default 160):
+# once the 625- and 2,500-vertex stages have moved the shape, the fine stages need less smoothing.
 VARIANTS = {
     "rbf": ("rbf", {}, None),
     "vertex": ("vertex", {}, None),
@@ -45,7 +47,8 @@ VARIANTS = {
     "largesteps-lr0.025": ("largesteps", {"lr": 0.025}, (10000,)),
     "rbf-nolap": ("rbf", {"w_laplacian": 0.0, "lr": 2e-3}, (2500,)),
     "rbf-coarse": ("rbf", {"coarse_ratio": 64}, None),
-    "rbf-3levels": ("rbf", {"levels": 3}, (10000,)),
+    "rbf-3levels": ("rbf", {"levels": 3, "stage_overrides": (None, None, {"w_laplacian": 2.5}, {"w_laplacian": 2.5})},
+                    (10000,)),
     "largesteps-3levels": ("largesteps", {"levels": 3}, (10000,)),
 }
 TARGETS = {"bunny": 2e-6, "teapot": 5e-6, "teapot-handle": 5e-6}
@@ -192,8 +195,9 @@ def render(results, floors, quick, budgets=BUDGETS):
         "rate, at 10k vertices only. rbf-coarse is rbf with a second set of kernels at one vertex in 64, about 8 "
         "edges wide, with their own offsets (`coarse_ratio=64`). rbf-3levels and largesteps-3levels (10k vertices "
         "only) start one level coarser: stages n/16, n/4, n, n with shares 0.15/0.25/0.35/0.25 "
-        "(`default_stages(n, levels=3)`; the Laplacian weight of rbf is then that of 2,500 vertices in the first "
-        "two stages, `reg_ref_vertices`). teapot-handle is the teapot from the same torus turned and placed with its "
+        "(`default_stages(n, levels=3)`); rbf-3levels has the Laplacian weight of 2,500 vertices (10) in the first "
+        "two stages (`reg_ref_vertices`) and `w_laplacian=2.5` (40 after scaling, against the default 160) in "
+        "the two 10k stages. teapot-handle is the teapot from the same torus turned and placed with its "
         "hole through the handle (`meshmei.shapes.torus_through_opening`: the through-hole found by "
         "`find_opening`, the torus's axis along it, its hole twice the opening's clearance): "
         "it shows what the handle's topology costs the centred start.",
