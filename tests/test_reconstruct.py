@@ -312,7 +312,7 @@ def test_docstring_examples_run(module):
     assert res.attempted > 0 and res.failed == 0
 
 
-def test_regularizer_weights_follow_the_final_resolution(sphere, bunny):
+def test_regularizer_weights_follow_each_stages_resolution(sphere, bunny):
     from meshmei.regularizers import laplacian_loss
 
     n = sphere[0].shape[0]
@@ -323,11 +323,14 @@ def test_regularizer_weights_follow_the_final_resolution(sphere, bunny):
     assert res.info["w_laplacian"] == pytest.approx(w, rel=1e-12)
     h = res.history[0]
     assert h["loss"] - h["chamfer"] == pytest.approx(w * float(laplacian_loss(*sphere)), rel=1e-4)
-    # With stages: the last stage's count, in every stage; edge and ARAP weights scale linearly.
+    # Two stages: the first takes the second's count, so both use the final one; edge and ARAP weights
+    # scale linearly.
     res = reconstruct(sphere, bunny, "rbf", steps=2, stages=(100, 400), w_laplacian=10.0, w_edge=2.0, w_arap=3.0,
                       **SMALL)
     r = 400 / 2500
     assert (res.info["w_laplacian"], res.info["w_edge"], res.info["w_arap"]) == pytest.approx((10 * r**2, 2 * r, 3 * r))
+    for st in res.info["stages"]:
+        assert (st["w_laplacian"], st["w_edge"], st["w_arap"]) == pytest.approx((10 * r**2, 2 * r, 3 * r))
     # Three counts: each stage its own, except the first, which takes the second's.
     res = reconstruct(sphere, bunny, "rbf", steps=3, stages=(50, 100, 400), w_laplacian=10.0, w_edge=2.0,
                       **SMALL)
