@@ -768,7 +768,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--samples", type=int, default=10_000, help="Chamfer samples per step")
     p.add_argument("--stages", default="auto",
-                   help="comma-separated vertex counts, e.g. 600,2500,2500; 'auto' (default): n/4,n,n; 'none': one stage")
+                   help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto' (default): n/4,n,n; "
+                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3)); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--eval-samples", type=int, default=100_000)
     p.add_argument("--seed", type=int, default=0)
@@ -786,13 +787,14 @@ def _run_cli(args) -> int:
     else:
         source = source_mesh(args.init, n_vertices=args.n_vertices)
     stages, fractions = None, None
-    if args.stages == "auto":
-        stages, fractions = default_stages(source[0].shape[0])
+    if args.stages in ("auto", "auto3"):
+        stages, fractions = default_stages(source[0].shape[0], 3 if args.stages == "auto3" else 2)
     elif args.stages and args.stages != "none":
         try:
             stages = tuple(int(x) for x in args.stages.split(","))
         except ValueError:
-            raise ValueError(f"--stages must be 'auto', 'none' or comma-separated integers, got {args.stages!r}") from None
+            raise ValueError(f"--stages must be 'auto', 'auto3', 'none' or comma-separated integers, "
+                             f"got {args.stages!r}") from None
     if args.steps is None and args.time_budget is None:
         args.steps = 500
     out = Path(args.out)

@@ -277,6 +277,23 @@ def test_cli_writes_mesh_history_and_plots(tmp_path, capsys):
     assert V.shape[0] == rec["n_vertices"]
 
 
+def test_cli_stage_schedules(tmp_path, capsys):
+    from meshmei.shapes import initial_mesh
+
+    n = initial_mesh("sphere", n_vertices=800)[0].shape[0]
+    for spec, levels in (("auto", 2), ("auto3", 3)):
+        out_dir = tmp_path / spec
+        rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 8,
+                        "--samples", 300, "--eval-samples", 1000, "--stages", spec, "--no-progress"], capsys)
+        assert rc == 0, out.err
+        settings = json.loads((out_dir / "history.json").read_text())["settings"]
+        stages, shares = default_stages(n, levels)
+        assert tuple(settings["stages"]) == stages
+        assert tuple(settings["stage_fractions"]) == pytest.approx(shares)
+    rc, out = _cli(["--target", "bunny", "--out", tmp_path / "bad", "--stages", "auto4", "--no-progress"], capsys)
+    assert rc == 2 and "auto3" in out.err
+
+
 def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
     from meshmei.mesh import load_mesh
 
