@@ -182,6 +182,19 @@ def _nn_spacing(X: np.ndarray, tree=None, sample: int | None = None) -> float:
     return float(np.mean(d))
 
 
+def _point_array(X, name: str, shape: str = "(n, 3)", *, nonempty: bool = False) -> np.ndarray:
+    """``X`` as a contiguous ``(k, 3)`` numpy array of finite points, or a ValueError naming ``name``."""
+    Xn = np.ascontiguousarray(X.detach().cpu().numpy() if isinstance(X, torch.Tensor) else np.asarray(X))
+    if Xn.ndim != 2 or Xn.shape[1] != 3 or (nonempty and len(Xn) == 0):
+        raise ValueError(f"{name} must be {'a non-empty' if nonempty else 'an'} {shape} point array, "
+                         f"got shape {Xn.shape}")
+    bad = ~np.isfinite(Xn).all(1)
+    if bad.any():
+        raise ValueError(f"{name} holds NaN or Inf ({int(bad.sum())} of {len(Xn)} points, first at index "
+                         f"{int(np.flatnonzero(bad)[0])})")
+    return Xn
+
+
 class PointIndex:
     """Nearest-neighbour queries into a fixed point set, fast at any query distance.
 
@@ -231,13 +244,7 @@ class PointIndex:
                  far_eps: float = 0.5):
         from scipy.spatial import cKDTree
 
-        Qn = np.ascontiguousarray(Q.detach().cpu().numpy() if isinstance(Q, torch.Tensor) else np.asarray(Q))
-        if Qn.ndim != 2 or Qn.shape[1] != 3 or len(Qn) == 0:
-            raise ValueError(f"Q must be a non-empty (k, 3) point array, got shape {Qn.shape}")
-        bad = ~np.isfinite(Qn).all(1)
-        if bad.any():
-            raise ValueError(f"Q holds NaN or Inf ({int(bad.sum())} of {len(Qn)} points, first at index "
-                             f"{int(np.flatnonzero(bad)[0])})")
+        Qn = _point_array(Q, "Q", "(k, 3)", nonempty=True)
         if not far_eps >= 0:
             raise ValueError(f"far_eps must be non-negative, got {far_eps!r}")
         for name, value, least in (("factor", factor, 2), ("min_points", min_points, 1)):
@@ -268,13 +275,7 @@ class PointIndex:
         near the points); ``None`` decides from the previous call (:attr:`far_share` below one half). A
         caller that builds a new index for each batch can pass what the last index's ``far_share`` said.
         """
-        Pn = np.ascontiguousarray(P.detach().cpu().numpy() if isinstance(P, torch.Tensor) else np.asarray(P))
-        if Pn.ndim != 2 or Pn.shape[1] != 3:
-            raise ValueError(f"P must be an (n, 3) point array, got shape {Pn.shape}")
-        bad = ~np.isfinite(Pn).all(1)
-        if bad.any():
-            raise ValueError(f"P holds NaN or Inf ({int(bad.sum())} of {len(Pn)} points, first at index "
-                             f"{int(np.flatnonzero(bad)[0])})")
+        Pn = _point_array(P, "P")
         if near_first is None:
             near_first = self.far_share < 0.5
         if near_first:

@@ -137,7 +137,7 @@ def mesh_topology(F: torch.Tensor, n_vertices: int | None = None) -> MeshTopolog
         _CACHE.move_to_end(key)
         return hit[2]
     # checked on a miss only: a hit is the very tensor that passed, unmodified
-    fmin, fmax = int(F.min()), int(F.max())
+    fmin, fmax = int(F.min()), (n - 1 if n_vertices is None else int(F.max()))
     if fmin < 0:
         raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
     if fmax >= n:
