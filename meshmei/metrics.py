@@ -451,6 +451,10 @@ class SurfaceMetrics:
     hausdorff : float
         Largest sample-to-surface distance in either direction (a lower bound on the exact Hausdorff
         distance, tight to the sample spacing).
+    area_ratio : float
+        The mesh's surface area over the target's. Accuracy is a mean over the mesh's area, so surface
+        added where it costs little (folds and wrinkles lying on the target) lowers it; a ratio well
+        above 1 flags a score bought that way (docs/reconstruction.md, *Why the teapot stops*).
     self_intersections, degenerate_faces : int or None
         Health of the mesh (see :class:`MeshHealth`).
     inverted_faces : int
@@ -468,6 +472,7 @@ class SurfaceMetrics:
     threshold: float
     normal_consistency: float
     hausdorff: float
+    area_ratio: float
     self_intersections: int | None
     degenerate_faces: int
     inverted_faces: int
@@ -530,7 +535,7 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
     Q, NQ = _sample_np(Vt, Ft, int(n_samples), seed + 1)
     d_pq, f_pq, _ = igl.point_mesh_squared_distance(P, Vt, Ft)
     d_qp, f_qp, _ = igl.point_mesh_squared_distance(Q, V, F)
-    Nt, _ = _face_normals_np(Vt, Ft)
+    Nt, dbl_t = _face_normals_np(Vt, Ft)
     Ns, dbl = _face_normals_np(V, F)
     nc = 0.5 * (np.abs((NP * Nt[f_pq]).sum(1)).mean() + np.abs((NQ * Ns[f_qp]).sum(1)).mean())
     tau = fscore_threshold * float(np.linalg.norm(Vt.max(0) - Vt.min(0)))
@@ -551,6 +556,7 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
         threshold=tau,
         normal_consistency=float(nc),
         hausdorff=float(np.sqrt(max(d_pq.max(), d_qp.max()))),
+        area_ratio=float(dbl.sum() / dbl_t.sum()),
         self_intersections=_self_intersections(V, F) if health else None,
         degenerate_faces=degenerate,
         inverted_faces=inverted,

@@ -302,3 +302,11 @@ def test_face_components_labels_pieces_that_share_no_vertex():
     # one face bridging the two spheres makes them one piece
     bridged = torch.cat([F, torch.tensor([[0, n, 1]])])
     assert set(face_components(bridged, 2 * n + 1).tolist()) == {0}
+
+
+def test_surface_metrics_area_ratio():
+    V, F = icosphere(2)
+    assert surface_metrics(V, F, V, F, n_samples=500, health=False).area_ratio == pytest.approx(1.0, rel=1e-12)
+    # twice the size, four times the area, whatever the target's orientation
+    assert surface_metrics(2 * V, F, V, F[:, [0, 2, 1]], n_samples=500, health=False).area_ratio == pytest.approx(
+        4.0, rel=1e-12)
