@@ -377,6 +377,13 @@ def _check_area(V, F, role):
         raise MeshError(f"{role} mesh has zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
 
 
+# rbf with three levels (default_stages(n, levels=3)) in the benchmark (variant rbf-3levels) and the CLI's
+# --stages auto3: once the 625- and 2,500-vertex stages have moved the shape, the two fine stages need less
+# smoothing, a quarter of the default Laplacian weight (2.5, that is 40 at 10k vertices against 160).
+# Measured at 10k on three problems; 2.5 was the first value tried (docs/reconstruction.md, *Coarse-to-fine*).
+RBF_THREE_LEVEL_OVERRIDES = (None, None, {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
+
+
 def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     """The coarse-to-fine schedule used by the benchmark and the CLI. Returns ``(stages, stage_fractions)``.
 
@@ -769,7 +776,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--samples", type=int, default=10_000, help="Chamfer samples per step")
     p.add_argument("--stages", default="auto",
                    help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto' (default): n/4,n,n; "
-                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3)); 'none': one stage")
+                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also a quarter of the Laplacian weight "
+                        "in the two fine stages, as the benchmark's rbf-3levels); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--eval-samples", type=int, default=100_000)
     p.add_argument("--seed", type=int, default=0)
@@ -786,9 +794,11 @@ def _run_cli(args) -> int:
         source = torus_through_opening(*target, n_vertices=args.n_vertices)
     else:
         source = source_mesh(args.init, n_vertices=args.n_vertices)
-    stages, fractions = None, None
+    stages, fractions, overrides = None, None, None
     if args.stages in ("auto", "auto3"):
         stages, fractions = default_stages(source[0].shape[0], 3 if args.stages == "auto3" else 2)
+        if args.stages == "auto3" and args.method == "rbf":
+            overrides = RBF_THREE_LEVEL_OVERRIDES
     elif args.stages and args.stages != "none":
         try:
             stages = tuple(int(x) for x in args.stages.split(","))
@@ -800,7 +810,8 @@ def _run_cli(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     res = reconstruct(source, target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
-                      n_samples=args.samples, stages=stages, stage_fractions=fractions, eval_every=args.eval_every,
+                      n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
+                      eval_every=args.eval_every,
                       eval_samples=args.eval_samples, seed=args.seed, progress=not args.no_progress)
     save_mesh(out / "mesh.obj", res.V, res.F)
     record = res.to_json()

@@ -10,8 +10,8 @@ import torch
 from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
-from meshmei.reconstruct import (ReconstructionSettings, default_stages, reconstruct, remesh, source_mesh,
-                                 target_surface)
+from meshmei.reconstruct import (RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages, reconstruct,
+                                 remesh, source_mesh, target_surface)
 from meshmei.shapes import initial_mesh, target_mesh
 
 from conftest import icosphere
@@ -290,6 +290,15 @@ def test_cli_stage_schedules(tmp_path, capsys):
         stages, shares = default_stages(n, levels)
         assert tuple(settings["stages"]) == stages
         assert tuple(settings["stage_fractions"]) == pytest.approx(shares)
+        # three levels with rbf: the benchmark's rbf-3levels, lighter smoothing in the fine stages
+        assert settings["stage_overrides"] == (list(RBF_THREE_LEVEL_OVERRIDES) if levels == 3 else None)
+    out_dir = tmp_path / "ls3"
+    rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 4,
+                    "--samples", 300, "--eval-samples", 1000, "--stages", "auto3", "--method", "largesteps",
+                    "--no-progress"], capsys)
+    assert rc == 0, out.err
+    settings = json.loads((out_dir / "history.json").read_text())["settings"]
+    assert tuple(settings["stages"]) == default_stages(n, 3)[0] and settings["stage_overrides"] is None
     rc, out = _cli(["--target", "bunny", "--out", tmp_path / "bad", "--stages", "auto4", "--no-progress"], capsys)
     assert rc == 2 and "auto3" in out.err
 
