@@ -820,5 +820,6 @@ def _run_cli(args) -> int:
     plot_history(res, out)
     f = res.final
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
-          f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}; wrote {out}")
+          f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
+          f"target's; wrote {out}")
     return 0

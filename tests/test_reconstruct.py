@@ -271,6 +271,7 @@ def test_cli_writes_mesh_history_and_plots(tmp_path, capsys):
     assert rec["settings"]["method"] == "largesteps" and len(rec["history"]) == 6
     assert [m["step"] for m in rec["metrics"]] == [3, 6]
     assert rec["target"] == "bunny" and "Chamfer-L2" in out.out
+    assert f"area {rec['final']['area_ratio']:.2f}x the target's" in out.out
     from meshmei.mesh import load_mesh
 
     V, F = load_mesh(out_dir / "mesh.obj")

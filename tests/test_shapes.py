@@ -472,6 +472,26 @@ def test_membrane_floor_of_a_torus_is_the_closed_form_from_below():
     assert np.array_equal(fine.axis, [0, 0, 1]) and fine.clearance == pytest.approx(0.2, abs=0.01)
 
 
+def test_membrane_floor_is_the_same_for_a_turned_moved_torus_and_in_float32():
+    from scipy.spatial.transform import Rotation
+
+    from meshmei.shapes import membrane_floor
+
+    V, F = initial_mesh("torus", n_vertices=1500, dtype=torch.float64)
+    base = membrane_floor(V, F, spacing=0.01)
+    R = torch.from_numpy(Rotation.random(random_state=4).as_matrix())
+    W = V @ R.T + torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    # the opening found on the turned torus, and the original one carried along: the same floor up to the
+    # grid's placement (cells are laid out in the plane of each)
+    turned = membrane_floor(W, F, spacing=0.01)
+    carried = membrane_floor(W, F, (base.centre @ R.numpy().T + [0.3, -0.2, 0.1], base.axis @ R.numpy().T, 0.2),
+                             spacing=0.01)
+    assert turned.integral == pytest.approx(base.integral, rel=0.01)  # 0.9993 of it
+    assert carried.integral == pytest.approx(base.integral, rel=1e-3)  # 0.999997
+    assert turned.target_area == pytest.approx(base.target_area, rel=1e-9)
+    assert membrane_floor(V.float(), F, spacing=0.01).integral == pytest.approx(base.integral, rel=1e-5)
+
+
 def test_membrane_floor_bounds_the_convex_hull_which_blocks_the_hole():
     from scipy.spatial import ConvexHull
 
