@@ -776,8 +776,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--samples", type=int, default=10_000, help="Chamfer samples per step")
     p.add_argument("--stages", default="auto",
                    help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto' (default): n/4,n,n; "
-                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also a quarter of the Laplacian weight "
-                        "in the two fine stages, as the benchmark's rbf-3levels); 'none': one stage")
+                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also a quarter of the "
+                        "Laplacian weight in the two fine stages, as the benchmark's rbf-3levels); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--eval-samples", type=int, default=100_000)
     p.add_argument("--seed", type=int, default=0)
@@ -811,8 +811,8 @@ def _run_cli(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     res = reconstruct(source, target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
                       n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
-                      eval_every=args.eval_every,
-                      eval_samples=args.eval_samples, seed=args.seed, progress=not args.no_progress)
+                      eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
+                      progress=not args.no_progress)
     save_mesh(out / "mesh.obj", res.V, res.F)
     record = res.to_json()
     record["init"], record["target"] = str(args.init), str(args.target)

@@ -530,6 +530,6 @@ def test_membrane_floor_says_why_it_cannot():
             membrane_floor(V, F, (np.zeros(3), z, 0.2), spacing=spacing)
     with pytest.raises(ValueError, match="at most 4 million"):
         membrane_floor(V, F, (np.zeros(3), z, 0.2), spacing=1e-4)
-    for bad in ((np.zeros(3), np.zeros(3), 0.2), (np.zeros(3), z), (np.full(3, np.nan), z, 0.2)):
+    for bad in ((np.zeros(3), np.zeros(3), 0.2), (np.zeros(3), z), (np.full(3, np.nan), z, 0.2), (np.zeros(3), z, "x")):
         with pytest.raises(ValueError, match="opening"):
             membrane_floor(V, F, bad, spacing=0.02)
