@@ -44,6 +44,9 @@ __all__ = [
     "target_surface",
     "add_parser",
     "default_stages",
+    "default_schedule",
+    "RBF_THREE_LEVEL_OVERRIDES",
+    "THREE_LEVEL_MIN_VERTICES",
     "plot_history",
 ]
 
@@ -391,8 +394,10 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     ``levels=3``: ``(n/16, n/4, n, n)`` with shares ``(0.15, 0.25, 0.35, 0.25)``, so that a 10k run
     starts as a 2.5k run does (from 625 vertices, where the shape travels at little cost) and then refines.
     Either way the last stage restarts on a fresh isotropic remesh of the shape, which clears folds and
-    slivers left by the one before. At 10k vertices three levels helped large steps on the bunny a lot and
-    hurt both methods on the teapot (docs/reconstruction.md, *Coarse-to-fine*), so two is the default.
+    slivers left by the one before. At 10k vertices three levels helped rbf on all three benchmark problems
+    and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
+    *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 8,000
+    vertices.
     """
     n = int(n_vertices)
     if levels == 3:
@@ -400,6 +405,30 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     if levels == 2:
         return (max(32, n // 4), n, n), (0.25, 0.45, 0.3)
     raise ValueError(f"levels must be 2 or 3, got {levels!r}")
+
+
+# The smallest final count at which meshmei reconstruct's --stages auto gives rbf three levels. They were
+# measured at 10,000 (first stage 625, docs/reconstruction.md); the margin lets a mesh asked for at 10k
+# that comes out a little smaller (a 10k torus has 9,465 vertices) have them too (first stage at least 500).
+THREE_LEVEL_MIN_VERTICES = 8_000
+
+
+def default_schedule(method: str, n_vertices: int) -> tuple:
+    """The coarse-to-fine schedule ``meshmei reconstruct --stages auto`` uses for ``method`` and a final
+    count of ``n_vertices``. Returns ``(stages, stage_fractions, stage_overrides)``.
+
+    rbf at ``THREE_LEVEL_MIN_VERTICES`` (8,000) vertices or more: three levels with the lighter fine
+    stages (``default_stages(n, levels=3)`` and :data:`RBF_THREE_LEVEL_OVERRIDES`, the benchmark's
+    rbf-3levels), which ended below two levels at every budget on all three benchmark problems at 10k, in
+    two runs. Otherwise two levels (``default_stages(n)``): three were measured at 10k only, and they hurt
+    large steps through the teapot's handle.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    n = int(n_vertices)
+    if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES:
+        return (*default_stages(n, levels=3), RBF_THREE_LEVEL_OVERRIDES)
+    return (*default_stages(n), None)
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):
@@ -775,9 +804,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--samples", type=int, default=10_000, help="Chamfer samples per step")
     p.add_argument("--stages", default="auto",
-                   help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto' (default): n/4,n,n; "
+                   help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto2': n/4,n,n; "
                         "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also a quarter of the "
-                        "Laplacian weight in the two fine stages, as the benchmark's rbf-3levels); 'none': one stage")
+                        "Laplacian weight in the two fine stages, as the benchmark's rbf-3levels); 'auto' (default): "
+                        "auto3 for rbf from 8,000 vertices, else auto2 (default_schedule); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--eval-samples", type=int, default=100_000)
     p.add_argument("--seed", type=int, default=0)
@@ -795,15 +825,18 @@ def _run_cli(args) -> int:
     else:
         source = source_mesh(args.init, n_vertices=args.n_vertices)
     stages, fractions, overrides = None, None, None
-    if args.stages in ("auto", "auto3"):
-        stages, fractions = default_stages(source[0].shape[0], 3 if args.stages == "auto3" else 2)
+    n = source[0].shape[0]
+    if args.stages == "auto":
+        stages, fractions, overrides = default_schedule(args.method, n)
+    elif args.stages in ("auto2", "auto3"):
+        stages, fractions = default_stages(n, 3 if args.stages == "auto3" else 2)
         if args.stages == "auto3" and args.method == "rbf":
             overrides = RBF_THREE_LEVEL_OVERRIDES
     elif args.stages and args.stages != "none":
         try:
             stages = tuple(int(x) for x in args.stages.split(","))
         except ValueError:
-            raise ValueError(f"--stages must be 'auto', 'auto3', 'none' or comma-separated integers, "
+            raise ValueError(f"--stages must be 'auto', 'auto2', 'auto3', 'none' or comma-separated integers, "
                              f"got {args.stages!r}") from None
     if args.steps is None and args.time_budget is None:
         args.steps = 500

@@ -282,7 +282,7 @@ def test_cli_stage_schedules(tmp_path, capsys):
     from meshmei.shapes import initial_mesh
 
     n = initial_mesh("sphere", n_vertices=800)[0].shape[0]
-    for spec, levels in (("auto", 2), ("auto3", 3)):
+    for spec, levels in (("auto", 2), ("auto2", 2), ("auto3", 3)):  # auto: two levels for rbf below 8k
         out_dir = tmp_path / spec
         rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 8,
                         "--samples", 300, "--eval-samples", 1000, "--stages", spec, "--no-progress"], capsys)
@@ -302,6 +302,35 @@ def test_cli_stage_schedules(tmp_path, capsys):
     assert tuple(settings["stages"]) == default_stages(n, 3)[0] and settings["stage_overrides"] is None
     rc, out = _cli(["--target", "bunny", "--out", tmp_path / "bad", "--stages", "auto4", "--no-progress"], capsys)
     assert rc == 2 and "auto3" in out.err
+
+
+def test_default_schedule_gives_rbf_three_levels_from_8k_vertices():
+    from meshmei.reconstruct import THREE_LEVEL_MIN_VERTICES, default_schedule
+
+    # measured at 10k; a torus asked for at 10k vertices has fewer and must get them too
+    assert THREE_LEVEL_MIN_VERTICES <= initial_mesh("torus", n_vertices=10_000)[0].shape[0] < 10_000
+    assert THREE_LEVEL_MIN_VERTICES > 2 * 2500  # and the benchmark's 2.5k runs keep two levels
+    for n in (THREE_LEVEL_MIN_VERTICES, 10_000, 28_000):
+        assert default_schedule("rbf", n) == (*default_stages(n, 3), RBF_THREE_LEVEL_OVERRIDES)
+        for method in ("largesteps", "vertex"):
+            assert default_schedule(method, n) == (*default_stages(n, 2), None)
+    for method in ("rbf", "largesteps", "vertex"):
+        n = THREE_LEVEL_MIN_VERTICES - 1
+        assert default_schedule(method, n) == (*default_stages(n, 2), None)
+        assert default_schedule(method, 2500) == (*default_stages(2500, 2), None)
+    with pytest.raises(ValueError, match="method"):
+        default_schedule("bogus", 10_000)
+
+
+def test_cli_auto_gives_rbf_three_levels_on_a_10k_torus(tmp_path, capsys):
+    out_dir = tmp_path / "t10k"
+    rc, out = _cli(["--init", "torus", "--n-vertices", 10_000, "--target", "teapot", "--out", out_dir, "--steps", 3,
+                    "--samples", 500, "--eval-samples", 1000, "--no-progress"], capsys)
+    assert rc == 0, out.err
+    settings = json.loads((out_dir / "history.json").read_text())["settings"]
+    n = initial_mesh("torus", n_vertices=10_000)[0].shape[0]
+    assert tuple(settings["stages"]) == default_stages(n, 3)[0]
+    assert settings["stage_overrides"] == list(RBF_THREE_LEVEL_OVERRIDES)
 
 
 def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
