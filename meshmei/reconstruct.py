@@ -421,8 +421,8 @@ def default_schedule(method: str, n_vertices: int) -> tuple:
     stages (``default_stages(n, levels=3)`` and :data:`RBF_THREE_LEVEL_OVERRIDES`, the benchmark's
     rbf-3levels), which ended below two levels at every budget on all three benchmark problems at 10k in
     two runs (seed 0), and in 11 of 12 runs with seeds 1 and 2 at 10 and 30 s (the exception: the bunny at
-    30 s, 1.67e-6 against 1.37e-6). Otherwise two levels (``default_stages(n)``): three were measured at 10k only, and they hurt
-    large steps through the teapot's handle.
+    30 s, 1.67e-6 against 1.37e-6). Otherwise two levels (``default_stages(n)``): three were measured at
+    10k only, and they hurt large steps through the teapot's handle.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")

@@ -721,11 +721,12 @@ def membrane_floor(V, F, opening=None, *, spacing=None):
 
     The region is found on a square grid of ``spacing`` in the plane (generalised winding numbers); ``m``
     is sampled along each line at ``spacing`` over the target's extent (beyond it the distance only
-    grows), then at ``spacing / 8`` around the best sample. Both discretisations are made conservative with
-    the distance's 1-Lipschitz bound (a sample's value is lowered by half the step to its neighbours, and
-    a cell's by ``spacing / sqrt(2)``, the reach of its corners), so the result is a lower bound that
-    tightens as ``spacing`` falls. Cost: one winding number per cell of the target's projection and one
-    distance per cell of the region per sample along the line (about 2 s on the teapot at the default).
+    grows), then at ``spacing / 8`` around the best sample and its two neighbours. Both discretisations are
+    made conservative with the distance's 1-Lipschitz bound (a sample's value is lowered by half the step
+    to its neighbours, and a cell's by ``spacing / sqrt(2)``, the reach of its corners), so the result is
+    a lower bound that tightens as ``spacing`` falls. Cost: one winding number per cell of the target's
+    projection and one distance per cell of the region per sample along the line (about 2 s on the teapot
+    at the default).
 
     Parameters
     ----------
@@ -797,18 +798,24 @@ def membrane_floor(V, F, opening=None, *, spacing=None):
         raise MeshError("the region around the opening's centre is not enclosed by the target in its plane: "
                         "not an opening")
     cells = P[region]
+
+    def along(c, t):
+        """Distances to the target from the points ``c + t * axis``; ``t`` is (k,) or (len(c), k)."""
+        t = np.broadcast_to(t, (len(c), t.shape[-1]))
+        d2 = igl.point_mesh_squared_distance((c[:, None, :] + t[..., None] * axis).reshape(-1, 3), Vn, Fn)[0]
+        return np.sqrt(d2).reshape(t.shape)
+
     ts = np.arange(pa.min(), pa.max() + h, h)
     lower = np.empty(len(cells))
-    fine = np.linspace(-1.0, 1.0, 17) * h  # around each line's best coarse sample, h / 8 apart
+    # h / 8 apart over the reach of the best coarse sample and its two neighbours, [-1.5 h, 1.5 h] about it
+    fine = np.linspace(-1.5, 1.5, 25) * h
     for lo in range(0, len(cells), 2048):
         c = cells[lo:lo + 2048]
-        D = np.sqrt(igl.point_mesh_squared_distance((c[:, None, :] + ts[None, :, None] * axis).reshape(-1, 3),
-                                                    Vn, Fn)[0]).reshape(len(c), len(ts))
+        D = along(c, ts)
         best = D.argmin(1)
-        tf = ts[best][:, None] + fine[None, :]
-        Df = np.sqrt(igl.point_mesh_squared_distance((c[:, None, :] + tf[..., None] * axis).reshape(-1, 3),
-                                                     Vn, Fn)[0]).reshape(len(c), len(fine))
-        # 1-Lipschitz along the line: within h/16 of a fine sample, and h/2 of a coarse one away from the best
+        Df = along(c, ts[best][:, None] + fine[None, :])
+        # 1-Lipschitz along the line: every t is within h/16 of a fine sample, or h/2 of a coarse one
+        # that is not the best or beside it (those three are covered by the fine samples)
         near = np.abs(np.arange(len(ts))[None, :] - best[:, None]) <= 1
         lower[lo:lo + 2048] = np.minimum((Df - h / 16).min(1), np.where(near, np.inf, D - h / 2).min(1))
     # and 1-Lipschitz across the cell, whose points lie within h / sqrt(2) of its centre
