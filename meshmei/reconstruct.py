@@ -413,9 +413,12 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
 THREE_LEVEL_MIN_VERTICES = 8_000
 
 
-def default_schedule(method: str, n_vertices: int) -> tuple:
+def default_schedule(method: str, n_vertices: int, levels: int | None = None) -> tuple:
     """The coarse-to-fine schedule ``meshmei reconstruct --stages auto`` uses for ``method`` and a final
     count of ``n_vertices``. Returns ``(stages, stage_fractions, stage_overrides)``.
+
+    ``levels`` 2 or 3 forces that many levels (``--stages auto2`` / ``auto3``); rbf with three levels
+    always gets the lighter fine stages. ``None`` (``--stages auto``) picks as follows.
 
     rbf at ``THREE_LEVEL_MIN_VERTICES`` (8,000) vertices or more: three levels with the lighter fine
     stages (``default_stages(n, levels=3)`` and :data:`RBF_THREE_LEVEL_OVERRIDES`, the benchmark's
@@ -427,9 +430,10 @@ def default_schedule(method: str, n_vertices: int) -> tuple:
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     n = int(n_vertices)
-    if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES:
-        return (*default_stages(n, levels=3), RBF_THREE_LEVEL_OVERRIDES)
-    return (*default_stages(n), None)
+    if levels is None:
+        levels = 3 if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES else 2
+    stages, fractions = default_stages(n, levels)
+    return stages, fractions, RBF_THREE_LEVEL_OVERRIDES if method == "rbf" and levels == 3 else None
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):
@@ -827,12 +831,9 @@ def _run_cli(args) -> int:
         source = source_mesh(args.init, n_vertices=args.n_vertices)
     stages, fractions, overrides = None, None, None
     n = source[0].shape[0]
-    if args.stages == "auto":
-        stages, fractions, overrides = default_schedule(args.method, n)
-    elif args.stages in ("auto2", "auto3"):
-        stages, fractions = default_stages(n, 3 if args.stages == "auto3" else 2)
-        if args.stages == "auto3" and args.method == "rbf":
-            overrides = RBF_THREE_LEVEL_OVERRIDES
+    if args.stages in ("auto", "auto2", "auto3"):
+        levels = {"auto": None, "auto2": 2, "auto3": 3}[args.stages]
+        stages, fractions, overrides = default_schedule(args.method, n, levels)
     elif args.stages and args.stages != "none":
         try:
             stages = tuple(int(x) for x in args.stages.split(","))

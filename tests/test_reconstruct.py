@@ -318,8 +318,14 @@ def test_default_schedule_gives_rbf_three_levels_from_8k_vertices():
         n = THREE_LEVEL_MIN_VERTICES - 1
         assert default_schedule(method, n) == (*default_stages(n, 2), None)
         assert default_schedule(method, 2500) == (*default_stages(2500, 2), None)
+    # forced levels: rbf with three always gets the lighter fine stages, the others never
+    assert default_schedule("rbf", 2500, 3) == (*default_stages(2500, 3), RBF_THREE_LEVEL_OVERRIDES)
+    assert default_schedule("rbf", 10_000, 2) == (*default_stages(10_000, 2), None)
+    assert default_schedule("largesteps", 2500, 3) == (*default_stages(2500, 3), None)
     with pytest.raises(ValueError, match="method"):
         default_schedule("bogus", 10_000)
+    with pytest.raises(ValueError, match="levels"):
+        default_schedule("rbf", 10_000, 4)
 
 
 def test_cli_auto_gives_rbf_three_levels_on_a_10k_torus(tmp_path, capsys):
