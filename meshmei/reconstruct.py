@@ -41,6 +41,7 @@ __all__ = [
     "DEFAULTS",
     "remesh",
     "source_mesh",
+    "SOURCE_NAMES",
     "target_surface",
     "add_parser",
     "default_stages",
@@ -53,7 +54,7 @@ __all__ = [
 METHODS = ("rbf", "vertex", "largesteps")
 # The settings ReconstructionSettings.stage_overrides may change from one stage to the next.
 STAGE_FIELDS = ("method", "lr", "lr_scale", "reg_decay", "w_laplacian", "w_edge", "w_arap", "optimizer", "lam",
-                "sigma_factor", "r_cut", "centers", "coarse_ratio", "coarse_lr")
+                "sigma_factor", "r_cut", "centers", "coarse_ratio", "coarse_lr", "n_samples")
 
 # Per-method defaults, tuned on sphere -> bunny and torus -> teapot at 2.5k and 10k vertices
 # (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal
@@ -337,19 +338,59 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
     return V, F
 
 
-def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32):
-    """Resolve a starting mesh: ``"sphere"``, ``"torus"``, ``"sheet"`` (made with ``n_vertices``), a mesh
-    file path (used as stored), or a ``(V, F)`` pair."""
-    from .shapes import INITIAL_KINDS, initial_mesh
+SOURCE_NAMES = ("sheet", "sphere", "torus", "torus-centred", "torus-through-opening")
 
-    if isinstance(spec, str) and spec in INITIAL_KINDS:
-        V, F = initial_mesh(spec, n_vertices=n_vertices, dtype=dtype)
+
+def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32, target=None):
+    """Resolve a starting mesh: a name in :data:`SOURCE_NAMES` (made with ``n_vertices``), a mesh file
+    path (used as stored), or a ``(V, F)`` pair.
+
+    ``"torus"`` is placed for the ``target`` ``(V, F)`` when one is given: with its hole through the
+    target's most open through-hole (:func:`meshmei.shapes.torus_through_opening`) when
+    :func:`~meshmei.shapes.find_opening` sees one, as the teapot's handle, and centred otherwise (no
+    target, or one without a hole, as the bunny). The torus is the start for genus-1 targets because its
+    hole can become theirs; a torus whose hole misses the target's must block that hole with surface, which
+    costs Chamfer accuracy no deformation can remove (:func:`meshmei.shapes.membrane_floor`; on the teapot,
+    at least 9.7e-6 at the teapot's area). Finding the opening takes one to three seconds.
+    ``"torus-centred"`` is always the centred torus of ``initial_mesh("torus")``; ``"torus-through-opening"``
+    always threads it and raises ``MeshError`` when the target has no opening.
+    """
+    V, F, _ = _resolve_source(spec, n_vertices, dtype, target)
+    return V, F
+
+
+def _resolve_source(spec, n_vertices, dtype, target):
+    """``(V, F, placement)``: placement says how a named torus was placed (None for everything else)."""
+    from .shapes import initial_mesh, torus_through_opening
+
+    placement = None
+    if isinstance(spec, str) and spec in SOURCE_NAMES:
+        kind = spec
+        if spec == "torus-through-opening" or (spec == "torus" and target is not None):
+            if target is None:
+                raise ValueError("source 'torus-through-opening' needs the target whose opening it threads")
+            from .shapes import find_opening
+
+            opening = find_opening(*target)
+            if opening is None and spec == "torus-through-opening":
+                raise MeshError("the target has no through-hole that find_opening can see; start from "
+                                "'torus-centred'")
+            if opening is None:
+                placement = "centred (the target has no through-hole that find_opening sees)"
+            else:
+                V, F = torus_through_opening(*target, n_vertices=n_vertices, dtype=dtype, opening=opening)
+                placement = "through the target's opening (meshmei.shapes.torus_through_opening)"
+                kind = None
+        elif spec.startswith("torus"):
+            placement = "centred"
+        if kind is not None:
+            V, F = initial_mesh("torus" if kind.startswith("torus") else kind, n_vertices=n_vertices, dtype=dtype)
     elif isinstance(spec, (str, os.PathLike)):
         V, F = _load(spec, "source", dtype)
     else:
         V, F = _pair(spec, "source")
     _check_area(V, F, f"source {spec}" if isinstance(spec, (str, os.PathLike)) else "source")
-    return V, F
+    return V, F, placement
 
 
 def _load(path, role, dtype):
@@ -550,8 +591,9 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
 
     Parameters
     ----------
-    source : (V, F) pair, a mesh file path, or "sphere" / "torus" / "sheet" (2,500 vertices)
-        Starting mesh, used as given (no normalisation).
+    source : (V, F) pair, a mesh file path, or a name in SOURCE_NAMES (2,500 vertices)
+        Starting mesh, used as given (no normalisation). ``"torus"`` starts through the target's opening
+        when it has one, as the teapot's handle (:func:`source_mesh`); ``"torus-centred"`` never does.
     target : (V, F) pair, a mesh file path, or "bunny" / "teapot"
         Target surface; paths and pairs are normalised to unit bounding-box diagonal and centred.
     method : {"rbf", "vertex", "largesteps"}
@@ -588,7 +630,7 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
     s = given.resolved()
     per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
     Vt, Ft = target_surface(target)
-    V, F = source_mesh(source)
+    V, F = source_mesh(source, target=(Vt, Ft))
     Vt = Vt.to(V.dtype)
     g = torch.Generator(device=V.device).manual_seed(s.seed)
 
@@ -672,14 +714,14 @@ def reconstruct(source, target, method: str = "rbf", *, settings: Reconstruction
             param.opt.zero_grad(set_to_none=True)
             Vc = param.vertices()
             try:
-                P = sample_points(Vc, F, s.n_samples, generator=g)
+                P = sample_points(Vc, F, sk.n_samples, generator=g)
             except MeshError as err:
                 if step == 0:
                     raise
                 # the last step sent vertices to NaN or Inf, out of the dtype's range, or onto one point
                 raise FloatingPointError(f"the mesh became unusable after step {step} ({err}); lower the learning "
                                          f"rate (lr={sk.lr})") from None
-            sub = torch.randint(0, s.target_pool, (s.n_samples,), generator=g, device=V.device)
+            sub = torch.randint(0, s.target_pool, (sk.n_samples,), generator=g, device=V.device)
             Q = pool[sub]
             i_pq = torch.from_numpy(pool_index.query(P))
             samples_index = PointIndex(P)
@@ -797,9 +839,10 @@ def add_parser(subparsers) -> None:
                     "history.json, loss.png and metrics.png to --out.",
     )
     p.add_argument("--init", default="sphere",
-                   help="sphere, torus, sheet, torus-through-opening (the torus started through the target's most "
-                        "open hole, e.g. a teapot's handle; meshmei.shapes.torus_through_opening), or a mesh file "
-                        "(default sphere)")
+                   help="sphere, torus, sheet, torus-centred, torus-through-opening, or a mesh file (default "
+                        "sphere). 'torus' starts with its hole through the target's most open through-hole when "
+                        "it has one (a teapot's handle; meshmei.shapes.torus_through_opening), else centred; "
+                        "'torus-centred' is always centred; 'torus-through-opening' fails without an opening")
     p.add_argument("--target", required=True, help="bunny, teapot, or a mesh file (normalised to unit diagonal)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--method", choices=METHODS, default="rbf")
@@ -823,12 +866,10 @@ def add_parser(subparsers) -> None:
 def _run_cli(args) -> int:
     # Resolve and check both meshes first: bad input fails before any optimisation starts.
     target = target_surface(args.target)
-    if args.init == "torus-through-opening":
-        from .shapes import torus_through_opening
-
-        source = torus_through_opening(*target, n_vertices=args.n_vertices)
-    else:
-        source = source_mesh(args.init, n_vertices=args.n_vertices)
+    V, F, placement = _resolve_source(args.init, args.n_vertices, torch.float32, target)
+    source = (V, F)
+    if placement is not None:
+        print(f"{args.init}: {V.shape[0]} vertices, placed {placement}")
     stages, fractions, overrides = None, None, None
     n = source[0].shape[0]
     if args.stages in ("auto", "auto2", "auto3"):

@@ -639,20 +639,37 @@ def _rotation_between(a, b):
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
-def torus_through_opening(V, F, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float32):
+def torus_through_opening(V, F, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float32, opening=None):
     """The starting torus of :func:`initial_mesh` placed with its hole through the most open through-hole of
-    ``(V, F)`` (:func:`find_opening`): axis along the hole's axis, centred on it, scaled so that the hole's
-    radius is twice the opening's clearance (the torus's tube then starts around the loop, not inside it).
+    ``(V, F)`` (:func:`find_opening`, or ``opening`` as it returns, when already found): axis along the
+    hole's axis, centred on it, scaled so that the hole's radius is twice the opening's clearance (the
+    torus's tube then starts around the loop, not inside it).
 
     Raises
     ------
     MeshError
         ``(V, F)`` has no opening that :func:`find_opening` can see.
+    ValueError
+        ``opening`` is not ``(centre, axis, clearance)`` with a finite centre, a non-zero axis and a positive
+        clearance.
     """
-    found = find_opening(V, F)
+    found = find_opening(V, F) if opening is None else opening
     if found is None:
         raise MeshError("the target has no through-hole that find_opening can see; start from a centred torus")
-    centre, axis, clearance = found
+    try:
+        centre, axis, clearance = (np.asarray(found[0], dtype=np.float64), np.asarray(found[1], dtype=np.float64),
+                                   float(found[2]))
+    except (TypeError, ValueError, IndexError):
+        raise ValueError(f"opening must be (centre, axis, clearance) as find_opening returns, "
+                         f"got {opening!r}") from None
+    norm = float(np.linalg.norm(axis)) if axis.shape == (3,) else 0.0
+    if centre.shape != (3,) or not np.isfinite(centre).all() or not (np.isfinite(norm) and norm > 0) \
+            or not (math.isfinite(clearance) and clearance > 0):
+        raise ValueError(f"opening needs a finite centre, a finite non-zero axis and a positive clearance, "
+                         f"got {found!r}")
+    axis = axis / norm
+    if axis[int(np.argmax(np.abs(axis)))] < 0:
+        axis = -axis  # the torus is the same either way; this keeps the turn below away from 180 degrees
     Vs, Fs = initial_mesh("torus", n_vertices=n_vertices, dtype=torch.float64)
     hole = TORUS_MAJOR_RADIUS - TORUS_MINOR_RADIUS  # hole radius at size 1
     scale = 2.0 * clearance / hole

@@ -343,17 +343,51 @@ def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
     from meshmei.mesh import load_mesh
 
     out_dir = tmp_path / "teapot"
-    rc, out = _cli(["--init", "torus-through-opening", "--n-vertices", 300, "--target", "teapot", "--out", out_dir,
+    rc, out = _cli(["--init", "torus", "--n-vertices", 300, "--target", "teapot", "--out", out_dir,
                     "--steps", 3, "--samples", 500, "--eval-samples", 2000, "--stages", "none", "--no-progress"],
                    capsys)
     assert rc == 0, out.err
+    assert "placed through the target's opening" in out.out
     V, _ = load_mesh(out_dir / "mesh.obj")
     centre = 0.5 * (V.min(0).values + V.max(0).values)
     assert float(centre[0]) < -0.2  # the start sat at the handle, left of the body, and three steps keep it there
+    # the centred torus on request
+    rc, out = _cli(["--init", "torus-centred", "--n-vertices", 300, "--target", "teapot", "--out", tmp_path / "c",
+                    "--steps", 1, "--samples", 500, "--eval-samples", 2000, "--stages", "none", "--no-progress"],
+                   capsys)
+    assert rc == 0, out.err
+    assert "placed centred" in out.out
+    V, _ = load_mesh(tmp_path / "c" / "mesh.obj")
+    assert float((0.5 * (V.min(0).values + V.max(0).values)).abs().max()) < 0.02
     # a target without a hole: a clear error and exit status 2, before any optimisation
     rc, out = _cli(["--init", "torus-through-opening", "--target", "bunny", "--out", tmp_path / "b", "--steps", 3,
                     "--no-progress"], capsys)
     assert rc == 2 and "no through-hole" in out.err and not (tmp_path / "b" / "mesh.obj").exists()
+
+
+def test_source_mesh_places_the_torus_for_its_target():
+    from meshmei.reconstruct import SOURCE_NAMES, source_mesh
+    from meshmei.shapes import torus_through_opening
+
+    teapot, bunny = target_surface("teapot"), target_surface("bunny")
+    centred = initial_mesh("torus", n_vertices=300)
+    threaded = torus_through_opening(*teapot, n_vertices=300)
+    for spec, target, want in [("torus", teapot, threaded), ("torus", None, centred), ("torus", bunny, centred),
+                               ("torus-centred", teapot, centred), ("torus-through-opening", teapot, threaded)]:
+        V, F = source_mesh(spec, n_vertices=300, target=target)
+        assert torch.equal(V, want[0]) and torch.equal(F, want[1]), (spec, target is None)
+    for name in ("sphere", "sheet"):  # the others do not depend on the target
+        V, F = source_mesh(name, n_vertices=300, target=teapot)
+        assert torch.equal(V, initial_mesh(name, n_vertices=300)[0])
+    assert set(SOURCE_NAMES) == {"sheet", "sphere", "torus", "torus-centred", "torus-through-opening"}
+    with pytest.raises(ValueError, match="needs the target"):
+        source_mesh("torus-through-opening", n_vertices=300)
+    with pytest.raises(MeshError, match="no through-hole"):
+        source_mesh("torus-through-opening", n_vertices=300, target=bunny)
+    # reconstruct resolves a named start against its target
+    res = reconstruct("torus", "teapot", "rbf", steps=1, n_samples=500, target_pool=2000, eval_samples=1000)
+    centre = 0.5 * (res.V.min(0).values + res.V.max(0).values)
+    assert res.V.shape[0] == initial_mesh("torus", n_vertices=2500)[0].shape[0] and float(centre[0]) < -0.2
 
 
 @pytest.mark.slow

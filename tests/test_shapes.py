@@ -533,3 +533,21 @@ def test_membrane_floor_says_why_it_cannot():
     for bad in ((np.zeros(3), np.zeros(3), 0.2), (np.zeros(3), z), (np.full(3, np.nan), z, 0.2), (np.zeros(3), z, "x")):
         with pytest.raises(ValueError, match="opening"):
             membrane_floor(V, F, bad, spacing=0.02)
+
+
+def test_torus_through_a_given_opening_equals_the_found_one_and_checks_it():
+    from meshmei.shapes import find_opening, torus_through_opening
+
+    Vt, Ft = target_mesh("teapot", dtype=torch.float64)
+    found = find_opening(Vt, Ft)
+    V0, F0 = torus_through_opening(Vt, Ft, n_vertices=400)
+    V1, F1 = torus_through_opening(Vt, Ft, n_vertices=400, opening=found)
+    assert torch.equal(V0, V1) and torch.equal(F0, F1)
+    # the axis either way round, or not of unit length, gives the same torus
+    centre, axis, clearance = found
+    V2, _ = torus_through_opening(Vt, Ft, n_vertices=400, opening=(centre, -3.0 * axis, clearance))
+    torch.testing.assert_close(V2, V0, rtol=0, atol=1e-6)
+    for bad in [(centre, np.zeros(3), clearance), (centre, axis, 0.0), (centre, axis, float("nan")),
+                (np.array([np.nan, 0, 0]), axis, clearance), (centre[:2], axis, clearance), (centre, axis)]:
+        with pytest.raises(ValueError, match="opening"):
+            torus_through_opening(Vt, Ft, n_vertices=400, opening=bad)
