@@ -422,10 +422,14 @@ def _check_area(V, F, role):
 
 
 # rbf with three levels (default_stages(n, levels=3)) in the benchmark (variant rbf-3levels) and the CLI's
-# --stages auto3: once the 625- and 2,500-vertex stages have moved the shape, the two fine stages need less
-# smoothing, a quarter of the default Laplacian weight (2.5, that is 40 at 10k vertices against 160).
-# Measured at 10k on three problems; 2.5 was the first value tried (docs/reconstruction.md, *Coarse-to-fine*).
-RBF_THREE_LEVEL_OVERRIDES = (None, None, {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
+# --stages auto3. The coarsest stage (625 vertices at 10k) draws 5,000 Chamfer samples a step instead of
+# 10,000: a step there costs about what a 10k step does, mostly sampling and searching, so half the samples
+# nearly doubles its steps, and eight samples per vertex are still plenty (at 10k it reached 5.6e-4 at 2 s
+# where it was at 1.1e-3, before large steps' 7.6e-4; docs/reconstruction.md, *Fifth round*). Once the 625-
+# and 2,500-vertex stages have moved the shape, the two fine stages need less smoothing, a quarter of the
+# default Laplacian weight (2.5, that is 40 at 10k vertices against 160). Measured at 10k on three problems;
+# 2.5 was the first value tried (*Coarse-to-fine*).
+RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000}, None, {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
 
 
 def default_stages(n_vertices: int, levels: int = 2) -> tuple:
@@ -454,27 +458,33 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
 THREE_LEVEL_MIN_VERTICES = 8_000
 
 
-def default_schedule(method: str, n_vertices: int, levels: int | None = None) -> tuple:
+def default_schedule(method: str, n_vertices: int, levels: int | None = None, *, n_samples: int = 10_000) -> tuple:
     """The coarse-to-fine schedule ``meshmei reconstruct --stages auto`` uses for ``method`` and a final
     count of ``n_vertices``. Returns ``(stages, stage_fractions, stage_overrides)``.
 
     ``levels`` 2 or 3 forces that many levels (``--stages auto2`` / ``auto3``); rbf with three levels
-    always gets the lighter fine stages. ``None`` (``--stages auto``) picks as follows.
+    always gets :data:`RBF_THREE_LEVEL_OVERRIDES`: half the run's Chamfer samples in the coarsest stage
+    (``n_samples // 2``; 5,000 with the default 10,000) and the lighter fine stages. ``None``
+    (``--stages auto``) picks as follows.
 
-    rbf at ``THREE_LEVEL_MIN_VERTICES`` (8,000) vertices or more: three levels with the lighter fine
-    stages (``default_stages(n, levels=3)`` and :data:`RBF_THREE_LEVEL_OVERRIDES`, the benchmark's
-    rbf-3levels), which ended below two levels at every budget on all three benchmark problems at 10k in
-    two runs (seed 0), and in 11 of 12 runs with seeds 1 and 2 at 10 and 30 s (the exception: the bunny at
-    30 s, 1.67e-6 against 1.37e-6). Otherwise two levels (``default_stages(n)``): three were measured at
-    10k only, and they hurt large steps through the teapot's handle.
+    rbf at ``THREE_LEVEL_MIN_VERTICES`` (8,000) vertices or more: three levels with those overrides
+    (``default_stages(n, levels=3)``, the benchmark's rbf-3levels), measured against two levels at 10k on
+    the three benchmark problems (docs/reconstruction.md, *Coarse-to-fine* and *Fifth round*). Otherwise
+    two levels (``default_stages(n)``): three were measured at 10k only, and they hurt large steps
+    through the teapot's handle.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
+        raise ValueError(f"n_samples must be an integer of at least 2, got {n_samples!r}")
     n = int(n_vertices)
     if levels is None:
         levels = 3 if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES else 2
     stages, fractions = default_stages(n, levels)
-    return stages, fractions, RBF_THREE_LEVEL_OVERRIDES if method == "rbf" and levels == 3 else None
+    if method != "rbf" or levels != 3:
+        return stages, fractions, None
+    first = dict(RBF_THREE_LEVEL_OVERRIDES[0], n_samples=int(n_samples) // 2)
+    return stages, fractions, (first,) + RBF_THREE_LEVEL_OVERRIDES[1:]
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):
@@ -853,9 +863,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--samples", type=int, default=10_000, help="Chamfer samples per step")
     p.add_argument("--stages", default="auto",
                    help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto2': n/4,n,n; "
-                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also a quarter of the "
-                        "Laplacian weight in the two fine stages, as the benchmark's rbf-3levels); 'auto' (default): "
-                        "auto3 for rbf from 8,000 vertices, else auto2 (default_schedule); 'none': one stage")
+                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also half the --samples in "
+                        "the first stage and a quarter of the Laplacian weight in the two fine stages, as the "
+                        "benchmark's rbf-3levels); 'auto' (default): auto3 for rbf from 8,000 vertices, else auto2 "
+                        "(default_schedule); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--eval-samples", type=int, default=100_000)
     p.add_argument("--seed", type=int, default=0)
@@ -874,7 +885,7 @@ def _run_cli(args) -> int:
     n = source[0].shape[0]
     if args.stages in ("auto", "auto2", "auto3"):
         levels = {"auto": None, "auto2": 2, "auto3": 3}[args.stages]
-        stages, fractions, overrides = default_schedule(args.method, n, levels)
+        stages, fractions, overrides = default_schedule(args.method, n, levels, n_samples=args.samples)
     elif args.stages and args.stages != "none":
         try:
             stages = tuple(int(x) for x in args.stages.split(","))

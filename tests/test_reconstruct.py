@@ -291,8 +291,10 @@ def test_cli_stage_schedules(tmp_path, capsys):
         stages, shares = default_stages(n, levels)
         assert tuple(settings["stages"]) == stages
         assert tuple(settings["stage_fractions"]) == pytest.approx(shares)
-        # three levels with rbf: the benchmark's rbf-3levels, lighter smoothing in the fine stages
-        assert settings["stage_overrides"] == (list(RBF_THREE_LEVEL_OVERRIDES) if levels == 3 else None)
+        # three levels with rbf: the benchmark's rbf-3levels (half the samples in the first stage, lighter
+        # smoothing in the fine stages), with the first stage's samples following --samples
+        want = [{"n_samples": 150}, *RBF_THREE_LEVEL_OVERRIDES[1:]] if levels == 3 else None
+        assert settings["stage_overrides"] == want
     out_dir = tmp_path / "ls3"
     rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 4,
                     "--samples", 300, "--eval-samples", 1000, "--stages", "auto3", "--method", "largesteps",
@@ -322,10 +324,17 @@ def test_default_schedule_gives_rbf_three_levels_from_8k_vertices():
     assert default_schedule("rbf", 2500, 3) == (*default_stages(2500, 3), RBF_THREE_LEVEL_OVERRIDES)
     assert default_schedule("rbf", 10_000, 2) == (*default_stages(10_000, 2), None)
     assert default_schedule("largesteps", 2500, 3) == (*default_stages(2500, 3), None)
+    # the first stage draws half the run's samples: 5,000 of the default 10,000, or half of what is asked
+    assert RBF_THREE_LEVEL_OVERRIDES[0] == {"n_samples": ReconstructionSettings().n_samples // 2}
+    assert default_schedule("rbf", 10_000, n_samples=3001)[2] == ({"n_samples": 1500}, *RBF_THREE_LEVEL_OVERRIDES[1:])
+    assert default_schedule("largesteps", 10_000, 3, n_samples=3000)[2] is None
     with pytest.raises(ValueError, match="method"):
         default_schedule("bogus", 10_000)
     with pytest.raises(ValueError, match="levels"):
         default_schedule("rbf", 10_000, 4)
+    for bad in (1, 2.5, True, "10000"):
+        with pytest.raises(ValueError, match="n_samples"):
+            default_schedule("rbf", 10_000, n_samples=bad)
 
 
 def test_cli_auto_gives_rbf_three_levels_on_a_10k_torus(tmp_path, capsys):
@@ -336,7 +345,7 @@ def test_cli_auto_gives_rbf_three_levels_on_a_10k_torus(tmp_path, capsys):
     settings = json.loads((out_dir / "history.json").read_text())["settings"]
     n = initial_mesh("torus", n_vertices=10_000)[0].shape[0]
     assert tuple(settings["stages"]) == default_stages(n, 3)[0]
-    assert settings["stage_overrides"] == list(RBF_THREE_LEVEL_OVERRIDES)
+    assert settings["stage_overrides"] == [{"n_samples": 250}, *RBF_THREE_LEVEL_OVERRIDES[1:]]  # half of --samples
 
 
 def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
@@ -453,3 +462,26 @@ def test_laplacian_loss_falls_like_n_squared_which_the_weight_scaling_undoes():
     assert raw > 50 and 1 / 4 < scaled < 4
     edge = float(edge_loss(Va, Fa)) / float(edge_loss(Vb, Fb)) * (na / nb)
     assert raw > 50 and edge == pytest.approx(1.0, abs=0.05)
+
+
+def test_stage_overrides_set_each_stages_sample_count(monkeypatch):
+    import importlib
+
+    R = importlib.import_module("meshmei.reconstruct")  # the module (the package exports a function by that name)
+
+    drawn = []
+    original = R.sample_points
+
+    def spy(V, F, n, **kwargs):
+        drawn.append(n)
+        return original(V, F, n, **kwargs)
+
+    monkeypatch.setattr(R, "sample_points", spy)
+    src = initial_mesh("sphere", n_vertices=300)
+    res = reconstruct(src, "bunny", "rbf", steps=6, stages=(100, 300), stage_overrides=({"n_samples": 300}, None),
+                      n_samples=700, target_pool=2000, eval_samples=1000)
+    assert drawn[0] == 2000  # the target pool, drawn once
+    assert drawn[1:] == [300 if h["stage"] == 0 else 700 for h in res.history]
+    assert {h["stage"] for h in res.history} == {0, 1}
+    with pytest.raises(ValueError, match="n_samples must be positive"):
+        reconstruct(src, "bunny", "rbf", steps=2, stages=(100, 300), stage_overrides=({"n_samples": 0}, None))

@@ -44,7 +44,8 @@ BUDGETS = (10.0, 30.0, 100.0)
 # kernel set (ReconstructionSettings.coarse_ratio). The "-3levels" variants use default_stages(n, levels=3):
 # at 10k vertices, stages of 625, 2,500 and 10,000 vertices instead of 2,500 and 10,000; rbf-3levels also
 # sets the Laplacian weight of its two 10k stages to 2.5 (40 after scaling, a quarter of the default 160):
-# once the 625- and 2,500-vertex stages have moved the shape, the fine stages need less smoothing.
+# once the 625- and 2,500-vertex stages have moved the shape, the fine stages need less smoothing; and it
+# draws half the Chamfer samples in the 625-vertex stage (RBF_THREE_LEVEL_OVERRIDES).
 VARIANTS = {
     "rbf": ("rbf", {}, None),
     "vertex": ("vertex", {}, None),
@@ -206,7 +207,8 @@ def render(results, floors, quick, budgets=BUDGETS, membrane=None):
         "only) start one level coarser: stages n/16, n/4, n, n with shares 0.15/0.25/0.35/0.25 "
         "(`default_stages(n, levels=3)`); rbf-3levels has the Laplacian weight of 2,500 vertices (10) in the first "
         "two stages (`reg_ref_vertices`) and `w_laplacian=2.5` (40 after scaling, against the default 160) in "
-        "the two 10k stages. teapot starts from the torus placed with its hole through the handle, as "
+        "the two 10k stages, and draws 5,000 Chamfer samples a step instead of 10,000 in its 625-vertex stage "
+        "(`RBF_THREE_LEVEL_OVERRIDES`). teapot starts from the torus placed with its hole through the handle, as "
         "`meshmei reconstruct --init torus` places it (`meshmei.shapes.torus_through_opening`: the through-hole "
         "found by `find_opening`, the torus's axis along it, its hole twice the opening's clearance); "
         "teapot-centred from the centred torus (`--init torus-centred`), whose hole is where the teapot has none "
