@@ -361,30 +361,27 @@ def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32, target=Non
 
 def _resolve_source(spec, n_vertices, dtype, target):
     """``(V, F, placement)``: placement says how a named torus was placed (None for everything else)."""
-    from .shapes import initial_mesh, torus_through_opening
+    from .shapes import find_opening, initial_mesh, torus_through_opening
 
     placement = None
     if isinstance(spec, str) and spec in SOURCE_NAMES:
-        kind = spec
-        if spec == "torus-through-opening" or (spec == "torus" and target is not None):
-            if target is None:
-                raise ValueError("source 'torus-through-opening' needs the target whose opening it threads")
-            from .shapes import find_opening
-
+        if spec == "torus-through-opening" and target is None:
+            raise ValueError("source 'torus-through-opening' needs the target whose opening it threads")
+        opening = None
+        if spec in ("torus", "torus-through-opening") and target is not None:
             opening = find_opening(*target)
             if opening is None and spec == "torus-through-opening":
                 raise MeshError("the target has no through-hole that find_opening can see; start from "
                                 "'torus-centred'")
-            if opening is None:
-                placement = "centred (the target has no through-hole that find_opening sees)"
-            else:
-                V, F = torus_through_opening(*target, n_vertices=n_vertices, dtype=dtype, opening=opening)
-                placement = "through the target's opening (meshmei.shapes.torus_through_opening)"
-                kind = None
-        elif spec.startswith("torus"):
-            placement = "centred"
-        if kind is not None:
-            V, F = initial_mesh("torus" if kind.startswith("torus") else kind, n_vertices=n_vertices, dtype=dtype)
+        if opening is not None:
+            V, F = torus_through_opening(*target, n_vertices=n_vertices, dtype=dtype, opening=opening)
+            placement = "through the target's opening (meshmei.shapes.torus_through_opening)"
+        else:
+            kind = "torus" if spec.startswith("torus") else spec
+            V, F = initial_mesh(kind, n_vertices=n_vertices, dtype=dtype)
+            if kind == "torus":
+                placement = "centred" + (" (the target has no through-hole that find_opening sees)"
+                                         if spec == "torus" and target is not None else "")
     elif isinstance(spec, (str, os.PathLike)):
         V, F = _load(spec, "source", dtype)
     else:
