@@ -34,6 +34,12 @@ def test_best_of_runs_takes_the_lowest_value_reached_by_each_time():
     # the short run is what makes 0.1 reachable at 30 s; the long run alone gets there at 100 s
     assert time_to_reach(best_of_runs(entry, (10.0, 30.0, 100.0)), 0.1) == 30.0
     assert time_to_reach(on_checkpoints(entry["curve"]), 0.1) == 100.0
+    # by default every run the entry has counts, also one outside the table's budgets: a 50 s run that
+    # ended at 0.04 makes 0.04 reachable at 50 s
+    assert best_of_runs(entry) == best_of_runs(entry, (10.0, 30.0, 100.0))
+    entry["budgets"]["50.0"] = {"chamfer_l2": 0.04}
+    assert best_of_runs(entry) == [(0.0, 1.0), (10.0, 0.5), (30.0, 0.1), (50.0, 0.04), (100.0, 0.04)]
+    assert best_of_runs(entry, (10.0, 30.0, 100.0))[-2:] == [(50.0, 0.1), (100.0, 0.05)]
 
 
 def test_teapot_pieces_are_named_by_their_boxes():
@@ -96,3 +102,10 @@ def test_render_shows_areas_and_checks_blocking_results_against_the_membrane_flo
     assert "at least 2.78 (teapot-centred, 2500, largesteps)" in text
     assert "5.00e-06 at the teapot's own area, 2.50e-06 at twice it" in text
     assert "What blocking" not in render(results, floors, False, (10.0, 30.0, 100.0))
+    assert "count in the best of the runs too" not in text
+    # a run outside the table's budgets is named where it is counted, and stays out of the table
+    results["teapot|2500|rbf"]["budgets"]["50.0"] = dict(results["teapot|2500|rbf"]["budgets"]["30.0"])
+    text = render(results, floors, False, (10.0, 30.0, 100.0), membrane)
+    assert "Runs of 50 s count in the best of the runs too, for the configurations that have them (teapot 2500 rbf)" \
+        in text
+    assert "@50 s" not in text
