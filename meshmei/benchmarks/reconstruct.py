@@ -9,7 +9,8 @@ the section "reconstruction" of ``docs/benchmarks.md``, ``docs/reconstruction_<p
 numbers in ``docs/reconstruction_benchmark.json``. ``--quick`` runs a few-second smoke version into a
 temporary folder. Each (problem, resolution, method) is run separately at each time budget (10, 30, 100 s):
 the schedule (coarse-to-fine stages, learning-rate decay) follows the budget, as a user would set it; the
-100 s run is also evaluated at intermediate times for the curves.
+100 s run is also evaluated at intermediate times for the curves. ``--extra-budgets 50,70`` adds runs
+whose ends count only in the best-of-runs reading of the levels.
 """
 
 from __future__ import annotations
