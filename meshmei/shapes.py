@@ -639,6 +639,23 @@ def _rotation_between(a, b):
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
+def _opening_parts(opening):
+    """``(centre, unit axis, clearance)`` from an opening as :func:`find_opening` returns it; ``ValueError``
+    for anything else, or for a centre or axis that is not finite, or an axis of length 0."""
+    try:
+        centre, axis, clearance = opening
+        centre = np.asarray(centre, dtype=np.float64).reshape(3)
+        axis = np.asarray(axis, dtype=np.float64).reshape(3)
+        clearance = float(clearance)
+    except (TypeError, ValueError):
+        raise ValueError(f"opening must be (centre, axis, clearance) as find_opening returns, "
+                         f"got {opening!r}") from None
+    norm = float(np.linalg.norm(axis))
+    if not (np.isfinite(centre).all() and np.isfinite(axis).all() and norm > 0):
+        raise ValueError(f"opening needs a finite centre and a finite non-zero axis, got {centre}, {axis}")
+    return centre, axis / norm, clearance
+
+
 def torus_through_opening(V, F, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float32, opening=None):
     """The starting torus of :func:`initial_mesh` placed with its hole through the most open through-hole of
     ``(V, F)`` (:func:`find_opening`, or ``opening`` as it returns, when already found): axis along the
@@ -656,18 +673,9 @@ def torus_through_opening(V, F, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=t
     found = find_opening(V, F) if opening is None else opening
     if found is None:
         raise MeshError("the target has no through-hole that find_opening can see; start from a centred torus")
-    try:
-        centre, axis, clearance = (np.asarray(found[0], dtype=np.float64), np.asarray(found[1], dtype=np.float64),
-                                   float(found[2]))
-    except (TypeError, ValueError, IndexError):
-        raise ValueError(f"opening must be (centre, axis, clearance) as find_opening returns, "
-                         f"got {opening!r}") from None
-    norm = float(np.linalg.norm(axis)) if axis.shape == (3,) else 0.0
-    if centre.shape != (3,) or not np.isfinite(centre).all() or not (np.isfinite(norm) and norm > 0) \
-            or not (math.isfinite(clearance) and clearance > 0):
-        raise ValueError(f"opening needs a finite centre, a finite non-zero axis and a positive clearance, "
-                         f"got {found!r}")
-    axis = axis / norm
+    centre, axis, clearance = _opening_parts(found)
+    if not (math.isfinite(clearance) and clearance > 0):
+        raise ValueError(f"opening needs a positive clearance, got {clearance!r}")
     if axis[int(np.argmax(np.abs(axis)))] < 0:
         axis = -axis  # the torus is the same either way; this keeps the turn below away from 180 degrees
     Vs, Fs = initial_mesh("torus", n_vertices=n_vertices, dtype=torch.float64)
@@ -777,18 +785,7 @@ def membrane_floor(V, F, opening=None, *, spacing=None):
         opening = find_opening(Vn, Fn)
         if opening is None:
             raise MeshError("the target has no through-hole that find_opening can see")
-    try:
-        centre, axis, clearance = opening
-        centre = np.asarray(centre, dtype=np.float64).reshape(3)
-        axis = np.asarray(axis, dtype=np.float64).reshape(3)
-        clearance = float(clearance)
-    except (TypeError, ValueError):
-        raise ValueError(f"opening must be (centre, axis, clearance) as find_opening returns, "
-                         f"got {opening!r}") from None
-    norm = float(np.linalg.norm(axis))
-    if not (np.isfinite(centre).all() and np.isfinite(axis).all() and norm > 0):
-        raise ValueError(f"opening needs a finite centre and a finite non-zero axis, got {centre}, {axis}")
-    axis = axis / norm
+    centre, axis, clearance = _opening_parts(opening)
     diag = float(np.linalg.norm(Vn.max(0) - Vn.min(0)))
     h = diag / 400 if spacing is None else spacing
     if isinstance(h, bool) or not (isinstance(h, (int, float, np.floating)) and math.isfinite(h) and h > 0):
