@@ -31,6 +31,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as TF
 
+from .errors import EncoderError
+
 __all__ = [
     "EncoderError",
     "Preprocess",
@@ -48,10 +50,6 @@ __all__ = [
 
 DEFAULT_NORM = 25.0
 DEMO_MODEL_PATH = Path(__file__).resolve().parent / "data" / "demo_model.pt"
-
-
-class EncoderError(ValueError):
-    """Bad input to an encoder (image shape, neuron index, parameters); the message names what arrived."""
 
 
 def _check_images(x, name="images"):

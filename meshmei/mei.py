@@ -21,6 +21,7 @@ import torch
 from ._files import atomic_directory
 from .deform import RBFDeformer
 from .encoders import Encoder, EncoderError, GaborComplexCell, GaborSimpleCell
+from .errors import MEIError
 from .pixel_mei import eval_mode
 from .operators import doublearea
 from .regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
@@ -46,10 +47,6 @@ __all__ = [
 ]
 
 RUN_FORMAT = 1
-
-
-class MEIError(ValueError):
-    """Bad input to the 3D-MEI optimisation or a bad run directory; the message names what arrived."""
 
 
 # name -> loss(V, V0, F); the paper's four first, then the two variants beyond it

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ._files import atomic_directory
+from .errors import TuningError
 from .render import axis_angle_to_matrix, render
 
 __all__ = [
@@ -39,10 +40,6 @@ __all__ = [
 ]
 
 SWEEP_FORMAT = "meshmei-sweep-1"
-
-
-class TuningError(ValueError):
-    """Bad input to a sweep (ranges, neurons, run or sweep directories); the message says what arrived."""
 
 
 @dataclass(frozen=True)

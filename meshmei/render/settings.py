@@ -5,15 +5,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..errors import RenderError
+
 __all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS"]
 
 # Soft coverage is evaluated only within this many sigmas of the silhouette: beyond it the logistic
 # differs from 0 or 1 by less than 1e-3 (sigmoid(-7) = 9.1e-4), the size of the jump we accept there.
 SOFT_MARGIN_SIGMAS = 7.0
-
-
-class RenderError(ValueError):
-    """Bad input to the renderer (settings, camera, pose, light); the message names the value and what arrived."""
 
 
 def _finite(name, value):
