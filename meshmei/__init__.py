@@ -30,7 +30,7 @@ from .deform import RBFDeformer
 from .metrics import chamfer_distance, sample_points, surface_metrics
 from .reconstruct import reconstruct
 from .encoders import GaborComplexCell, GaborSimpleCell, CoreReadoutModel, load_demo_model
-from .pixel_mei import pixel_mei
+from .mei.pixel import pixel_mei
 from .mei import MEISettings, optimize_mei, load_run, save_run
 from .tuning import light_sweep, pose_sweep
 

@@ -12,9 +12,9 @@ __all__ = ["main"]
 COMMANDS = {
     "demo": "meshmei.story",
     "regularizers": "meshmei.demo",
-    "reconstruct": "meshmei.reconstruct",
+    "reconstruct": "meshmei.reconstruct.core",
     "tune": "meshmei.tuning",
-    "mei": "meshmei.mei",
+    "mei": "meshmei.mei.core",
 }
 
 

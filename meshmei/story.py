@@ -54,7 +54,7 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     """
     from .encoders import load_demo_model
     from .mei import MEISettings, optimize_mei, save_run
-    from .pixel_mei import pixel_mei
+    from .mei.pixel import pixel_mei
     from .plots import summary_sheet
     from .tuning import example_renders, light_sweep, pose_sweep, save_sweep
 

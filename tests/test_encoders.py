@@ -17,7 +17,7 @@ from meshmei.encoders import (
     Preprocess,
     gabor_filters,
 )
-from meshmei.pixel_mei import gaussian_blur, pixel_mei
+from meshmei.mei.pixel import gaussian_blur, pixel_mei
 
 CELL_PARAMS = [
     {},

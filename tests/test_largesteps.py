@@ -9,7 +9,7 @@ import scipy.sparse.linalg
 import torch
 
 from meshmei.errors import MeshError
-from meshmei.largesteps import AdamUniform, DifferentialSolver, system_matrix
+from meshmei.deform.largesteps import AdamUniform, DifferentialSolver, system_matrix
 
 from conftest import icosphere
 

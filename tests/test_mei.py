@@ -19,7 +19,7 @@ from meshmei.mei import (
     save_run,
     triangle_quality,
 )
-from meshmei.pixel_mei import pixel_mei
+from meshmei.mei.pixel import pixel_mei
 
 TINY = dict(image_size=32, n_vertices=80, steps=4, seeds=(0,))
 
@@ -122,7 +122,7 @@ def test_save_and_load_run_exactly(tmp_path, tiny_run):
 
 
 def test_interrupted_or_corrupt_run_is_rejected(tmp_path, tiny_run, monkeypatch):
-    import meshmei.mei as mei
+    import meshmei.mei.core as mei
 
     def boom(*a, **k):
         raise KeyboardInterrupt

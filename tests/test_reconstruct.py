@@ -408,7 +408,7 @@ def test_torus_to_teapot_with_default_stages():
     assert res.final.fscore > 0.9
 
 
-@pytest.mark.parametrize("module", ["meshmei.deform", "meshmei.metrics", "meshmei.largesteps", "meshmei.reconstruct"])
+@pytest.mark.parametrize("module", ["meshmei.deform.rbf", "meshmei.metrics", "meshmei.deform.largesteps", "meshmei.reconstruct.core"])
 def test_docstring_examples_run(module):
     import doctest
     import importlib
@@ -467,7 +467,7 @@ def test_laplacian_loss_falls_like_n_squared_which_the_weight_scaling_undoes():
 def test_stage_overrides_set_each_stages_sample_count(monkeypatch):
     import importlib
 
-    R = importlib.import_module("meshmei.reconstruct")  # the module (the package exports a function by that name)
+    R = importlib.import_module("meshmei.reconstruct.core")  # the module that runs the loop
 
     drawn = []
     original = R.sample_points

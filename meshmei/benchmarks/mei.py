@@ -16,7 +16,7 @@ import torch
 from meshmei.benchmarks._report import docs_dir, machine_line, markdown_table, write_section
 from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
 from meshmei.mei import MEISettings, grid_search, mesh_quality, optimize_mei, random_mesh_responses
-from meshmei.pixel_mei import pixel_mei
+from meshmei.mei.pixel import pixel_mei
 
 
 def _first(xs, ts, level):

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import MeshError
+from .._checks import check_positive
+from ..errors import MeshError
 
 __all__ = ["initial_mesh", "target_mesh", "find_opening", "torus_through_opening", "membrane_floor", "MembraneFloor",
            "INITIAL_KINDS", "TARGET_NAMES", "bunny_path"]
@@ -31,7 +32,7 @@ DEFAULT_N_VERTICES = 2500
 MIN_VERTICES = 32
 MAX_VERTICES = 5_000_000
 
-_DATA = Path(__file__).resolve().parent / "data"
+_DATA = Path(__file__).resolve().parent.parent / "data"
 TEAPOT_FILE = _DATA / "utah_teapot_bezier.json"
 # Part of each of the 32 teapot patches (from the data file's notes): 0 body (patches 0-11 rim and
 # body, 28-31 bottom), 1 handle (12-15), 2 spout (16-19), 3 lid (20-27).
@@ -158,15 +159,6 @@ def _remesh(kind, h, iterations):
     return V, F
 
 
-def _check_positive(name, value, *, integer=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
-    if not (math.isfinite(float(value)) and value > 0):
-        raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    if integer and int(value) != value:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-
-
 def initial_mesh(
     kind,
     *,
@@ -231,14 +223,14 @@ def initial_mesh(
     """
     if kind not in INITIAL_KINDS:
         raise ValueError(f"kind must be one of {INITIAL_KINDS}, got {kind!r}")
-    _check_positive("size", size)
-    _check_positive("iterations", iterations, integer=True)
+    check_positive("size", size)
+    check_positive("iterations", iterations, integer=True)
     if target_edge_length is not None and n_vertices is not None:
         raise ValueError(
             f"give target_edge_length or n_vertices, not both (got {target_edge_length!r} and {n_vertices!r})"
         )
     if target_edge_length is not None:
-        _check_positive("target_edge_length", target_edge_length)
+        check_positive("target_edge_length", target_edge_length)
         h = float(target_edge_length) / float(size)
         implied = _count_for_edge(kind, h)
         if not MIN_VERTICES <= implied <= MAX_VERTICES:
@@ -249,7 +241,7 @@ def initial_mesh(
         V, F = _remesh(kind, h, int(iterations))
     else:
         n = DEFAULT_N_VERTICES if n_vertices is None else n_vertices
-        _check_positive("n_vertices", n, integer=True)
+        check_positive("n_vertices", n, integer=True)
         if not MIN_VERTICES <= n <= MAX_VERTICES:
             raise ValueError(f"n_vertices must lie between {MIN_VERTICES} and {MAX_VERTICES}, got {n!r}")
         h = _edge_for_count(kind, n)
@@ -433,7 +425,7 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
     """
     if name not in TARGET_NAMES:
         raise ValueError(f"name must be one of {TARGET_NAMES}, got {name!r}")
-    _check_positive("resolution", resolution, integer=True)
+    check_positive("resolution", resolution, integer=True)
     if name == "bunny":
         V, F = _bunny()
         if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
@@ -511,7 +503,7 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24, directions: int = 64):
     """
     import igl
 
-    from .mesh import check_mesh
+    from ..mesh import check_mesh
 
     for name, value, least in (("grid", grid, 4), ("rays", rays, 8), ("directions", directions, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
@@ -776,7 +768,7 @@ def membrane_floor(V, F, opening=None, *, spacing=None):
     import igl
     import scipy.ndimage as ndi
 
-    from .mesh import check_mesh
+    from ..mesh import check_mesh
 
     V, F = check_mesh(torch.as_tensor(V), torch.as_tensor(F))
     Vn = np.ascontiguousarray(V.detach().cpu().double().numpy())

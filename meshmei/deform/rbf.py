@@ -20,8 +20,8 @@ import warnings
 import numpy as np
 import torch
 
-from .errors import MeshError
-from .metrics import _nn_spacing
+from ..errors import MeshError
+from ..metrics import _nn_spacing
 
 __all__ = ["RBFDeformer", "farthest_point_sampling", "rbf_dense"]
 

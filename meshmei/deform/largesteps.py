@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .errors import MeshError
+from ..errors import MeshError
 
 __all__ = ["system_matrix", "DifferentialSolver", "AdamUniform"]
 

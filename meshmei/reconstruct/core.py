@@ -26,11 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import MeshError
-from .mesh import check_mesh, load_mesh, save_mesh
-from .operators import doublearea
-from .metrics import PointIndex, SurfaceMetrics, mesh_health, sample_points, surface_metrics
-from .regularizers import arap_direction_loss, edge_loss, laplacian_loss
+from .._checks import check_positive
+from ..errors import MeshError
+from ..mesh import check_mesh, load_mesh, save_mesh
+from ..operators import doublearea
+from ..metrics import PointIndex, SurfaceMetrics, mesh_health, sample_points, surface_metrics
+from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss
 
 __all__ = [
     "reconstruct",
@@ -322,7 +323,7 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
     MeshError
         A file that holds no mesh, an empty mesh, NaN coordinates, or a mesh of zero area.
     """
-    from .shapes import TARGET_NAMES, target_mesh
+    from ..shapes import TARGET_NAMES, target_mesh
 
     if isinstance(spec, str) and spec in TARGET_NAMES:
         V, F = target_mesh(spec, dtype=dtype)
@@ -361,7 +362,7 @@ def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32, target=Non
 
 def _resolve_source(spec, n_vertices, dtype, target):
     """``(V, F, placement)``: placement says how a named torus was placed (None for everything else)."""
-    from .shapes import find_opening, initial_mesh, torus_through_opening
+    from ..shapes import find_opening, initial_mesh, torus_through_opening
 
     placement = None
     if isinstance(spec, str) and spec in SOURCE_NAMES:
@@ -499,10 +500,8 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
     """
     import pymeshlab
 
-    from .shapes import _check_positive
-
-    _check_positive("n_vertices", n_vertices, integer=True)
-    _check_positive("iterations", iterations, integer=True)
+    check_positive("n_vertices", n_vertices, integer=True)
+    check_positive("iterations", iterations, integer=True)
     V, F = check_mesh(V, F)
     Vn = V.detach().cpu().double().numpy()
     Fn = F.cpu().numpy().astype(np.int32)
@@ -535,7 +534,7 @@ class _Param:
             self.V0 = V0
             groups = [{"params": [self.D], "lr": s.lr}]
         elif method == "rbf":
-            from .deform import RBFDeformer
+            from ..deform import RBFDeformer
 
             self.rbf = RBFDeformer(V0, s.centers, sigma_factor=s.sigma_factor, r_cut=s.r_cut,
                                    learn_scales=s.lr_scale > 0)
@@ -551,12 +550,12 @@ class _Param:
                 self.info.update(n_coarse_kernels=k, n_coarse_pairs=self.coarse.n_pairs,
                                  coarse_sigma=float(self.coarse.sigma[0]))
         else:
-            from .largesteps import DifferentialSolver, system_matrix
+            from ..deform.largesteps import DifferentialSolver, system_matrix
 
             self.solver = DifferentialSolver(system_matrix(F, V0.shape[0], s.lam))
             self.u = self.solver.to_differential(V0).requires_grad_(True)
             groups = [{"params": [self.u], "lr": s.lr}]
-        from .largesteps import AdamUniform
+        from ..deform.largesteps import AdamUniform
 
         self.opt = AdamUniform(groups) if s.optimizer == "uniform" else torch.optim.Adam(groups)
         for g in self.opt.param_groups:

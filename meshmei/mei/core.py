@@ -18,15 +18,15 @@ from pathlib import Path
 
 import torch
 
-from ._files import atomic_directory
-from .deform import RBFDeformer
-from .encoders import Encoder, EncoderError, GaborComplexCell, GaborSimpleCell
-from .errors import MEIError
-from .pixel_mei import eval_mode
-from .operators import doublearea
-from .regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
-from .render import Camera, RenderSettings, axis_angle_to_matrix, render
-from .shapes import INITIAL_KINDS, initial_mesh
+from .._files import atomic_directory
+from ..deform import RBFDeformer
+from ..encoders import Encoder, EncoderError, GaborComplexCell, GaborSimpleCell
+from ..errors import MEIError
+from .pixel import eval_mode
+from ..operators import doublearea
+from ..regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
+from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
+from ..shapes import INITIAL_KINDS, initial_mesh
 
 __all__ = [
     "MEIError",
@@ -322,7 +322,7 @@ def make_encoder(kind: str, **params) -> Encoder:
     if kind == "gabor-complex":
         return GaborComplexCell(**params)
     if kind == "demo":
-        from .encoders import load_demo_model
+        from ..encoders import load_demo_model
 
         return load_demo_model()
     raise MEIError(f"unknown encoder {kind!r}; expected 'gabor-simple', 'gabor-complex' or 'demo'")
@@ -375,7 +375,7 @@ def _initial(init, settings: MEISettings, dtype):
         V0, F = init
     except (TypeError, ValueError):
         raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {type(init).__name__}") from None
-    from .mesh import check_mesh
+    from ..mesh import check_mesh
 
     V0, F = torch.as_tensor(V0), torch.as_tensor(F)
     check_mesh(V0, F)
@@ -720,7 +720,7 @@ def _figures(result: MEIResult, out: Path):
     import matplotlib.image
     from matplotlib.figure import Figure
 
-    from .render import camera_from_angles
+    from ..render import camera_from_angles
 
     matplotlib.image.imsave(out / "render.png", result.image[0, 0].detach().cpu().numpy(), cmap="gray", vmin=0, vmax=1)
     views = []
@@ -856,7 +856,7 @@ def _run_cli(args) -> int:
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:
-        from .pixel_mei import pixel_mei
+        from .pixel import pixel_mei
 
         pm = pixel_mei(encoder, args.neuron, image_size=args.image_size)
         line += f"; pixel MEI {pm.activation:.4f}"

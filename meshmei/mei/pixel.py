@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as TF
 
-from .encoders import Encoder, EncoderError
+from ..encoders import Encoder, EncoderError
 
 __all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "eval_mode"]
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as TF
 
-from .errors import EncoderError
+from ..errors import EncoderError
 
 __all__ = [
     "EncoderError",
@@ -49,7 +49,7 @@ __all__ = [
 ]
 
 DEFAULT_NORM = 25.0
-DEMO_MODEL_PATH = Path(__file__).resolve().parent / "data" / "demo_model.pt"
+DEMO_MODEL_PATH = Path(__file__).resolve().parent.parent / "data" / "demo_model.pt"
 
 
 def _check_images(x, name="images"):
