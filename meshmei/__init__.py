@@ -1,6 +1,6 @@
 """meshmei: 3D maximally exciting inputs with RBF mesh deformation, a differentiable rasterizer and regularizers."""
 
-from .errors import MeshError
+from .errors import EncoderError, MEIError, MeshError, ReconstructionError, RenderError, TuningError
 from .mesh import check_mesh, load_mesh, save_mesh
 from .operators import (
     adjacency_list,
@@ -27,17 +27,21 @@ from .shapes import bunny_path, initial_mesh, target_mesh
 from .topology import MeshTopology, mesh_topology
 from .render import Camera, Fragments, RenderSettings, camera_from_angles, rasterize, render
 from .deform import RBFDeformer
-from .metrics import chamfer_distance, sample_points, surface_metrics
-from .reconstruct import reconstruct
+from .metrics import SurfaceMetrics, chamfer_distance, sample_points, surface_metrics
+from .reconstruct import ReconstructionResult, ReconstructionSettings, reconstruct
 from .encoders import GaborComplexCell, GaborSimpleCell, CoreReadoutModel, load_demo_model
-from .mei.pixel import pixel_mei
-from .mei import MEISettings, optimize_mei, load_run, save_run
+from .mei import MEIResult, MEISettings, load_run, optimize_mei, pixel_mei, save_run
 from .tuning import light_sweep, pose_sweep
 
 __version__ = "0.1.0"
 
 __all__ = [
     "MeshError",
+    "RenderError",
+    "EncoderError",
+    "MEIError",
+    "ReconstructionError",
+    "TuningError",
     "check_mesh",
     "load_mesh",
     "save_mesh",
@@ -73,13 +77,17 @@ __all__ = [
     "chamfer_distance",
     "sample_points",
     "surface_metrics",
+    "SurfaceMetrics",
     "reconstruct",
+    "ReconstructionSettings",
+    "ReconstructionResult",
     "GaborSimpleCell",
     "GaborComplexCell",
     "CoreReadoutModel",
     "load_demo_model",
     "pixel_mei",
     "MEISettings",
+    "MEIResult",
     "optimize_mei",
     "load_run",
     "save_run",

@@ -1,34 +1,156 @@
-"""Command-line entry point: ``meshmei <command>``; each command lives with the module it drives."""
+"""Command-line entry point, ``meshmei <command>``: every command's parser, its defaults read from the
+settings dataclasses, and a thin runner that calls the library."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+from dataclasses import replace
+from pathlib import Path
 
-__all__ = ["main"]
+import torch
 
-# command name -> module exposing ``add_parser(subparsers)``; the parser's ``func(args)`` runs it
-COMMANDS = {
-    "demo": "meshmei.story",
-    "regularizers": "meshmei.demo",
-    "reconstruct": "meshmei.reconstruct.core",
-    "tune": "meshmei.tuning",
-    "mei": "meshmei.mei.core",
-}
+from .errors import MEIError
+from .mei import MEISettings, optimize_mei, pixel_mei, save_run
+from .mei.core import make_encoder  # MERGE: meshmei.encoders
+from .reconstruct import (
+    METHODS,
+    ReconstructionSettings,
+    reconstruct,
+    resolve_source,
+    save_reconstruction,
+    schedule_from_text,
+    target_surface,
+)
+from .shapes import INITIAL_KINDS
+from .shapes.core import DEFAULT_N_VERTICES  # MERGE: meshmei.shapes
+
+__all__ = ["main", "build_parser"]
+
+ENCODERS = ("gabor-simple", "gabor-complex", "demo")
+# commands whose parsers still live with their modules (MERGE: move here)
+MODULE_COMMANDS = {"demo": "meshmei.story", "regularizers": "meshmei.demo", "tune": "meshmei.tuning"}
+
+
+def _add_mei(sub) -> None:
+    d = MEISettings()
+    p = sub.add_parser("mei", help="optimise a 3D-MEI for one neuron and write mesh, renders and summary")
+    p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS)
+    p.add_argument("--neuron", type=int, default=0)
+    p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
+    p.add_argument("--out", required=True, help="run directory to write (must not exist unless --overwrite)")
+    p.add_argument("--steps", type=int, default=d.steps)
+    p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
+    p.add_argument("--image-size", type=int, default=d.image_size)
+    p.add_argument("--n-vertices", type=int, default=d.n_vertices)
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--weight", action="append", default=[], metavar="NAME=W",
+                   help="regularizer weight, e.g. --weight laplacian=1 (repeatable)")
+    p.add_argument("--optimize-light", action="store_true")
+    p.add_argument("--optimize-pose", action="store_true")
+    p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_run_mei)
+
+
+def _weights(items: list) -> dict:
+    weights = dict(MEISettings().weights)
+    for item in items:
+        name, _, w = item.partition("=")
+        try:
+            weights[name] = float(w)
+        except ValueError:
+            raise MEIError(f"--weight expects NAME=NUMBER, got {item!r}") from None
+    return weights
+
+
+def _run_mei(args) -> int:
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise MEIError(f"{out} exists; pass --overwrite to replace it")
+    encoder = make_encoder(args.encoder)
+    settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=args.image_size,
+                           n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
+                           optimize_light=args.optimize_light, optimize_pose=args.optimize_pose)
+    res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
+    frac = res.fraction_of_bound
+    line = f"3D-MEI neuron {res.neuron} ({args.encoder}, {args.init}): response {res.activation:.4f}"
+    if frac is not None:
+        line += f" = {frac:.3f} of the upper bound"
+    if args.pixel_mei:
+        pm = pixel_mei(encoder, args.neuron, image_size=args.image_size)
+        line += f"; pixel MEI {pm.activation:.4f}"
+        res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
+    save_run(res, out, overwrite=args.overwrite)
+    print(line)
+    print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png "
+          f"({res.wall_time:.1f} s, {1000 * res.seconds_per_step:.0f} ms per step)")
+    return 0
+
+
+def _add_reconstruct(sub) -> None:
+    d = ReconstructionSettings()
+    p = sub.add_parser(
+        "reconstruct",
+        help="deform a sphere/torus/mesh into a target mesh by Chamfer minimisation",
+        description="Deform a starting mesh into a target by Chamfer minimisation; writes mesh.obj, "
+                    "history.json, loss.png and metrics.png to --out.",
+    )
+    p.add_argument("--init", default="sphere",
+                   help="sphere, torus, sheet, torus-centred, torus-through-opening, or a mesh file (default "
+                        "sphere). 'torus' starts with its hole through the target's most open through-hole when "
+                        "it has one (a teapot's handle; meshmei.reconstruct.openings.torus_through_opening), else "
+                        "centred; 'torus-centred' is always centred; 'torus-through-opening' fails without an "
+                        "opening")
+    p.add_argument("--target", required=True, help="bunny, teapot, or a mesh file (normalised to unit diagonal)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--method", choices=METHODS, default=d.method)
+    p.add_argument("--n-vertices", type=int, default=DEFAULT_N_VERTICES, help="vertices of a generated --init mesh")
+    p.add_argument("--steps", type=int, default=d.steps)
+    p.add_argument("--time-budget", type=float, default=d.time_budget, help="seconds of optimisation")
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--samples", type=int, default=d.n_samples, help="Chamfer samples per step")
+    p.add_argument("--stages", default="auto",
+                   help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto2': n/4,n,n; "
+                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also half the --samples in "
+                        "the first stage and a quarter of the Laplacian weight in the two fine stages, as the "
+                        "benchmark's rbf-3levels); 'auto' (default): auto3 for rbf from 8,000 vertices, else auto2 "
+                        "(default_schedule); 'none': one stage")
+    p.add_argument("--eval-every", type=int, default=d.eval_every)
+    p.add_argument("--eval-samples", type=int, default=d.eval_samples)
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_run_reconstruct)
+
+
+def _run_reconstruct(args) -> int:
+    # Resolve and check both meshes first: bad input fails before any optimisation starts.
+    target = target_surface(args.target)
+    V, F, placement = resolve_source(args.init, args.n_vertices, torch.float32, target)
+    if placement is not None:
+        print(f"{args.init}: {V.shape[0]} vertices, placed {placement}")
+    stages, fractions, overrides = schedule_from_text(args.stages, args.method, V.shape[0], n_samples=args.samples)
+    res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
+                      n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
+                      eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
+                      progress=not args.no_progress)
+    out = save_reconstruction(res, args.out, init=str(args.init), target=str(args.target))
+    f = res.final
+    print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
+          f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
+          f"target's; wrote {out}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshmei", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, module in COMMANDS.items():
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name != module:
-                raise
-            continue  # command not built yet
-        mod.add_parser(sub)
+    for name, module in MODULE_COMMANDS.items():
+        importlib.import_module(module).add_parser(sub)
+    _add_reconstruct(sub)
+    _add_mei(sub)
     return parser
 
 

@@ -356,7 +356,8 @@ def add_parser(sub) -> None:
 def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, azimuth=None, roll=None,
                distance=None, overwrite=False, log=print) -> tuple[Sweep, Path]:
     """Load a run, sweep its pose or light, and save arrays and plots; the CLI's body."""
-    from .mei import MEIError, load_run
+    from .errors import MEIError
+    from .mei import load_run
 
     try:
         run = load_run(mei_dir, rebuild_encoder=True)

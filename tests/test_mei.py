@@ -9,17 +9,9 @@ import pytest
 import torch
 
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
-from meshmei.mei import (
-    MEIError,
-    MEISettings,
-    grid_search,
-    load_run,
-    mesh_quality,
-    optimize_mei,
-    save_run,
-    triangle_quality,
-)
-from meshmei.mei.pixel import pixel_mei
+from meshmei.errors import MEIError
+from meshmei.mei import MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.mei.core import mesh_quality, triangle_quality  # MERGE: meshmei.quality
 
 TINY = dict(image_size=32, n_vertices=80, steps=4, seeds=(0,))
 
@@ -122,12 +114,12 @@ def test_save_and_load_run_exactly(tmp_path, tiny_run):
 
 
 def test_interrupted_or_corrupt_run_is_rejected(tmp_path, tiny_run, monkeypatch):
-    import meshmei.mei.core as mei
+    import meshmei.mei.runs as runs
 
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mei, "_figures", boom)
+    monkeypatch.setattr(runs, "mei_figures", boom)
     with pytest.raises(KeyboardInterrupt):
         save_run(tiny_run, tmp_path / "run")
     assert not (tmp_path / "run").exists() and list(tmp_path.iterdir()) == []
@@ -225,7 +217,7 @@ def test_demo_model_ships_small_with_its_correlations():
 
 
 def make_encoder_demo_kind(model):
-    from meshmei.mei import encoder_spec
+    from meshmei.mei.core import encoder_spec  # MERGE: meshmei.encoders
 
     return encoder_spec(model)["kind"]
 

@@ -408,7 +408,7 @@ def test_torus_to_teapot_with_default_stages():
     assert res.final.fscore > 0.9
 
 
-@pytest.mark.parametrize("module", ["meshmei.deform.rbf", "meshmei.metrics", "meshmei.deform.largesteps", "meshmei.reconstruct.core"])
+@pytest.mark.parametrize("module", ["meshmei.deform.rbf", "meshmei.metrics", "meshmei.deform.largesteps", "meshmei.reconstruct.fit"])
 def test_docstring_examples_run(module):
     import doctest
     import importlib
@@ -467,7 +467,7 @@ def test_laplacian_loss_falls_like_n_squared_which_the_weight_scaling_undoes():
 def test_stage_overrides_set_each_stages_sample_count(monkeypatch):
     import importlib
 
-    R = importlib.import_module("meshmei.reconstruct.core")  # the module that runs the loop
+    R = importlib.import_module("meshmei.reconstruct.fit")  # the module that runs the loop
 
     drawn = []
     original = R.sample_points
@@ -485,3 +485,15 @@ def test_stage_overrides_set_each_stages_sample_count(monkeypatch):
     assert {h["stage"] for h in res.history} == {0, 1}
     with pytest.raises(ValueError, match="n_samples must be positive"):
         reconstruct(src, "bunny", "rbf", steps=2, stages=(100, 300), stage_overrides=({"n_samples": 0}, None))
+
+
+@pytest.mark.parametrize("method", ["largesteps", "vertex"])
+def test_a_method_given_in_settings_is_honoured(sphere, method):
+    from meshmei.reconstruct import ReconstructionSettings
+
+    small = dict(steps=2, n_samples=300, target_pool=1000, eval_samples=500)
+    res = reconstruct(sphere, "bunny", settings=ReconstructionSettings(method=method, **small))
+    assert res.settings.method == method and res.info["stages"][0]["method"] == method
+    # an explicit method still replaces the settings' one
+    res = reconstruct(sphere, "bunny", "rbf", settings=ReconstructionSettings(method=method, **small))
+    assert res.settings.method == "rbf"

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from meshmei.cli import main
-from meshmei.mei import MEISettings, make_encoder, optimize_mei, save_run
+from meshmei.mei import MEISettings, optimize_mei, save_run
+from meshmei.mei.core import make_encoder  # MERGE: meshmei.encoders
 from meshmei.render import RenderSettings
 from meshmei.shapes import initial_mesh
 from meshmei.tuning import (

@@ -1,8 +1,25 @@
-"""Parameterisations of a mesh's vertices: Gaussian RBF offsets, and large steps."""
+"""Parameterisations of a mesh's vertices: Gaussian RBF offsets and scales, raw vertex offsets, large steps."""
 
-from .rbf import *  # noqa: F401,F403
-from .rbf import __all__ as _rbf_all
-from .largesteps import *  # noqa: F401,F403
-from .largesteps import __all__ as _ls_all
+from .largesteps import AdamUniform, DifferentialSolver, system_matrix
+from .params import (
+    PARAMETERISATIONS,
+    LargeStepsParameterisation,
+    Parameterisation,
+    RBFParameterisation,
+    VertexParameterisation,
+)
+from .rbf import RBFDeformer, farthest_point_sampling, rbf_dense
 
-__all__ = list(_rbf_all) + list(_ls_all)
+__all__ = [
+    "RBFDeformer",
+    "farthest_point_sampling",
+    "rbf_dense",
+    "system_matrix",
+    "DifferentialSolver",
+    "AdamUniform",
+    "Parameterisation",
+    "RBFParameterisation",
+    "VertexParameterisation",
+    "LargeStepsParameterisation",
+    "PARAMETERISATIONS",
+]

@@ -1,6 +1,22 @@
-from .core import *  # noqa: F401,F403
-from .core import __all__
-from .pixel import *  # noqa: F401,F403
-from .pixel import __all__ as _pixel_all
+"""3D maximally exciting inputs: settings, the optimisation, baselines, run directories, and the pixel MEI."""
 
-__all__ = list(__all__) + list(_pixel_all)
+from .baselines import grid_search, random_deformations, random_mesh_responses
+from .optimize import optimize_mei
+from .pixel import PixelMEIResult, gaussian_blur, pixel_mei
+from .runs import RUN_FORMAT, load_run, save_run
+from .settings import MEIResult, MEISettings
+
+__all__ = [
+    "MEISettings",
+    "MEIResult",
+    "optimize_mei",
+    "grid_search",
+    "random_deformations",
+    "random_mesh_responses",
+    "save_run",
+    "load_run",
+    "RUN_FORMAT",
+    "pixel_mei",
+    "PixelMEIResult",
+    "gaussian_blur",
+]

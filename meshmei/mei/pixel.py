@@ -17,8 +17,9 @@ import torch
 import torch.nn.functional as TF
 
 from ..encoders import Encoder, EncoderError
+from ..optim import Budget, Progress, Schedule, Trace, minimize
 
-__all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "eval_mode"]
+__all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "eval_mode", "frozen_encoder", "NormalizedAscent"]
 
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -52,6 +53,21 @@ def eval_mode(module: torch.nn.Module):
         yield module
     finally:
         module.train(was)
+
+
+@contextlib.contextmanager
+def frozen_encoder(encoder: torch.nn.Module):
+    """Eval mode and no parameter gradients for the block; the encoder's mode and flags are restored after."""
+    params = list(encoder.parameters())
+    flags = [p.requires_grad for p in params]
+    with eval_mode(encoder):
+        for p in params:
+            p.requires_grad_(False)
+        try:
+            yield encoder
+        finally:
+            for p, fl in zip(params, flags):
+                p.requires_grad_(fl)
 
 
 @dataclass(frozen=True)
@@ -95,6 +111,44 @@ def _check_size(image_size):
     return H, W
 
 
+class NormalizedAscent(torch.optim.Optimizer):
+    """The pixel MEI's step rule on images of fixed L2 norm, as a torch optimiser of the loss ``-f``.
+
+    Each step: ``g = blur(-grad, blur_sigma * factor)``, ``z <- z + (lr + min_step) * norm * g / |g|``, then
+    ``z <- norm * z / |z|``. ``factor`` is the schedule's factor, which :func:`meshmei.optim.minimize`
+    stores in the group beside the scheduled ``lr``; ``min_step`` keeps the last steps from vanishing.
+    """
+
+    def __init__(self, params, *, lr: float, blur_sigma: float, norm: float, min_step: float = 1e-3):
+        super().__init__(params, dict(lr=lr, blur_sigma=blur_sigma, norm=norm, min_step=min_step, factor=1.0))
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            norm = group["norm"]
+            for z in group["params"]:
+                if z.grad is None:
+                    continue
+                grad = gaussian_blur(-z.grad, group["blur_sigma"] * group["factor"])
+                gn = torch.linalg.vector_norm(grad)
+                if float(gn) > 0:
+                    z.copy_(z + (group["lr"] + group["min_step"]) * norm * grad / gn)
+                z.copy_(norm * z / torch.linalg.vector_norm(z).clamp_min(torch.finfo(z.dtype).tiny))
+
+
+def _check_args(encoder, neuron, image_size, steps, seeds):
+    if not isinstance(encoder, Encoder):
+        raise EncoderError(f"encoder must be a meshmei Encoder, got {type(encoder).__name__}")
+    encoder.neuron_index(neuron)
+    H, W = _check_size(image_size)
+    if isinstance(steps, bool) or int(steps) != steps or steps < 1:
+        raise EncoderError(f"steps must be a positive integer, got {steps!r}")
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise EncoderError("seeds is empty; give at least one seed")
+    return H, W, int(steps), seeds
+
+
 def pixel_mei(encoder: Encoder, neuron: int, *, image_size=64, steps: int = 200, step_size: float = 0.2,
               blur_sigma: float = 2.0, seeds=(0, 1, 2), init_std: float = 1.0, dtype=torch.float32,
               device=None, progress: bool = False) -> PixelMEIResult:
@@ -102,8 +156,8 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=64, steps: int = 200,
 
     Each step: ``g = blur(grad f(z), s_t)``, ``z <- z + eta_t * norm * g / |g|``, ``z <- norm * z / |z|``,
     with ``eta_t`` and the blur width ``s_t`` decaying from ``step_size`` and ``blur_sigma`` to zero on a
-    cosine schedule. The encoder runs in eval mode (its mode is restored afterwards) and its parameters get
-    no gradient.
+    cosine schedule (:class:`NormalizedAscent` run by :func:`meshmei.optim.minimize`). The encoder runs
+    in eval mode (its mode is restored afterwards) and its parameters get no gradient.
 
     Parameters
     ----------
@@ -128,51 +182,31 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=64, steps: int = 200,
     -------
     PixelMEIResult
     """
-    if not isinstance(encoder, Encoder):
-        raise EncoderError(f"encoder must be a meshmei Encoder, got {type(encoder).__name__}")
-    encoder.neuron_index(neuron)
-    H, W = _check_size(image_size)
-    if isinstance(steps, bool) or int(steps) != steps or steps < 1:
-        raise EncoderError(f"steps must be a positive integer, got {steps!r}")
-    seeds = [int(s) for s in seeds]
-    if not seeds:
-        raise EncoderError("seeds is empty; give at least one seed")
+    H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds)
     norm = encoder.preprocess.norm
-    best = None
-    per_seed = {}
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(seeds) * int(steps), desc=f"pixel MEI neuron {neuron}")
-    with eval_mode(encoder):
+    best, per_seed = None, {}
+    bar = Progress(len(seeds) * steps, f"pixel MEI neuron {neuron}", enabled=progress,
+                   postfix=lambda rec: {"act": f"{rec['response']:.4f}"})
+    with frozen_encoder(encoder):
         for seed in seeds:
             g = torch.Generator().manual_seed(seed)
             z = (init_std * torch.randn(1, 1, H, W, generator=g, dtype=dtype)).to(device)
-            z = norm * z / torch.linalg.vector_norm(z)
-            hist = []
-            for t in range(int(steps)):
-                c = 0.5 * (1 + math.cos(math.pi * t / steps))  # 1 -> 0
-                zt = z.detach().requires_grad_(True)
-                f = encoder(zt, neuron, preprocessed=True)[0, 0]
-                (grad,) = torch.autograd.grad(f, zt)
-                hist.append(float(f.detach()))
-                grad = gaussian_blur(grad, blur_sigma * c)
-                gn = torch.linalg.vector_norm(grad)
-                if float(gn) > 0:
-                    z = z + (step_size * c + 1e-3) * norm * grad / gn
-                z = norm * z / torch.linalg.vector_norm(z).clamp_min(torch.finfo(z.dtype).tiny)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(act=f"{hist[-1]:.4f}")
+            z = (norm * z / torch.linalg.vector_norm(z)).requires_grad_(True)
+
+            def objective(point, z=z):
+                f = encoder(z, neuron, preprocessed=True)[0, 0]
+                return -f, {"response": float(f.detach())}
+
+            trace = Trace()
+            minimize(objective, NormalizedAscent([z], lr=step_size, blur_sigma=blur_sigma, norm=norm), Budget(steps),
+                     schedule=Schedule("cosine", 0.0), trace=trace, progress=bar, error=EncoderError,
+                     where=f" of seed {seed}")
             with torch.no_grad():
                 final = float(encoder(z, neuron, preprocessed=True)[0, 0])
-            hist.append(final)
             per_seed[seed] = final
             if best is None or final > best[1]:
-                best = (z.detach(), final, tuple(hist), seed)
-    if bar is not None:
-        bar.close()
-    settings = dict(image_size=[H, W], steps=int(steps), step_size=float(step_size), blur_sigma=float(blur_sigma),
+                best = (z.detach(), final, tuple(r["response"] for r in trace.history) + (final,), seed)
+    bar.close()
+    settings = dict(image_size=[H, W], steps=steps, step_size=float(step_size), blur_sigma=float(blur_sigma),
                     seeds=seeds, init_std=float(init_std), dtype=str(dtype).replace("torch.", ""))
     return PixelMEIResult(best[0], best[1], best[2], best[3], per_seed, settings)

@@ -1,2 +1,43 @@
-from .core import *  # noqa: F401,F403
-from .core import __all__
+"""Shape reconstruction by Chamfer minimisation: settings, schedules, sources and targets, the fit, outputs."""
+
+from .fit import reconstruct, stage_weights
+from .runs import plot_history, save_reconstruction
+from .schedule import (
+    RBF_THREE_LEVEL_OVERRIDES,
+    THREE_LEVEL_MIN_VERTICES,
+    default_schedule,
+    default_stages,
+    schedule_from_text,
+)
+from .settings import (
+    DEFAULT_STEPS,
+    DEFAULTS,
+    METHODS,
+    STAGE_FIELDS,
+    ReconstructionResult,
+    ReconstructionSettings,
+)
+from .sources import SOURCE_NAMES, remesh, resolve_source, source_mesh, target_surface
+
+__all__ = [
+    "reconstruct",
+    "ReconstructionSettings",
+    "ReconstructionResult",
+    "METHODS",
+    "STAGE_FIELDS",
+    "DEFAULTS",
+    "DEFAULT_STEPS",
+    "stage_weights",
+    "default_stages",
+    "default_schedule",
+    "RBF_THREE_LEVEL_OVERRIDES",
+    "THREE_LEVEL_MIN_VERTICES",
+    "schedule_from_text",
+    "SOURCE_NAMES",
+    "source_mesh",
+    "resolve_source",
+    "target_surface",
+    "remesh",
+    "save_reconstruction",
+    "plot_history",
+]

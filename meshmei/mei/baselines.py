@@ -1,0 +1,100 @@
+"""Baselines a 3D-MEI is measured against: regularizer-weight grids, and responses to random smooth
+deformations of the starting mesh in the same scene."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import torch
+
+from ..encoders import Encoder
+from .core import eval_mode  # MERGE
+from ..errors import MEIError
+from .core import mesh_quality  # MERGE
+from .core import REGULARIZERS  # MERGE
+from ..render import render
+from .optimize import initial, optimize_mei
+from .settings import MEISettings
+
+__all__ = ["grid_search", "random_deformations", "random_mesh_responses"]
+
+
+def grid_search(encoder: Encoder, neuron: int, init="sphere", grid: dict | None = None,
+                settings: MEISettings | None = None, *, self_intersections: bool = True, progress: bool = False,
+                **overrides) -> list[dict]:
+    """Run :func:`optimize_mei` for every combination of regularizer weights in ``grid``.
+
+    Parameters
+    ----------
+    grid : dict of str -> sequence of float
+        Weights to try per regularizer (names of :data:`REGULARIZERS`); regularizers not named keep the
+        weight of ``settings``. Default: Laplacian and edge weights in ``{0, 1, 10}``.
+
+    Returns
+    -------
+    list of dict, one per setting: ``weights``, ``activation``, ``fraction_of_bound``, ``min_quality``,
+    ``mean_quality``, ``self_intersections``, ``seconds``.
+    """
+    settings = MEISettings.with_overrides(settings, overrides)
+    grid = grid if grid is not None else {"laplacian": [0.0, 1.0, 10.0], "edge": [0.0, 1.0, 10.0]}
+    if not isinstance(grid, dict) or not grid:
+        raise MEIError(f"grid must be a non-empty dict of regularizer name -> weights, got {grid!r}")
+    for k, ws in grid.items():
+        if k not in REGULARIZERS:
+            raise MEIError(f"unknown regularizer {k!r} in grid; expected one of {sorted(REGULARIZERS)}")
+        if len(list(ws)) == 0:
+            raise MEIError(f"grid entry {k!r} is empty")
+    names = list(grid)
+    rows = []
+    for combo in itertools.product(*(list(grid[k]) for k in names)):
+        w = dict(settings.weights)
+        w.update(dict(zip(names, (float(x) for x in combo))))
+        res = optimize_mei(encoder, neuron, init, replace(settings, weights=w), progress=progress)
+        q = mesh_quality(res.V, res.F, self_intersections=self_intersections)
+        rows.append({"weights": w, "activation": res.activation, "fraction_of_bound": res.fraction_of_bound,
+                     **q, "seconds": res.wall_time})
+    return rows
+
+
+def random_deformations(V0: torch.Tensor, n: int, *, generator: torch.Generator | None = None, n_bumps: int = 4,
+                        amplitude: float = 0.15, width=(0.1, 0.3)) -> torch.Tensor:
+    """``n`` random smooth deformations of a mesh: sums of ``n_bumps`` Gaussian bumps of random displacement.
+
+    Each bump sits on a random vertex, has a width drawn uniformly from ``width`` and a displacement drawn
+    from ``N(0, amplitude^2 I)`` (world units; the initial meshes span 1).
+
+    Returns
+    -------
+    (n, V0.shape[0], 3) tensor of deformed vertex positions (dtype and device of ``V0``).
+    """
+    g = generator if generator is not None else torch.Generator().manual_seed(0)
+    dt = V0.dtype
+    c = V0[torch.randint(V0.shape[0], (n, n_bumps), generator=g)]  # (n, k, 3)
+    w = width[0] + (width[1] - width[0]) * torch.rand(n, 1, n_bumps, generator=g, dtype=dt)
+    d = amplitude * torch.randn(n, n_bumps, 3, generator=g, dtype=dt)
+    K = torch.exp(-torch.cdist(V0.unsqueeze(0).expand(n, -1, -1), c) ** 2 / (2 * w * w))  # (n, nv, k)
+    return V0 + K @ d
+
+
+@torch.no_grad()
+def random_mesh_responses(encoder: Encoder, neuron: int, init="sphere", n: int = 1000,
+                          settings: MEISettings | None = None, *, seed: int = 0, batch: int = 50,
+                          **deform_kw) -> torch.Tensor:
+    """Responses ``(n,)`` of a neuron to ``n`` random deformations of the initial mesh, in the MEI's scene.
+
+    The baseline a 3D-MEI has to beat: the same starting mesh, scene and preprocessing, with random smooth
+    deformations (:func:`random_deformations`) instead of optimised ones.
+    """
+    settings = MEISettings.with_overrides(settings, {})
+    V0, F, _ = initial(init, settings)
+    g = torch.Generator().manual_seed(int(seed))
+    out = []
+    with eval_mode(encoder):
+        for start in range(0, n, batch):
+            Vb = random_deformations(V0, min(batch, n - start), generator=g, **deform_kw)
+            I = render(Vb, F, camera=settings.camera(),
+                       light=None if settings.light is None else torch.tensor(settings.light, dtype=V0.dtype),
+                       settings=settings.render_settings())
+            out.append(encoder(I, neuron)[:, 0])
+    return torch.cat(out)

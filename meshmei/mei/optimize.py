@@ -1,0 +1,180 @@
+"""3D-MEI optimisation: a mesh deformed by Gaussian RBFs, rendered in the paper's scene, climbs a model
+neuron's response; the objective is ``-f(I) + sum_r w_r L_r(V)`` and :mod:`meshmei.optim` runs it.
+
+Light position and object pose can join the optimisation. Several seeds are run (the seed draws a small
+random initial offset, so runs differ) and the one with the lowest final loss is kept.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from ..encoders import Encoder
+from .core import encoder_spec  # MERGE
+from .pixel import frozen_encoder  # MERGE: to encoders.base with eval_mode
+from ..errors import EncoderError, MEIError
+from ..mesh import check_mesh
+from ..optim import Budget, Progress, Schedule, Trace, minimize
+from .core import REGULARIZERS  # MERGE
+from ..render import axis_angle_to_matrix, render
+from ..shapes import INITIAL_KINDS, initial_mesh
+from .settings import MEIResult, MEISettings, make_deformer
+
+__all__ = ["optimize_mei", "initial", "check_neuron"]
+
+
+def check_neuron(encoder, neuron) -> int:
+    """The neuron's index in ``encoder`` as an int; ``MEIError`` for anything but one valid index."""
+    if not isinstance(encoder, Encoder):
+        raise MEIError(f"encoder must be a meshmei Encoder, got {type(encoder).__name__}")
+    try:
+        idx = encoder.neuron_index(neuron)
+    except EncoderError as err:
+        raise MEIError(str(err)) from None
+    if idx.numel() != 1 or neuron is None:
+        raise MEIError(f"neuron must be a single index, got {neuron!r}")
+    return int(idx[0])
+
+
+def initial(init, settings: MEISettings):
+    """``(V0, F, name)``: a built-in starting mesh by name (``settings.n_vertices``) or a given ``(V, F)``."""
+    if isinstance(init, str):
+        if init not in INITIAL_KINDS:
+            raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {init!r}")
+        V0, F = initial_mesh(init, n_vertices=settings.n_vertices, dtype=settings.torch_dtype)
+        return V0, F, init
+    try:
+        V0, F = init
+    except (TypeError, ValueError):
+        raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {type(init).__name__}") from None
+    V0, F = torch.as_tensor(V0), torch.as_tensor(F)
+    check_mesh(V0, F)
+    return V0.detach().to(settings.torch_dtype), F.long(), "custom"
+
+
+class _Scene:
+    """The learnable scene of one seed: RBF offsets (and scales), optionally the light and the pose."""
+
+    def __init__(self, V0, settings: MEISettings, seed: int):
+        dtype = V0.dtype
+        g = torch.Generator().manual_seed(int(seed))
+        self.rbf = make_deformer(V0, settings)
+        with torch.no_grad():
+            self.rbf.offsets.copy_(settings.init_noise * torch.randn(self.rbf.offsets.shape, generator=g,
+                                                                     dtype=torch.float64))
+        self.groups = [{"params": [self.rbf.offsets], "lr": settings.lr}]
+        if settings.lr_scales > 0:
+            self.groups.append({"params": [self.rbf.log_sigma], "lr": settings.lr_scales})
+        given = settings.light is not None
+        light0 = settings.light if given else (0.0, 0.0, float(settings.camera_distance))
+        self.light = torch.tensor(light0, dtype=dtype) if (settings.optimize_light or given) else None
+        self.rotation, self.translation = torch.zeros(3, dtype=dtype), torch.zeros(3, dtype=dtype)
+        if settings.optimize_light:
+            self.light.requires_grad_(True)
+            self.groups.append({"params": [self.light], "lr": settings.lr_light})
+        self.pose = settings.optimize_pose
+        if self.pose:
+            self.rotation.requires_grad_(True)
+            self.translation.requires_grad_(True)
+            self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
+
+    def image(self, V, F, settings: MEISettings, *, pose: bool | None = None) -> torch.Tensor:
+        kw = {}
+        if self.pose if pose is None else pose:
+            kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
+        return render(V, F, camera=settings.camera(), light=self.light, settings=settings.render_settings(), **kw)
+
+
+def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings):
+    active = {k: w for k, w in settings.weights.items() if w > 0}
+
+    def objective(point):
+        V = scene.rbf()
+        f = encoder(scene.image(V, F, settings), neuron)[0, 0]
+        loss, record = -f, {"response": float(f.detach())}
+        for k, w in active.items():
+            r = REGULARIZERS[k](V, scene.rbf.V0, F)
+            record[k] = float(r.detach())
+            loss = loss + w * r
+        return loss, record
+
+    return objective
+
+
+def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress) -> dict:
+    scene = _Scene(V0, settings, seed)
+    trace = Trace()
+    out = minimize(_objective(encoder, neuron, F, scene, settings), torch.optim.Adam(scene.groups),
+                   Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
+                   keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, error=MEIError,
+                   where=f" of seed {seed}")
+    with torch.no_grad():
+        V = scene.rbf().detach()
+        image = scene.image(V, F, settings, pose=True).detach()
+        act = float(encoder(image, neuron)[0, 0])
+    h = trace.history
+    state = {k: v.detach().clone() for k, v in scene.rbf.state_dict().items()}
+    light = None if scene.light is None else scene.light.detach().clone()
+    return dict(V=V, image=image, activation=act, loss=out.loss, best_step=out.step,
+                history=[r["response"] for r in h], loss_history=[r["loss"] for r in h],
+                reg_history={k: [r[k] for r in h] for k, w in settings.weights.items() if w > 0},
+                time_history=[r["time"] for r in h], deformer_state=state, light=light,
+                rotation=scene.rotation.detach().clone(), translation=scene.translation.detach().clone())
+
+
+def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISettings | None = None, *,
+                 progress: bool = False, **overrides) -> MEIResult:
+    """Optimise a mesh so that ``encoder``'s neuron ``neuron`` responds maximally to its rendering.
+
+    Parameters
+    ----------
+    encoder : Encoder
+        Any :class:`meshmei.encoders.Encoder`; it runs in eval mode (its mode is restored afterwards) and
+        its parameters receive no gradient.
+    neuron : int
+    init : str or (V, F)
+        ``"sphere"``, ``"sheet"``, ``"torus"`` (built with ``settings.n_vertices`` vertices), or a mesh
+        ``V : (n, 3) float tensor``, ``F : (m, 3) int64 tensor``.
+    settings : MEISettings, optional
+    progress : bool
+        Show a tqdm progress bar over all steps of all seeds.
+    **overrides
+        Fields of :class:`MEISettings` replacing those of ``settings``.
+
+    Returns
+    -------
+    MEIResult
+        The seed with the lowest final loss; within a seed the lowest-loss iterate (``keep="best"``).
+
+    Examples
+    --------
+    >>> from meshmei.encoders import GaborSimpleCell
+    >>> res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=3, seeds=(0,), image_size=16, n_vertices=64)
+    >>> res.image.shape, len(res.history)
+    (torch.Size([1, 1, 16, 16]), 3)
+    """
+    settings = MEISettings.with_overrides(settings, overrides)
+    neuron = check_neuron(encoder, neuron)
+    V0, F, init_name = initial(init, settings)
+    bar = Progress(settings.steps * len(settings.seeds), f"3D-MEI neuron {neuron}", enabled=progress,
+                   postfix=lambda rec: {"act": f"{rec['response']:.4f}"})
+    runs = {}
+    t0 = time.perf_counter()
+    try:
+        with frozen_encoder(encoder):
+            for seed in settings.seeds:
+                runs[seed] = _run_seed(encoder, neuron, V0, F, settings, seed, bar)
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    seed = min(runs, key=lambda s: runs[s]["loss"])
+    r = runs[seed]
+    return MEIResult(
+        V=r["V"], F=F, V0=V0, image=r["image"], activation=r["activation"], history=r["history"],
+        loss_history=r["loss_history"], reg_history=r["reg_history"], seed=seed, time_history=r["time_history"],
+        seed_activations={s: runs[s]["activation"] for s in runs}, settings=settings, neuron=neuron,
+        encoder=encoder_spec(encoder), deformer_state=r["deformer_state"], light=r["light"], rotation=r["rotation"],
+        translation=r["translation"], init=init_name, wall_time=wall,
+        seconds_per_step=wall / (settings.steps * len(settings.seeds)))

@@ -1,0 +1,139 @@
+"""3D-MEI run directories: write a result atomically (mesh, exact state, summary, figures) and read it back
+bit for bit."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from .._files import atomic_directory
+from ..encoders import Encoder
+from .core import _encoder_from_spec as encoder_from_spec  # MERGE
+from ..errors import MEIError
+from ..mesh import save_mesh
+from .core import _figures as mei_figures  # MERGE
+from .core import mesh_quality  # MERGE
+from .settings import MEIResult, MEISettings, rebuild_deformer
+
+__all__ = ["RUN_FORMAT", "save_run", "load_run"]
+
+RUN_FORMAT = 1
+_REQUIRED = ("summary.json", "state.pt", "mesh.obj")
+_SUMMARY_KEYS = {"format", "complete", "neuron", "init", "activation", "fraction_of_bound", "seed", "seed_activations",
+                 "encoder", "settings", "light", "rotation_axis_angle", "translation", "n_vertices", "n_faces",
+                 "wall_time_s", "seconds_per_step", "quality", "history", "loss_history", "reg_history",
+                 "time_history"}
+
+
+def _summary(result: MEIResult) -> dict:
+    return {
+        "format": RUN_FORMAT,
+        "complete": True,
+        "neuron": result.neuron,
+        "init": result.init,
+        "activation": result.activation,
+        "fraction_of_bound": result.fraction_of_bound,
+        "seed": result.seed,
+        "seed_activations": {str(k): v for k, v in result.seed_activations.items()},
+        "encoder": result.encoder,
+        "settings": result.settings.to_dict(),
+        "light": None if result.light is None else result.light.tolist(),
+        "rotation_axis_angle": result.rotation.tolist(),
+        "translation": result.translation.tolist(),
+        "n_vertices": int(result.V.shape[0]),
+        "n_faces": int(result.F.shape[0]),
+        "wall_time_s": result.wall_time,
+        "seconds_per_step": result.seconds_per_step,
+        "quality": mesh_quality(result.V, result.F, self_intersections=result.V.shape[0] <= 20000),
+        "history": result.history,
+        "loss_history": result.loss_history,
+        "reg_history": result.reg_history,
+        "time_history": result.time_history,
+        **result.extra,
+    }
+
+
+def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: bool = True) -> Path:
+    """Write a run directory: ``mesh.obj``, ``rest.obj``, ``state.pt``, ``summary.json`` and PNG figures.
+
+    ``state.pt`` holds the exact tensors (rest mesh, faces, deformer ``state_dict``, light, pose, image), so
+    :func:`load_run` rebuilds the mesh and the scene bit for bit; ``summary.json`` holds the settings,
+    encoder description, histories and mesh quality. Everything is written to a temporary sibling
+    directory that is renamed into place only when complete, so an interrupted save never leaves a
+    directory that :func:`load_run` would take for a finished run.
+    """
+    def write(tmp: Path):
+        save_mesh(tmp / "mesh.obj", result.V, result.F)
+        save_mesh(tmp / "rest.obj", result.V0, result.F)
+        torch.save({"format": RUN_FORMAT, "V": result.V, "F": result.F, "V0": result.V0,
+                    "deformer": result.deformer_state, "light": result.light, "rotation": result.rotation,
+                    "translation": result.translation, "image": result.image}, tmp / "state.pt")
+        if figures:
+            mei_figures(result, tmp)
+        with open(tmp / "summary.json", "w") as fh:
+            json.dump(_summary(result), fh, indent=1)
+
+    return atomic_directory(directory, write, overwrite=overwrite, error=MEIError)
+
+
+def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool = False) -> MEIResult:
+    """Read a run directory written by :func:`save_run` back into an :class:`MEIResult`.
+
+    The vertices are recomputed from the saved rest mesh and deformer state and checked against the saved
+    ones. With ``rebuild_encoder=True`` (or ``encoder`` given), the returned result also carries the encoder
+    as ``encoder_module``.
+
+    Raises
+    ------
+    MEIError
+        The directory is missing, incomplete (an interrupted save leaves only a hidden ``.partial``
+        sibling, never the directory itself), or its files are corrupt.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise MEIError(f"no MEI run directory at {directory}")
+    missing = [n for n in _REQUIRED if not (directory / n).is_file()]
+    if missing:
+        raise MEIError(f"{directory} is not a complete MEI run: missing {missing}")
+    try:
+        with open(directory / "summary.json") as fh:
+            summary = json.load(fh)
+    except (OSError, json.JSONDecodeError) as err:
+        raise MEIError(f"{directory / 'summary.json'} is unreadable: {err}") from None
+    if not isinstance(summary, dict) or summary.get("complete") is not True or summary.get("format") != RUN_FORMAT:
+        raise MEIError(f"{directory} holds no complete run of format {RUN_FORMAT}")
+    try:
+        state = torch.load(directory / "state.pt", map_location="cpu", weights_only=True)
+        settings = MEISettings.from_dict(summary["settings"])
+        rbf = rebuild_deformer(state["V0"], state["deformer"], settings)
+        with torch.no_grad():
+            V = rbf()
+    except MEIError:
+        raise
+    except Exception as err:  # torch.load / load_state_dict errors on a damaged file
+        raise MEIError(f"{directory} is corrupt: {type(err).__name__}: {err}") from None
+    # The rebuilt deformer truncates its kernels for the final scales, the optimised one for the scales at
+    # its last pair-list rebuild: each may drop weights up to exp(-r_cut^2 / 2), so the two meshes agree to
+    # twice that times the summed offset lengths (plus float round-off). The saved vertices are kept.
+    offsets = state["deformer"]["offsets"].double()
+    bound = 2 * math.exp(-rbf.r_cut**2 / 2) * float(offsets.norm(dim=-1).sum())
+    bound += 1e-5 * (1 + float(state["V"].abs().max()))
+    if V.shape != state["V"].shape or float((V.double() - state["V"].double()).abs().max()) > bound:
+        raise MEIError(f"{directory}: the deformer state does not reproduce the saved vertices")
+    module = None
+    if encoder is not None or rebuild_encoder:
+        module = encoder if encoder is not None else encoder_from_spec(summary["encoder"])
+        if module.n_neurons <= int(summary["neuron"]):
+            raise MEIError(f"the encoder has {module.n_neurons} neurons; the run used neuron {summary['neuron']}")
+    return MEIResult(
+        V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
+        history=summary["history"], loss_history=summary["loss_history"], reg_history=summary["reg_history"],
+        seed=int(summary["seed"]), seed_activations={int(k): v for k, v in summary["seed_activations"].items()},
+        settings=settings, neuron=int(summary["neuron"]), encoder=summary["encoder"],
+        deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
+        translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),
+        seconds_per_step=float(summary["seconds_per_step"]), time_history=summary.get("time_history", []),
+        extra={k: summary[k] for k in summary if k not in _SUMMARY_KEYS}, encoder_module=module)

@@ -1,0 +1,297 @@
+"""3D-MEI settings and results: everything that defines a run besides the encoder, the neuron and the
+initial mesh, and everything a run returns (enough to rebuild its mesh and scene exactly)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import torch
+
+from ..deform import RBFDeformer
+from ..encoders import Encoder
+from ..errors import MEIError, RenderError
+from .core import REGULARIZERS  # MERGE
+from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
+from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
+
+__all__ = ["MEISettings", "MEIResult", "make_deformer", "rebuild_deformer"]
+
+def _default_weights():
+    return {"laplacian": 30.0, "edge": 30.0, "area": 1000.0, "arap": 0.0}
+
+
+@dataclass(frozen=True)
+class MEISettings:
+    """Everything that defines a 3D-MEI run besides the encoder, the neuron and the initial mesh.
+
+    Attributes
+    ----------
+    image_size : int
+        Rendered image size in pixels (square).
+    n_vertices : int
+        Approximate vertex count of a built-in initial mesh (ignored for a given mesh).
+    steps : int
+        Adam steps per seed.
+    lr : float
+        Learning rate of the RBF offsets (world units; the initial meshes span 1).
+    lr_scales : float
+        Learning rate of the RBF log-scales (0 freezes the scales).
+    lr_decay : float
+        The learning rates follow a cosine from ``lr`` down to ``lr * lr_decay``.
+    seeds : tuple of int
+        One run per seed; the seed draws the initial offsets (normal, std ``init_noise``).
+    init_noise : float
+        Standard deviation of the random initial offsets (breaks symmetries; 0 for none).
+    sigma_factor : float
+        Initial RBF scale as a multiple of the mean spacing of the kernel centres.
+    centers : int or None
+        Number of RBF centres (farthest-point sampled); None puts one on every vertex (the paper).
+    r_cut : float
+        RBF truncation radius in scales (see :class:`~meshmei.deform.RBFDeformer`).
+    weights : dict
+        Regularizer weights by name (see :data:`REGULARIZERS`); zero weights are not evaluated.
+    keep : str
+        ``"best"``: return the iterate with the lowest loss seen; ``"last"``: the final iterate.
+    optimize_light, optimize_pose : bool
+        Also optimise the point light position / the object's rotation (axis-angle) and translation.
+    lr_light, lr_pose : float
+        Their learning rates.
+    light : tuple of 3 floats or None
+        Point light position; None puts it at the camera.
+    camera_distance, fov_degrees : float
+        The overhead camera at ``(0, 0, camera_distance)`` looking at the origin.
+    render : RenderSettings, dict or None
+        How the image is formed (background, ambient, sigma, ...): a
+        :class:`~meshmei.render.RenderSettings`, or a dict of its fields (as a run's ``summary.json``
+        stores it). Its ``image_size`` is replaced by ``image_size`` above, the one place the run's
+        image size is set. None: the defaults.
+    dtype : str
+        ``"float32"`` or ``"float64"``.
+    """
+
+    image_size: int = 64
+    n_vertices: int = 400
+    steps: int = 300
+    lr: float = 3e-3
+    lr_scales: float = 1e-2
+    lr_decay: float = 0.05
+    seeds: tuple = (0, 1, 2)
+    init_noise: float = 1e-3
+    sigma_factor: float = 2.0
+    centers: int | None = None
+    r_cut: float = 4.0
+    weights: dict = field(default_factory=_default_weights)
+    keep: str = "best"
+    optimize_light: bool = False
+    optimize_pose: bool = False
+    lr_light: float = 2e-2
+    lr_pose: float = 1e-2
+    light: tuple | None = None
+    camera_distance: float = DEFAULT_DISTANCE
+    fov_degrees: float = DEFAULT_FOV_DEGREES
+    render: RenderSettings | dict | None = None
+    dtype: str = "float32"
+
+    def __post_init__(self):
+        for name in ("image_size", "n_vertices", "steps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise MEIError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("lr", "lr_scales", "lr_decay", "init_noise", "sigma_factor", "r_cut", "lr_light", "lr_pose",
+                     "camera_distance", "fov_degrees"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
+        if self.lr <= 0 or self.sigma_factor <= 0 or self.r_cut <= 0:
+            raise MEIError(f"lr, sigma_factor and r_cut must be positive, got {self.lr}, {self.sigma_factor}, {self.r_cut}")
+        seeds = tuple(self.seeds) if not isinstance(self.seeds, int) else (self.seeds,)
+        if not seeds or any(isinstance(s, bool) or int(s) != s for s in seeds):
+            raise MEIError(f"seeds must be a non-empty sequence of integers, got {self.seeds!r}")
+        object.__setattr__(self, "seeds", tuple(int(s) for s in seeds))
+        if not isinstance(self.weights, dict):
+            raise MEIError(f"weights must be a dict of regularizer name -> weight, got {type(self.weights).__name__}")
+        for k, w in self.weights.items():
+            if k not in REGULARIZERS:
+                raise MEIError(f"unknown regularizer {k!r}; expected one of {sorted(REGULARIZERS)}")
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
+                raise MEIError(f"weight of {k!r} must be a finite non-negative number, got {w!r}")
+        if self.keep not in ("best", "last"):
+            raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise MEIError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if self.light is not None:
+            lt = tuple(float(x) for x in self.light)
+            if len(lt) != 3 or not all(math.isfinite(x) for x in lt):
+                raise MEIError(f"light must be three finite numbers or None, got {self.light!r}")
+            object.__setattr__(self, "light", lt)
+        if self.centers is not None and (isinstance(self.centers, bool) or int(self.centers) != self.centers
+                                         or self.centers < 1):
+            raise MEIError(f"centers must be None or a positive integer, got {self.centers!r}")
+        object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
+
+    def render_settings(self) -> RenderSettings:
+        """The :class:`~meshmei.render.RenderSettings` of the run (``render``, at ``image_size``)."""
+        return self.render
+
+    def camera(self) -> Camera:
+        return Camera(eye=(0.0, 0.0, float(self.camera_distance)), fov_degrees=float(self.fov_degrees))
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        return getattr(torch, self.dtype)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["seeds"] = list(self.seeds)
+        d["light"] = list(self.light) if self.light is not None else None
+        return d
+
+    @classmethod
+    def with_overrides(cls, settings: "MEISettings | None", overrides: dict) -> "MEISettings":
+        """``settings`` (default: the defaults) with the fields in ``overrides`` replaced, all checked."""
+        settings = settings if settings is not None else cls()
+        if not isinstance(settings, cls):
+            raise MEIError(f"settings must be an MEISettings, got {type(settings).__name__}")
+        unknown = set(overrides) - {f.name for f in fields(cls)}
+        if unknown:
+            raise MEIError(f"unknown MEISettings fields {sorted(unknown)}")
+        return replace(settings, **overrides) if overrides else settings
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MEISettings":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise MEIError(f"unknown MEISettings fields {sorted(unknown)}")
+        d = dict(d)
+        if "seeds" in d:
+            d["seeds"] = tuple(d["seeds"])
+        if d.get("light") is not None:
+            d["light"] = tuple(d["light"])
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class MEIResult:
+    """Outcome of :func:`optimize_mei` (or of :func:`load_run`).
+
+    Attributes
+    ----------
+    V : (n, 3) tensor
+        The optimised mesh's vertices in object coordinates (before the pose).
+    F : (m, 3) int64 tensor
+    V0 : (n, 3) tensor
+        The initial (rest) mesh.
+    image : (1, 1, S, S) tensor
+        The rendering of the result in its scene (raw pixel values).
+    activation : float
+        The neuron's response to ``image``.
+    history : list of float
+        Response at every step of the winning seed.
+    loss_history : list of float
+        Total loss at every step of the winning seed.
+    reg_history : dict of str -> list of float
+        Unweighted value of each active regularizer at every step of the winning seed.
+    seed : int
+        The winning seed.
+    seed_activations : dict of int -> float
+        Final response per seed.
+    settings : MEISettings
+    neuron : int
+    encoder : dict
+        :func:`~meshmei.encoders.encoder_spec` of the encoder (enough to rebuild the built-in ones).
+    deformer_state : dict
+        ``state_dict`` of the winning :class:`~meshmei.deform.RBFDeformer`.
+    light : (3,) tensor or None
+        Light position used (None: at the camera).
+    rotation : (3,) tensor
+        Object pose as an axis-angle vector (zeros unless the pose was optimised).
+    translation : (3,) tensor
+    init : str
+        ``"sheet"``, ``"sphere"``, ``"torus"`` or ``"custom"``.
+    wall_time : float
+        Seconds for all seeds.
+    seconds_per_step : float
+    time_history : list of float
+        Seconds since the start of the winning seed at the end of every step.
+    extra : dict
+        JSON-able additions written to the summary (e.g. ``pixel_mei_activation``); add them with
+        ``dataclasses.replace(result, extra={**result.extra, ...})``.
+    encoder_module : Encoder or None
+        The encoder itself, where :func:`~meshmei.mei.load_run` was asked to rebuild or given it.
+    """
+
+    V: torch.Tensor
+    F: torch.Tensor
+    V0: torch.Tensor
+    image: torch.Tensor
+    activation: float
+    history: list
+    loss_history: list
+    reg_history: dict
+    seed: int
+    seed_activations: dict
+    settings: MEISettings
+    neuron: int
+    encoder: dict
+    deformer_state: dict
+    light: torch.Tensor | None
+    rotation: torch.Tensor
+    translation: torch.Tensor
+    init: str = "custom"
+    wall_time: float = 0.0
+    seconds_per_step: float = 0.0
+    time_history: list = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+    encoder_module: Encoder | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def fraction_of_bound(self) -> float | None:
+        ub = self.encoder.get("upper_bound")
+        return None if ub is None else self.activation / ub
+
+    def scene(self) -> dict:
+        """Keyword arguments for :func:`meshmei.render.render` that reproduce :attr:`image` from ``V, F``."""
+        return dict(camera=self.settings.camera(), light=self.light,
+                    rotation=axis_angle_to_matrix(self.rotation), translation=self.translation,
+                    settings=self.settings.render_settings())
+
+    def render(self, **overrides) -> torch.Tensor:
+        """Re-render the result (``overrides`` replace entries of :meth:`scene`)."""
+        kw = self.scene()
+        kw.update(overrides)
+        return render(self.V, self.F, **kw)
+
+    def deformer(self) -> RBFDeformer:
+        """Rebuild the winning RBF deformer; ``deformer()()`` equals :attr:`V`."""
+        return rebuild_deformer(self.V0, self.deformer_state, self.settings)
+
+
+
+def _render_settings(render, image_size: int) -> RenderSettings:
+    if render is None:
+        return RenderSettings(image_size=image_size)
+    if isinstance(render, dict):
+        try:
+            return RenderSettings(**{"image_size": image_size, **render})
+        except TypeError as err:
+            raise MEIError(f"render holds an unknown RenderSettings field: {err}") from None
+        except RenderError as err:
+            raise MEIError(f"render: {err}") from None
+    if not isinstance(render, RenderSettings):
+        raise MEIError(f"render must be a RenderSettings, a dict of its fields or None, got {type(render).__name__}")
+    return replace(render, image_size=image_size)
+
+
+def make_deformer(V0, settings: MEISettings, centers=None):
+    if centers is None:
+        centers = settings.centers
+    return RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
+                       learn_scales=settings.lr_scales > 0)
+
+
+def rebuild_deformer(V0, state, settings):
+    rbf = make_deformer(V0, settings, centers=state["center_index"])
+    rbf.load_state_dict(state)
+    return rbf

@@ -1,0 +1,282 @@
+"""The one optimisation loop: 3D-MEIs, pixel MEIs and reconstructions are its clients.
+
+A client supplies an objective (a closure computing the loss of the current parameters) and a torch
+optimizer over its parameters; :func:`minimize` runs the steps with one learning-rate schedule, one
+NaN/Inf guard, keep-best, one progress bar, a timed history and callbacks. A run may be cut into pieces
+(the coarse-to-fine stages of a reconstruction, the seeds of an MEI) that share one :class:`Trace` and one
+:class:`Progress`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from .deform.largesteps import AdamUniform
+
+__all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "make_optimizer", "minimize"]
+
+SCHEDULE_SHAPES = ("cosine", "geometric", "constant")
+OPTIMIZERS = ("adam", "uniform")
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The learning-rate factor over a run: 1 at the start, ``floor`` at the end.
+
+    Attributes
+    ----------
+    shape : {"cosine", "geometric", "constant"}
+        ``floor + (1 - floor) (1 + cos(pi f)) / 2``, ``floor ** f``, or 1, at progress fraction ``f``.
+    floor : float
+        The factor at ``f = 1`` (in ``(0, 1]`` for ``"geometric"``; ``[0, 1]`` for ``"cosine"``).
+    endpoint : bool
+        With a budget in steps, reach ``f = 1`` at the last step (``f = t / (steps - 1)``) instead of one
+        step after it (``f = t / steps``).
+    """
+
+    shape: str = "cosine"
+    floor: float = 1.0
+    endpoint: bool = False
+
+    def __post_init__(self):
+        if self.shape not in SCHEDULE_SHAPES:
+            raise ValueError(f"schedule shape must be one of {SCHEDULE_SHAPES}, got {self.shape!r}")
+        lo = 0.0 if self.shape == "cosine" else math.ulp(0.0)
+        if not lo <= self.floor <= 1.0:
+            raise ValueError(f"a {self.shape} schedule's floor must lie in [{lo:g}, 1], got {self.floor!r}")
+
+    def factor(self, f: float) -> float:
+        """The learning-rate factor at progress fraction ``f`` in ``[0, 1]``."""
+        if self.shape == "cosine":
+            return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * f))
+        if self.shape == "geometric":
+            return self.floor**f
+        return 1.0
+
+
+@dataclass(frozen=True)
+class Budget:
+    """When a run ends: after ``steps`` steps, after ``seconds`` of optimisation time, whichever comes first."""
+
+    steps: int | None = None
+    seconds: float | None = None
+
+    def __post_init__(self):
+        if self.steps is None and self.seconds is None:
+            raise ValueError("a budget needs steps, seconds or both")
+        if self.steps is not None and (isinstance(self.steps, bool) or int(self.steps) != self.steps
+                                       or self.steps < 1):
+            raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
+        if self.seconds is not None and not (self.seconds > 0 and math.isfinite(self.seconds)):
+            raise ValueError(f"seconds must be positive and finite, got {self.seconds!r}")
+
+    def fraction(self, step: int, seconds: float) -> float:
+        """The share of the budget used after ``step`` steps and ``seconds`` of optimisation."""
+        f = 0.0
+        if self.steps is not None:
+            f = max(f, step / self.steps)
+        if self.seconds is not None:
+            f = max(f, seconds / self.seconds)
+        return f
+
+    def schedule_fraction(self, step: int, seconds: float, endpoint: bool) -> float:
+        """The fraction a schedule reads: as :meth:`fraction`, or ``step / (steps - 1)`` with ``endpoint``."""
+        if endpoint and self.steps is not None and self.seconds is None:
+            return step / max(self.steps - 1, 1)
+        return self.fraction(step, seconds)
+
+
+@dataclass(frozen=True)
+class StepPoint:
+    """Where a step stands, as the objective sees it: steps done before it, budget fraction, lr factor."""
+
+    step: int
+    fraction: float
+    factor: float
+
+
+@dataclass
+class Trace:
+    """What a run has done so far, shared by its pieces (stages, seeds).
+
+    Attributes
+    ----------
+    step : int
+        Steps taken.
+    seconds : float
+        Optimisation seconds (set-up a client adds, the steps; callbacks and evaluation excluded).
+    history : list of dict
+        One record per step: ``step`` (steps done after it), ``time`` (``seconds`` after it), ``loss``,
+        ``lr`` (of the first parameter group) and the objective's own record.
+    """
+
+    step: int = 0
+    seconds: float = 0.0
+    history: list = field(default_factory=list)
+
+
+class Progress:
+    """One tqdm bar over a whole run (all seeds, all stages), in steps or in seconds of a time budget.
+
+    Parameters
+    ----------
+    total : float
+        Steps, or seconds with ``unit="s"``.
+    desc : str
+    unit : {"step", "s"}
+    postfix : callable, optional
+        ``postfix(record) -> dict`` of values to show, from a step's history record.
+    every : int
+        Refresh the postfix every this many steps.
+    enabled : bool
+        False: do nothing (callers need not branch).
+    """
+
+    def __init__(self, total: float, desc: str, *, unit: str = "step", postfix: Callable | None = None,
+                 every: int = 1, enabled: bool = True):
+        self.unit, self.postfix, self.every, self.bar = unit, postfix, max(1, int(every)), None
+        if enabled:
+            from tqdm.auto import tqdm  # deferred: only runs that show a bar pay for the import
+
+            fmt = None if unit != "s" else "{l_bar}{bar}| {n:.1f}/{total:.0f} s {postfix}"
+            self.bar = tqdm(total=total, unit=unit, desc=desc, bar_format=fmt)
+
+    def update(self, seconds: float, record: dict) -> None:
+        if self.bar is None:
+            return
+        self.bar.update(seconds if self.unit == "s" else 1)
+        if self.postfix is not None and record["step"] % self.every == 0:
+            self.bar.set_postfix(**self.postfix(record))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """How one call of :func:`minimize` ended.
+
+    Attributes
+    ----------
+    loss : float
+        The kept iterate's loss (the lowest seen with ``keep="best"``; the last step's otherwise).
+    step : int
+        Steps done before the kept iterate (``trace.step`` when it is the final one).
+    budget_spent : bool
+        The whole budget is used (False when the call stopped at ``stop_at < 1``).
+    """
+
+    loss: float
+    step: int
+    budget_spent: bool
+
+
+def make_optimizer(name: str, groups: list) -> torch.optim.Optimizer:
+    """``"adam"``: :class:`torch.optim.Adam`; ``"uniform"``: :class:`~meshmei.deform.largesteps.AdamUniform`
+    (one step normalisation per tensor, which keeps the smoothness of a preconditioned gradient)."""
+    if name == "adam":
+        return torch.optim.Adam(groups)
+    if name == "uniform":
+        return AdamUniform(groups)
+    raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {name!r}")
+
+
+def _parameters(optimizer):
+    return [p for g in optimizer.param_groups for p in g["params"]]
+
+
+def _guard(value: float, step: int, optimizer, error: type[Exception], where: str) -> None:
+    if not math.isfinite(value):
+        lr = optimizer.param_groups[0]["lr0"]
+        raise error(f"the loss became {value} at step {step}{where}; lower the learning rate (lr={lr:g})")
+
+
+def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
+             schedule: Schedule = Schedule(), keep: str = "last", trace: Trace | None = None,
+             stop_at: float = 1.0, progress: Progress | None = None, callbacks=(),
+             evaluate_last: bool = False, error: type[Exception] = FloatingPointError,
+             where: str = "") -> Outcome:
+    """Minimise ``objective`` with ``optimizer`` until ``budget`` (or ``stop_at`` of it) is used.
+
+    Each step: set every group's ``lr`` to its ``lr0`` (its ``lr`` at the first call) times the schedule's
+    factor (also stored as the group's ``factor``, for step rules that scale more than the step, as the
+    pixel MEI's blur); ``loss, record = objective(point)``; check the loss is finite; keep a copy of the
+    parameters if it is the lowest loss so far (``keep="best"``); backward; ``optimizer.step()``; append a
+    history record; update ``progress``; call each ``callback(record)`` (their time is not counted).
+
+    Parameters
+    ----------
+    objective : callable
+        ``objective(point: StepPoint) -> (loss, record)``: a scalar tensor with a graph to the optimizer's
+        parameters, and a dict of floats to keep in the history.
+    optimizer : torch.optim.Optimizer
+    budget : Budget
+    schedule : Schedule
+    keep : {"last", "best"}
+        ``"best"``: end on the lowest-loss iterate seen, the final one included (evaluated once more
+        after the last step, without a gradient).
+    evaluate_last : bool
+        With ``keep="last"``, also evaluate the final iterate's loss (the outcome's ``loss``); without it
+        the outcome reports the loss before the last step, and the objective is not called again (a
+        sampled objective would draw from its generator).
+    trace : Trace, optional
+        Continue a run (steps, time and history go on from it).
+    stop_at : float
+        Stop when this share of the budget is used (a stage of a longer run).
+    progress : Progress, optional
+    callbacks : sequence of callables
+    error : exception class
+        Raised when the loss is NaN or Inf.
+    where : str
+        Said after the step in that error (e.g. ``" of seed 2"``).
+
+    Returns
+    -------
+    Outcome
+    """
+    if keep not in ("last", "best"):
+        raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
+    trace = trace if trace is not None else Trace()
+    params = _parameters(optimizer)
+    for g in optimizer.param_groups:
+        g.setdefault("lr0", g["lr"])
+    best = (math.inf, trace.step, None)
+    while (f := budget.fraction(trace.step, trace.seconds)) < stop_at:
+        t0 = time.perf_counter()
+        c = schedule.factor(budget.schedule_fraction(trace.step, trace.seconds, schedule.endpoint))
+        for g in optimizer.param_groups:
+            g["lr"], g["factor"] = g["lr0"] * c, c
+        optimizer.zero_grad(set_to_none=True)
+        loss, record = objective(StepPoint(trace.step, f, c))
+        value = float(loss.detach())
+        _guard(value, trace.step, optimizer, error, where)
+        if keep == "best" and value < best[0]:
+            best = (value, trace.step, [p.detach().clone() for p in params])
+        loss.backward()
+        optimizer.step()
+        trace.step += 1
+        trace.seconds += time.perf_counter() - t0
+        rec = {"step": trace.step, "time": trace.seconds, "loss": value,
+               "lr": optimizer.param_groups[0]["lr"], **record}
+        trace.history.append(rec)
+        if progress is not None:
+            progress.update(time.perf_counter() - t0, rec)
+        for cb in callbacks:
+            cb(rec)
+    spent = budget.fraction(trace.step, trace.seconds) >= 1.0
+    if keep == "last" and not evaluate_last:
+        return Outcome(trace.history[-1]["loss"] if trace.history else math.nan, trace.step, spent)
+    with torch.no_grad():
+        last = float(objective(StepPoint(trace.step, 1.0, schedule.factor(1.0)))[0])
+    if keep == "last" or best[2] is None or last <= best[0]:
+        return Outcome(last, trace.step, spent)
+    with torch.no_grad():
+        for p, saved in zip(params, best[2]):
+            p.copy_(saved)
+    return Outcome(best[0], best[1], spent)

@@ -1,0 +1,250 @@
+"""Shape reconstruction by Chamfer minimisation: the objective and the coarse-to-fine stages of
+:func:`reconstruct`, run by the one loop of :mod:`meshmei.optim`.
+
+Each step samples the current mesh afresh, matches the samples to a fixed pool of target samples and back,
+and adds the resolution-scaled regularizers. Between stages the current shape is remeshed
+isotropically (pymeshlab) to the next stage's count and a fresh parameterisation starts from it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from ..deform import PARAMETERISATIONS
+from ..errors import MeshError
+from ..metrics import PointIndex, mesh_health, sample_points, surface_metrics
+from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
+from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss
+from .settings import ReconstructionResult, ReconstructionSettings
+from .sources import remesh, source_mesh, target_surface
+
+__all__ = ["reconstruct"]
+
+
+class _SampledChamfer:
+    """The sampled Chamfer term: fresh samples of the current mesh against a fixed pool of target samples.
+
+    Nearest neighbours are exact within 10 sample spacings of a surface and near-nearest beyond (where
+    exact KD-tree queries get slow and the neighbour's exact identity hardly matters).
+    """
+
+    def __init__(self, Vt, Ft, pool_size: int, generator: torch.Generator):
+        with torch.no_grad():
+            self.pool = sample_points(Vt, Ft, pool_size, generator=generator)  # (Np, 3) fixed target samples
+        self.index = PointIndex(self.pool)
+        self.generator = generator
+        self.far_share = 1.0  # share of target samples far from the current samples at the last step
+
+    def __call__(self, Vc, F, n_samples: int, step: int, lr: float) -> torch.Tensor:
+        try:
+            P = sample_points(Vc, F, n_samples, generator=self.generator)
+        except MeshError as err:
+            if step == 0:
+                raise
+            # the last step sent vertices to NaN or Inf, out of the dtype's range, or onto one point
+            raise FloatingPointError(f"the mesh became unusable after step {step} ({err}); lower the learning "
+                                     f"rate (lr={lr})") from None
+        sub = torch.randint(0, self.pool.shape[0], (n_samples,), generator=self.generator, device=Vc.device)
+        Q = self.pool[sub]
+        i_pq = torch.from_numpy(self.index.query(P))
+        samples_index = PointIndex(P)
+        i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5))
+        self.far_share = samples_index.far_share
+        return ((P - self.pool[i_pq]) ** 2).sum(-1).mean() + ((Q - P[i_qp]) ** 2).sum(-1).mean()
+
+
+class _Evaluation:
+    """Surface metrics at chosen steps and times, timed apart from the optimisation."""
+
+    def __init__(self, Vt, Ft, s: ReconstructionSettings, trace: Trace):
+        self.Vt, self.Ft, self.s, self.trace = Vt, Ft, s, trace
+        self.records, self.seconds, self.last, self.last_step = [], 0.0, None, -1
+        self.pending = sorted(s.eval_times)
+
+    def __call__(self, V, F, *, health=False):
+        t0 = time.perf_counter()
+        m = surface_metrics(V, F, self.Vt, self.Ft, n_samples=self.s.eval_samples, seed=self.s.seed, health=health)
+        dt = time.perf_counter() - t0
+        self.seconds += dt
+        self.records.append({"step": self.trace.step, "time": self.trace.seconds, "n_vertices": int(V.shape[0]),
+                             "eval_seconds": dt, **m.as_dict()})
+        self.last, self.last_step = m, self.trace.step
+        return m
+
+    def due(self, step: int) -> bool:
+        due = self.s.eval_every is not None and step % self.s.eval_every == 0
+        while self.pending and self.trace.seconds >= self.pending[0]:
+            self.pending.pop(0)
+            due = True
+        return due
+
+    def final(self, V, F):
+        """The returned mesh's metrics, with its self-intersections; reuses an evaluation of the last step."""
+        if self.last_step != self.trace.step or not self.records:
+            return self(V, F, health=True)
+        t0 = time.perf_counter()
+        si = mesh_health(V, F).self_intersections
+        dt = time.perf_counter() - t0
+        self.seconds += dt
+        self.records[-1].update(self_intersections=si, eval_seconds=self.records[-1]["eval_seconds"] + dt)
+        return replace(self.last, self_intersections=si)
+
+
+def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int | None, n_source: int) -> tuple:
+    """The Laplacian, edge and ARAP weights of stage ``k`` (None: a run without stages), scaled from
+    ``reg_ref_vertices`` to the count the stage's weights are stated for: its own, except the first stage,
+    which takes the second's (see :class:`ReconstructionSettings`)."""
+    if s.reg_ref_vertices is None:
+        return sk.w_laplacian, sk.w_edge, sk.w_arap
+    if k is None:
+        n_k = s.stages[-1] if s.stages else n_source
+    else:
+        n_k = max(s.stages[k], s.stages[min(1, len(s.stages) - 1)])
+    ratio = n_k / s.reg_ref_vertices
+    return sk.w_laplacian * ratio**2, sk.w_edge * ratio, sk.w_arap * ratio
+
+
+def _parameterisation(sk: ReconstructionSettings, V0, F):
+    kind = PARAMETERISATIONS[sk.method]
+    if sk.method == "rbf":
+        return kind(V0, lr=sk.lr, lr_scales=sk.lr_scale, centers=sk.centers, sigma_factor=sk.sigma_factor,
+                    r_cut=sk.r_cut, coarse_ratio=sk.coarse_ratio, coarse_lr=sk.coarse_lr)
+    if sk.method == "largesteps":
+        return kind(V0, F, lr=sk.lr, lam=sk.lam)
+    return kind(V0, lr=sk.lr)
+
+
+def _objective(param, F, sk, weights, chamfer, k, latest):
+    w_lap, w_edge, w_arap = weights
+
+    def objective(point):
+        Vc = param.vertices()
+        latest[0] = Vc
+        cd = chamfer(Vc, F, sk.n_samples, point.step, sk.lr)
+        wr = point.factor if sk.reg_decay else 1.0
+        loss = cd
+        if w_lap > 0:
+            loss = loss + wr * w_lap * laplacian_loss(Vc, F)
+        if w_edge > 0:
+            loss = loss + wr * w_edge * edge_loss(Vc, F)
+        if w_arap > 0:  # the rest pose is the shape at the start of the stage
+            loss = loss + wr * w_arap * arap_direction_loss(Vc, param.V0, F)
+        return loss, {"stage": k, "chamfer": float(cd.detach())}
+
+    return objective
+
+
+def reconstruct(source, target, method: str | None = None, *, settings: ReconstructionSettings | None = None,
+                progress: bool = False, callback=None, **kwargs) -> ReconstructionResult:
+    """Deform ``source`` into ``target`` by minimising Chamfer distance plus regularizers with Adam.
+
+    The loss per step is ``chamfer + w_laplacian * laplacian_loss + w_edge * edge_loss + w_arap *
+    arap_direction_loss`` where ``chamfer`` is the mean squared distance from ``n_samples`` fresh
+    area-uniform samples of the current mesh to their nearest points in a fixed pool of target samples,
+    plus the mean squared distance from ``n_samples`` pool points to their nearest current samples.
+
+    Parameters
+    ----------
+    source : (V, F) pair, a mesh file path, or a name in SOURCE_NAMES (2,500 vertices)
+        Starting mesh, used as given (no normalisation). ``"torus"`` starts through the target's opening
+        when it has one, as the teapot's handle (:func:`source_mesh`); ``"torus-centred"`` never does.
+    target : (V, F) pair, a mesh file path, or "bunny" / "teapot"
+        Target surface; paths and pairs are normalised to unit bounding-box diagonal and centred.
+    method : {"rbf", "vertex", "largesteps"}, optional
+        Replaces ``settings.method`` when given; otherwise the settings' method (default ``"rbf"``) runs.
+    settings : ReconstructionSettings, optional
+        All other options (see its attributes); keyword arguments override its fields, e.g.
+        ``reconstruct(src, "bunny", steps=300, lr=1e-3)``.
+    progress : bool
+        Show a tqdm progress bar (over steps, or seconds of the budget).
+    callback : callable, optional
+        ``callback(step, V, loss)`` after every step (``V`` detached, the vertices the loss was taken at).
+
+    Returns
+    -------
+    ReconstructionResult
+
+    Raises
+    ------
+    ValueError
+        Unknown method or a bad setting (``ReconstructionError``). ``MeshError`` (a ``ValueError``) for an
+        invalid source or target (empty, NaN coordinates, zero area); ``FileNotFoundError`` for a missing
+        file. All before the first step.
+    FloatingPointError
+        The loss or the mesh became NaN or Inf during the run (a learning rate far too large).
+
+    Examples
+    --------
+    >>> from meshmei.shapes import initial_mesh
+    >>> res = reconstruct(initial_mesh("sphere", n_vertices=200), "bunny", "largesteps", steps=5,
+    ...                   n_samples=500, target_pool=2000, eval_samples=1000)
+    >>> len(res.history), res.V.shape[1], res.final.chamfer_l2 > 0
+    (5, 3, True)
+    """
+    if method is not None:
+        kwargs["method"] = method
+    given = replace(settings or ReconstructionSettings(), **kwargs)
+    s = given.resolved()
+    per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
+    Vt, Ft = target_surface(target)
+    V, F = source_mesh(source, target=(Vt, Ft))
+    Vt = Vt.to(V.dtype)
+    g = torch.Generator(device=V.device).manual_seed(s.seed)
+    chamfer = _SampledChamfer(Vt, Ft, s.target_pool, g)
+    trace = Trace()
+    evaluation = _Evaluation(Vt, Ft, s, trace)
+    budget = Budget(s.steps, s.time_budget)
+    bar = Progress(s.steps if s.time_budget is None else s.time_budget, f"reconstruct[{s.method}]",
+                   unit="step" if s.time_budget is None else "s", every=10, enabled=progress,
+                   postfix=lambda rec: {"loss": f"{rec['loss']:.3e}", "stage": rec["stage"]})
+    w = stage_weights(s, s, None, V.shape[0])
+    info = {"stages": [], "w_laplacian": w[0], "w_edge": w[1], "w_arap": w[2]}
+    t_start = time.perf_counter()
+    try:
+        V, F = _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info)
+    finally:
+        bar.close()
+    final = evaluation.final(V, F)
+    info["total_seconds"] = time.perf_counter() - t_start
+    return ReconstructionResult(V=V, F=F, history=trace.history, metrics=evaluation.records, settings=s,
+                                final=final, wall_time=trace.seconds, eval_time=evaluation.seconds, info=info)
+
+
+def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):
+    stages = s.stages or (None,)
+    bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
+    schedule = Schedule("geometric", s.lr_decay)
+    n_source = V.shape[0]
+    for k, n_stage in enumerate(stages):
+        t0 = time.perf_counter()
+        if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
+            V, F = remesh(V, F, n_stage)
+        sk = per_stage[k] if per_stage else s
+        weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
+        param = _parameterisation(sk, V.detach(), F)
+        trace.seconds += time.perf_counter() - t0
+        latest = [None]
+
+        def after_step(rec, param=param, F=F, latest=latest):
+            if callback is not None:
+                callback(rec["step"], latest[0].detach(), rec["loss"])
+            if evaluation.due(rec["step"]):
+                with torch.no_grad():
+                    evaluation(param.vertices().detach(), F)
+
+        outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest),
+                           make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
+                           stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
+                           callbacks=[after_step])
+        with torch.no_grad():
+            V = param.vertices().detach()
+        info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method,
+                               "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
+                               **param.info()})
+        if outcome.budget_spent:
+            break
+    return V, F

@@ -1,0 +1,93 @@
+"""Coarse-to-fine schedules of a reconstruction: the stage counts, shares and per-stage settings that the
+CLI's ``--stages auto`` and the benchmark's variants both take from here."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ReconstructionError
+from .settings import METHODS
+
+__all__ = ["RBF_THREE_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES", "default_stages", "default_schedule",
+           "schedule_from_text"]
+
+# rbf with three levels (default_stages(n, levels=3)) in the benchmark (variant rbf-3levels) and the CLI's
+# --stages auto3. The coarsest stage (625 vertices at 10k) draws 5,000 Chamfer samples a step instead of
+# 10,000: a step there costs about what a 10k step does, mostly sampling and searching, so half the samples
+# nearly doubles its steps, and eight samples per vertex are still plenty (at 10k it reached 5.6e-4 at 2 s
+# where it was at 1.1e-3, before large steps' 7.6e-4; docs/reconstruction.md, *Fifth round*). Once the 625-
+# and 2,500-vertex stages have moved the shape, the two fine stages need less smoothing, a quarter of the
+# default Laplacian weight (2.5, that is 40 at 10k vertices against 160). Measured at 10k on three problems;
+# 2.5 was the first value tried (*Coarse-to-fine*).
+RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000}, None, {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
+
+
+def default_stages(n_vertices: int, levels: int = 2) -> tuple:
+    """The coarse-to-fine schedule used by the benchmark and the CLI. Returns ``(stages, stage_fractions)``.
+
+    ``levels=2`` (the default): ``(n/4, n, n)`` with shares ``(0.25, 0.45, 0.3)`` of the budget.
+    ``levels=3``: ``(n/16, n/4, n, n)`` with shares ``(0.15, 0.25, 0.35, 0.25)``, so that a 10k run
+    starts as a 2.5k run does (from 625 vertices, where the shape travels at little cost) and then refines.
+    Either way the last stage restarts on a fresh isotropic remesh of the shape, which clears folds and
+    slivers left by the one before. At 10k vertices three levels helped rbf on all three benchmark problems
+    and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
+    *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 8,000
+    vertices.
+    """
+    n = int(n_vertices)
+    if levels == 3:
+        return (max(32, n // 16), max(32, n // 4), n, n), (0.15, 0.25, 0.35, 0.25)
+    if levels == 2:
+        return (max(32, n // 4), n, n), (0.25, 0.45, 0.3)
+    raise ReconstructionError(f"levels must be 2 or 3, got {levels!r}")
+
+
+# The smallest final count at which meshmei reconstruct's --stages auto gives rbf three levels. They were
+# measured at 10,000 (first stage 625, docs/reconstruction.md); the margin lets a mesh asked for at 10k
+# that comes out a little smaller (a 10k torus has 9,465 vertices) have them too (first stage at least 500).
+THREE_LEVEL_MIN_VERTICES = 8_000
+
+
+def default_schedule(method: str, n_vertices: int, levels: int | None = None, *, n_samples: int = 10_000) -> tuple:
+    """The coarse-to-fine schedule ``meshmei reconstruct --stages auto`` uses for ``method`` and a final
+    count of ``n_vertices``. Returns ``(stages, stage_fractions, stage_overrides)``.
+
+    ``levels`` 2 or 3 forces that many levels (``--stages auto2`` / ``auto3``); rbf with three levels
+    always gets :data:`RBF_THREE_LEVEL_OVERRIDES`: half the run's Chamfer samples in the coarsest stage
+    (``n_samples // 2``; 5,000 with the default 10,000) and the lighter fine stages. ``None``
+    (``--stages auto``) picks as follows.
+
+    rbf at ``THREE_LEVEL_MIN_VERTICES`` (8,000) vertices or more: three levels with those overrides
+    (``default_stages(n, levels=3)``, the benchmark's rbf-3levels), measured against two levels at 10k on
+    the three benchmark problems (docs/reconstruction.md, *Coarse-to-fine* and *Fifth round*). Otherwise
+    two levels (``default_stages(n)``): three were measured at 10k only, and they hurt large steps
+    through the teapot's handle.
+    """
+    if method not in METHODS:
+        raise ReconstructionError(f"method must be one of {METHODS}, got {method!r}")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
+        raise ReconstructionError(f"n_samples must be an integer of at least 2, got {n_samples!r}")
+    n = int(n_vertices)
+    if levels is None:
+        levels = 3 if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES else 2
+    stages, fractions = default_stages(n, levels)
+    if method != "rbf" or levels != 3:
+        return stages, fractions, None
+    first = dict(RBF_THREE_LEVEL_OVERRIDES[0], n_samples=int(n_samples) // 2)
+    return stages, fractions, (first,) + RBF_THREE_LEVEL_OVERRIDES[1:]
+
+
+def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: int = 10_000) -> tuple:
+    """``(stages, stage_fractions, stage_overrides)`` from the CLI's ``--stages`` text: ``"auto"``
+    (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` (that many levels), ``"none"`` (one stage),
+    or comma-separated vertex counts with equal shares (``"600,2500,2500"``)."""
+    levels = {"auto": None, "auto2": 2, "auto3": 3}
+    if spec in levels:
+        return default_schedule(method, n_vertices, levels[spec], n_samples=n_samples)
+    if not spec or spec == "none":
+        return None, None, None
+    try:
+        return tuple(int(x) for x in spec.split(",")), None, None
+    except ValueError:
+        raise ReconstructionError(f"--stages must be 'auto', 'auto2', 'auto3', 'none' or comma-separated integers, "
+                                  f"got {spec!r}") from None

@@ -1,0 +1,281 @@
+"""Reconstruction settings and results: what determines a run, per method and per stage, and what it returns."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+import torch
+
+from ..errors import ReconstructionError
+from ..metrics import SurfaceMetrics
+from ..optim import OPTIMIZERS
+
+__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "ReconstructionSettings", "ReconstructionResult"]
+
+METHODS = ("rbf", "vertex", "largesteps")
+# The step count of a run given neither steps nor a time budget.
+DEFAULT_STEPS = 500
+# The settings ReconstructionSettings.stage_overrides may change from one stage to the next.
+STAGE_FIELDS = ("method", "lr", "lr_scale", "reg_decay", "w_laplacian", "w_edge", "w_arap", "optimizer", "lam",
+                "sigma_factor", "r_cut", "centers", "coarse_ratio", "coarse_lr", "n_samples")
+
+# Per-method defaults, tuned on sphere -> bunny and torus -> teapot at 2.5k and 10k vertices
+# (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal
+# target, for a 2,500-vertex result; reconstruct scales them to the run's final resolution
+# (ReconstructionSettings.reg_ref_vertices).
+DEFAULTS = {
+    "rbf": dict(optimizer="uniform", lr=6e-3, reg_decay=True, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0,
+                coarse_ratio=0, coarse_lr=3.0),
+    "vertex": dict(optimizer="adam", reg_decay=False, lr=1e-3, lr_scale=0.0, w_laplacian=10.0, w_edge=0.0, w_arap=0.0,
+                   coarse_ratio=0, coarse_lr=0.0),
+    "largesteps": dict(optimizer="uniform", reg_decay=False, lr=5e-2, lr_scale=0.0, w_laplacian=0.0, w_edge=0.0,
+                       w_arap=0.0, coarse_ratio=0, coarse_lr=0.0),
+}
+
+
+@dataclass(frozen=True)
+class ReconstructionSettings:
+    """Everything that determines a reconstruction run (recorded in its result and history JSON).
+
+    Attributes
+    ----------
+    method : {"rbf", "vertex", "largesteps"}
+    steps : int or None
+        Stop after this many optimisation steps (over all stages).
+    time_budget : float or None
+        Stop after this many seconds of optimisation wall time (metric evaluation not counted). With both
+        ``steps`` and ``time_budget``, whichever ends first; the schedule (stages, learning-rate decay)
+        follows the fraction of the budget used.
+    lr : float
+        Adam learning rate (offsets for rbf, vertex offsets for vertex, ``u`` for largesteps).
+    lr_scale : float
+        Learning rate of the RBF log-scales (0 freezes them).
+    lr_decay : float
+        The learning rate decays geometrically to ``lr * lr_decay`` at the end of the run.
+    reg_decay : bool
+        Decay the regularizer weights by the same factor as the learning rate (strong smoothing while the
+        shape moves far, less bias at the end).
+    n_samples : int
+        Points sampled on the current mesh per step, and target points drawn per step.
+    target_pool : int
+        Size of the fixed pool of target samples; the source-to-target direction uses all of it (through
+        a KD-tree built once), so its resolution, not ``n_samples``, limits that direction.
+    w_laplacian, w_edge, w_arap : float
+        Weights of the uniform Laplacian, edge-length and direction-preserving ARAP regularizers, for a
+        mesh of ``reg_ref_vertices`` vertices (see there).
+    reg_ref_vertices : int or None
+        The regularizer weights are stated for a mesh of this many vertices (default 2,500). A stage of
+        ``n`` vertices multiplies the Laplacian weight by ``(n / reg_ref_vertices)^2`` and the edge and
+        ARAP weights by ``n / reg_ref_vertices``: on an even mesh of edge length ``h ~ n^-1/2`` the
+        uniform Laplacian loss (squared umbrella vectors, ``~ h^4`` times the squared mean curvature) falls
+        like ``n^-2`` and the edge and direction terms (squared lengths) like ``n^-1``, so the scaled
+        weights ask for the same smoothness at every resolution. The first stage takes the second stage's
+        count instead of its own: it moves the shape farthest, and with its own count it folds the mesh
+        (docs/reconstruction.md); with ``n/4`` vertices it is smoothed 16x more in surface terms. So the
+        stages ``(n/4, n, n)`` all use ``n``, and ``(625, 2500, 10000, 10000)`` uses 2,500, 2,500,
+        10,000, 10,000: a 10k run starts with the weights of a 2.5k run. Without ``stages``, the
+        source's count. ``None``: weights used as given.
+    optimizer : {"adam", "uniform"}
+        ``torch.optim.Adam`` (per-coordinate step normalisation) or :class:`~meshmei.deform.largesteps.AdamUniform`
+        (one normalisation per tensor, which keeps the smoothness of a preconditioned gradient).
+    lam : float
+        Smoothing weight of the large-steps parameterisation ``I + lam L``.
+    sigma_factor, r_cut, centers : RBF kernel scale (in centre spacings), truncation radius (in scales) and
+        number of kernels (None: all vertices).
+    coarse_ratio : int
+        rbf only (default 0, off: the paper's kernels alone). Above 0, add a second, coarse set of Gaussian kernels
+        at ``n / coarse_ratio`` farthest points of each stage's mesh, each as wide as the spacing of those
+        points (about ``sqrt(coarse_ratio)`` edges, 8 at 64), with offsets of their own. The map stays
+        ``V0 + sum_k delta_k w_k`` over both sets. The coarse offsets are a separate tensor, so the uniform
+        step normalises them on their own: they move the shape in smooth, wide steps while the fine
+        kernels fit detail. Faster early on a compact target (the bunny), but the kernels are Euclidean:
+        they tie together surface that is near in space and far along the surface, such as the two sides
+        of a torus threaded through a teapot's handle, so they are off by default
+        (docs/reconstruction.md, *Coarse kernels*).
+    coarse_lr : float
+        Learning rate of the coarse offsets as a multiple of ``lr`` (default 3).
+    stages : tuple of int, or None
+        Vertex counts of coarse-to-fine stages; the source is remeshed to ``stages[0]`` at the start and the
+        current shape to each next count between stages. None: one stage at the source's resolution.
+    stage_fractions : tuple of float or None
+        Share of the steps / budget of each stage (default equal shares).
+    stage_overrides : tuple of (dict or None), or None
+        Settings that differ in one stage (needs ``stages``; one entry per stage), e.g.
+        ``({"w_laplacian": 0.0, "lr": 0.02}, None, None)`` or ``({"method": "largesteps"}, None)``. Keys
+        are among :data:`STAGE_FIELDS`. A stage's settings are these overrides, then the values set
+        explicitly for the run, then its method's defaults. The learning-rate decay and the regularizer
+        scaling follow the whole run (the fraction of the budget used; the stage counts, see
+        ``reg_ref_vertices``).
+    seed : int
+        Seed of all sampling (runs with ``steps`` are then bitwise repeatable).
+    eval_every : int or None
+        Evaluate :func:`surface_metrics` every this many steps (and always at the end).
+    eval_times : tuple of float
+        Also evaluate at the first step at or past each of these optimisation times (seconds).
+    eval_samples : int
+        Samples per surface for the metrics (100,000 is the project's reported metric).
+    """
+
+    method: str = "rbf"
+    steps: int | None = None
+    time_budget: float | None = None
+    lr: float | None = None
+    lr_scale: float | None = None
+    lr_decay: float = 0.1
+    reg_decay: bool | None = None
+    n_samples: int = 10_000
+    target_pool: int = 200_000
+    w_laplacian: float | None = None
+    w_edge: float | None = None
+    w_arap: float | None = None
+    reg_ref_vertices: int | None = 2500
+    optimizer: str | None = None
+    lam: float = 19.0
+    sigma_factor: float = 1.0
+    r_cut: float = 4.0
+    centers: int | None = None
+    coarse_ratio: int | None = None
+    coarse_lr: float | None = None
+    stages: tuple | None = None
+    stage_fractions: tuple | None = None
+    stage_overrides: tuple | None = None
+    seed: int = 0
+    eval_every: int | None = None
+    eval_times: tuple = ()
+    eval_samples: int = 100_000
+
+    def resolved(self) -> "ReconstructionSettings":
+        """A copy with the per-method defaults filled in and every value checked.
+
+        Raises
+        ------
+        ReconstructionError
+            A value out of range, naming the setting and what arrived (a ``ValueError``).
+        """
+        if self.method not in METHODS:
+            raise ReconstructionError(f"method must be one of {METHODS}, got {self.method!r}")
+        s = replace(self, **{k: v for k, v in DEFAULTS[self.method].items() if getattr(self, k) is None})
+        if s.steps is None and s.time_budget is None:
+            s = replace(s, steps=DEFAULT_STEPS)
+        _check_values(s)
+        s = _resolve_stages(s)
+        if s.stage_overrides is not None:
+            s = replace(s, stage_overrides=_check_overrides(s.stage_overrides, s.stages))
+            self.stage_settings()  # every stage's own values are checked too
+        return replace(s, eval_times=tuple(float(t) for t in s.eval_times))
+
+    def stage_settings(self) -> list:
+        """The resolved settings of each stage (one entry when there are no ``stage_overrides``): for
+        stage ``k``, ``stage_overrides[k]``, then the values set here, then the stage's method's defaults.
+        Call it on the settings as given (unresolved), where unset values are still None."""
+        if self.stage_overrides is None:
+            return [self.resolved()]
+        return [replace(self, stage_overrides=None, **(o or {})).resolved() for o in self.stage_overrides]
+
+
+def _check_values(s: ReconstructionSettings) -> None:
+    if s.steps is not None and (isinstance(s.steps, bool) or int(s.steps) != s.steps or s.steps < 1):
+        raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
+    if s.time_budget is not None and not (s.time_budget > 0 and math.isfinite(s.time_budget)):
+        raise ReconstructionError(f"time_budget must be positive and finite, got {s.time_budget!r}")
+    for name in ("lr", "n_samples", "target_pool", "eval_samples", "r_cut", "sigma_factor"):
+        if not getattr(s, name) > 0:
+            raise ReconstructionError(f"{name} must be positive, got {getattr(s, name)!r}")
+    cr = s.coarse_ratio
+    if isinstance(cr, bool) or not isinstance(cr, (int, np.integer)) or cr < 0 or cr == 1:
+        raise ReconstructionError(f"coarse_ratio must be 0 (off) or an integer of at least 2, got {cr!r}")
+    if cr and s.method != "rbf":
+        raise ReconstructionError(f"coarse_ratio applies to the rbf method only, not {s.method!r}; set it to 0")
+    if cr and not s.coarse_lr > 0:
+        raise ReconstructionError(f"coarse_lr must be positive with coarse kernels, got {s.coarse_lr!r}")
+    for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam", "coarse_lr"):
+        if not getattr(s, name) >= 0:
+            raise ReconstructionError(f"{name} must be non-negative, got {getattr(s, name)!r}")
+    ref = s.reg_ref_vertices
+    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, np.integer)) or ref < 1):
+        raise ReconstructionError(f"reg_ref_vertices must be a positive integer or None, got {s.reg_ref_vertices!r}")
+    if s.optimizer not in OPTIMIZERS:
+        raise ReconstructionError(f"optimizer must be 'adam' or 'uniform', got {s.optimizer!r}")
+    if not 0 < s.lr_decay <= 1:
+        raise ReconstructionError(f"lr_decay must lie in (0, 1], got {s.lr_decay!r}")
+    if s.eval_every is not None and not s.eval_every >= 1:
+        raise ReconstructionError(f"eval_every must be a positive integer or None, got {s.eval_every!r}")
+
+
+def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
+    if s.stages is None:
+        if s.stage_fractions is not None:
+            raise ReconstructionError("stage_fractions needs stages")
+        return s
+    stages = tuple(int(x) for x in s.stages)
+    if not stages or min(stages) < 32:
+        raise ReconstructionError(f"stages must be vertex counts of at least 32, got {s.stages!r}")
+    fr = s.stage_fractions or tuple(1.0 / len(stages) for _ in stages)
+    if len(fr) != len(stages) or min(fr) <= 0:
+        raise ReconstructionError(f"stage_fractions must give one positive share per stage, got {s.stage_fractions!r}")
+    tot = float(sum(fr))
+    return replace(s, stages=stages, stage_fractions=tuple(float(f) / tot for f in fr))
+
+
+def _check_overrides(overrides, stages) -> tuple:
+    ov = tuple(overrides)
+    if stages is None or len(ov) != len(stages):
+        raise ReconstructionError(f"stage_overrides must give one entry per stage (stages={stages!r}), "
+                                  f"got {overrides!r}")
+    for o in ov:
+        if o is not None and not isinstance(o, dict):
+            raise ReconstructionError(f"each entry of stage_overrides must be a dict or None, got {o!r}")
+        bad = sorted(set(o or {}) - set(STAGE_FIELDS))
+        if bad:
+            raise ReconstructionError(f"stage_overrides cannot set {bad[0]!r}; settable per stage: {STAGE_FIELDS}")
+    return tuple(dict(o) if o else None for o in ov)
+
+
+@dataclass(frozen=True)
+class ReconstructionResult:
+    """Output of :func:`reconstruct`.
+
+    Attributes
+    ----------
+    V : (n, 3) float tensor, the reconstructed vertices (detached)
+    F : (m, 3) int64 tensor
+    history : list of dict
+        One record per step: ``step``, ``stage``, ``time`` (optimisation seconds so far), ``loss``,
+        ``chamfer`` (the sampled Chamfer term), ``lr``.
+    metrics : list of dict
+        One record per evaluation: ``step``, ``time``, ``n_vertices``, ``eval_seconds`` and the fields of
+        :class:`~meshmei.metrics.SurfaceMetrics`.
+    settings : ReconstructionSettings (resolved)
+    final : SurfaceMetrics, the metrics of the returned mesh
+    wall_time : float, optimisation seconds (remeshing between stages included, evaluation excluded)
+    eval_time : float, seconds spent evaluating metrics
+    info : dict, e.g. the regularizer weights used (``w_laplacian``, ``w_edge``, ``w_arap``, scaled to the
+        resolution) and per stage (``info["stages"]``) its method, Laplacian weight, and for rbf the
+        truncation error and pair counts
+    """
+
+    V: torch.Tensor
+    F: torch.Tensor
+    history: list
+    metrics: list
+    settings: ReconstructionSettings
+    final: SurfaceMetrics
+    wall_time: float
+    eval_time: float
+    info: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """A JSON-serialisable dict of everything except the mesh."""
+        return {
+            "settings": asdict(self.settings),
+            "final": self.final.as_dict(),
+            "wall_time": self.wall_time,
+            "eval_time": self.eval_time,
+            "n_vertices": int(self.V.shape[0]),
+            "n_faces": int(self.F.shape[0]),
+            "info": self.info,
+            "history": self.history,
+            "metrics": self.metrics,
+        }

@@ -1,0 +1,118 @@
+"""The one optimisation loop: schedules, budgets, the NaN guard, keep-best, stages sharing a trace."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meshmei.deform import RBFParameterisation, VertexParameterisation
+from meshmei.optim import Budget, Schedule, StepPoint, Trace, make_optimizer, minimize
+
+
+def quadratic(x, target):
+    def objective(point: StepPoint):
+        loss = ((x - target) ** 2).sum()
+        return loss, {"x0": float(x[0].detach())}
+
+    return objective
+
+
+@pytest.mark.parametrize("shape, floor, mid", [("cosine", 0.05, 0.525), ("geometric", 0.01, 0.1), ("constant", 1.0, 1.0)])
+def test_schedule_runs_from_one_to_its_floor(shape, floor, mid):
+    s = Schedule(shape, floor)
+    assert s.factor(0.0) == pytest.approx(1.0)
+    assert s.factor(1.0) == pytest.approx(floor)
+    assert s.factor(0.5) == pytest.approx(mid)
+
+
+def test_schedule_endpoint_reaches_the_floor_on_the_last_step():
+    b = Budget(steps=5)
+    assert b.schedule_fraction(4, 0.0, endpoint=True) == 1.0
+    assert b.schedule_fraction(4, 0.0, endpoint=False) == pytest.approx(0.8)
+    assert Budget(steps=1).schedule_fraction(0, 0.0, endpoint=True) == 0.0
+
+
+def test_bad_schedules_and_budgets_are_rejected():
+    with pytest.raises(ValueError, match="shape must be one of"):
+        Schedule("linear")
+    with pytest.raises(ValueError, match="floor must lie in"):
+        Schedule("geometric", 0.0)
+    with pytest.raises(ValueError, match="needs steps, seconds or both"):
+        Budget()
+    with pytest.raises(ValueError, match="steps must be a positive integer, got 2.5"):
+        Budget(steps=2.5)
+    with pytest.raises(ValueError, match="seconds must be positive and finite"):
+        Budget(seconds=math.inf)
+    with pytest.raises(ValueError, match="optimizer must be one of"):
+        make_optimizer("sgd", [{"params": [torch.zeros(1, requires_grad=True)], "lr": 1.0}])
+
+
+def test_minimize_follows_the_schedule_and_records_every_step():
+    x = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.SGD([x], lr=0.1)
+    trace = Trace()
+    out = minimize(quadratic(x, torch.ones(3, dtype=torch.float64)), opt, Budget(steps=10),
+                   schedule=Schedule("geometric", 0.1), trace=trace)
+    assert trace.step == 10 and len(trace.history) == 10 and out.budget_spent
+    lrs = [r["lr"] for r in trace.history]
+    assert lrs == pytest.approx([0.1 * 0.1 ** (t / 10) for t in range(10)])
+    assert [r["step"] for r in trace.history] == list(range(1, 11))
+    times = [r["time"] for r in trace.history]
+    assert times == sorted(times) and times[0] > 0
+    # plain gradient descent on |x - 1|^2 with these rates, step by step
+    y = 0.0
+    for lr in lrs:
+        y = y - lr * 2 * (y - 1.0)
+    assert float(x[0].detach()) == pytest.approx(y, rel=1e-12)
+
+
+def test_keep_best_restores_the_lowest_loss_iterate_including_the_final_one():
+    x = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    # lr 1.5 overshoots |x - 1|^2 more each step: iterates 0, 3, -3, 9, ...; the start is best
+    out = minimize(quadratic(x, torch.ones(1, dtype=torch.float64)), torch.optim.SGD([x], lr=1.5), Budget(steps=4),
+                   keep="best")
+    assert out.step == 0 and out.loss == pytest.approx(1.0) and float(x.detach()) == 0.0
+    x2 = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    out = minimize(quadratic(x2, torch.ones(1, dtype=torch.float64)), torch.optim.SGD([x2], lr=0.25), Budget(steps=4),
+                   keep="best")
+    assert out.step == 4 and out.loss == pytest.approx(0.5**8) and float(x2.detach()) == pytest.approx(1 - 0.5**4)
+
+
+def test_non_finite_loss_raises_the_clients_error_before_the_step():
+    x = torch.ones(2, requires_grad=True)
+    calls = []
+
+    def objective(point):
+        calls.append(point.step)
+        loss = (x * x).sum() if point.step < 2 else (x * math.nan).sum()
+        return loss, {}
+
+    with pytest.raises(KeyError, match=r"the loss became nan at step 2 of seed 7; lower the learning rate \(lr=0.01\)"):
+        minimize(objective, torch.optim.SGD([x], lr=0.01), Budget(steps=5), error=KeyError, where=" of seed 7")
+    assert calls == [0, 1, 2] and bool(torch.isfinite(x).all())
+
+
+def test_stages_share_a_trace_and_stop_at_their_share():
+    x = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+    trace = Trace()
+    budget = Budget(steps=10)
+    first = minimize(quadratic(x, torch.ones(2, dtype=torch.float64)), torch.optim.Adam([x], lr=0.1), budget,
+                     trace=trace, stop_at=0.3)
+    assert trace.step == 3 and not first.budget_spent
+    seen = []
+    second = minimize(quadratic(x, torch.ones(2, dtype=torch.float64)), torch.optim.Adam([x], lr=0.1), budget,
+                      trace=trace, callbacks=[seen.append])
+    assert trace.step == 10 and second.budget_spent and [r["step"] for r in seen] == list(range(4, 11))
+
+
+def test_parameterisations_start_at_the_rest_shape_and_list_their_groups():
+    from meshmei.shapes import initial_mesh
+
+    V0, F = initial_mesh("sphere", n_vertices=100)
+    for p in (VertexParameterisation(V0, lr=0.1), RBFParameterisation(V0, lr=0.1, lr_scales=0.01)):
+        torch.testing.assert_close(p.vertices(), V0.to(p.vertices().dtype), rtol=0, atol=0)
+        n = sum(t.numel() for g in p.groups for t in g["params"])
+        assert n >= V0.numel() and all(g["lr"] > 0 for g in p.groups)
+    assert set(RBFParameterisation(V0, lr=0.1).info()) >= {"n_kernels", "truncation_error", "n_pairs_final"}
