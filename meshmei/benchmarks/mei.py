@@ -15,9 +15,8 @@ import torch
 
 from meshmei.benchmarks._report import docs_dir, machine_line, markdown_table, write_section
 from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
-from meshmei.mei import MEISettings, grid_search, optimize_mei, random_mesh_responses
+from meshmei.mei import MEISettings, grid_search, optimize_mei, pixel_mei, random_mesh_responses
 from meshmei.mei.core import mesh_quality  # MERGE: meshmei.quality
-from meshmei.mei.pixel import pixel_mei
 
 
 def _first(xs, ts, level):
@@ -40,15 +39,8 @@ def time_per_step(image_size: int, n_vertices: int, steps: int = 30) -> tuple[fl
     return float(dt.median()), float(dt.min())
 
 
-def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = out_dir or docs_dir() / "figures"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    settings = MEISettings(steps=steps, seeds=tuple(seeds))
+def cell_runs(settings: MEISettings, pixel_steps: int) -> tuple[dict, list, list]:
+    """Simple and complex cells from sheet and sphere: curves, table rows, and 3D-vs-pixel bars."""
     curves, rows, bars = {}, [], []
     for cname, cell in (("simple", GaborSimpleCell()), ("complex", GaborComplexCell())):
         pm = pixel_mei(cell, 0, image_size=settings.image_size, steps=pixel_steps)
@@ -66,18 +58,31 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
                          f"{pm.activation:.4f}"])
             bars.append((f"{cname}\n{init}", res.activation, pm.activation))
             print(rows[-1], flush=True)
-    demo_line = ""
-    if DEMO_MODEL_PATH.is_file():
-        model = load_demo_model()
-        rand = random_mesh_responses(model, 0, "sphere", 1000, settings)
-        res = optimize_mei(model, 0, "sphere", settings)
-        pm = pixel_mei(model, 0, image_size=settings.image_size, steps=pixel_steps)
-        bars.append(("demo n0\nsphere", res.activation, pm.activation))
-        demo_line = (f"Demo model neuron 0 (sphere start): best of 1000 random deformed spheres "
-                     f"{float(rand.max()):.3f} (median {float(rand.median()):.3f}), 3D-MEI {res.activation:.3f}, "
-                     f"pixel MEI {pm.activation:.3f}.")
-        print(demo_line, flush=True)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    return curves, rows, bars
+
+
+def demo_run(settings: MEISettings, pixel_steps: int, bars: list) -> str:
+    """The demo model's neuron 0 against random deformed spheres and its pixel MEI (a line; adds a bar)."""
+    if not DEMO_MODEL_PATH.is_file():
+        return ""
+    model = load_demo_model()
+    rand = random_mesh_responses(model, 0, "sphere", 1000, settings)
+    res = optimize_mei(model, 0, "sphere", settings)
+    pm = pixel_mei(model, 0, image_size=settings.image_size, steps=pixel_steps)
+    bars.append(("demo n0\nsphere", res.activation, pm.activation))
+    line = (f"Demo model neuron 0 (sphere start): best of 1000 random deformed spheres "
+            f"{float(rand.max()):.3f} (median {float(rand.median()):.3f}), 3D-MEI {res.activation:.3f}, "
+            f"pixel MEI {pm.activation:.3f}.")
+    print(line, flush=True)
+    return line
+
+
+def plot(curves: dict, bars: list, out_dir) -> None:
+    """``mei_curves.png`` (fraction of the bound against step and time) and ``mei_vs_pixel.png``."""
+    from matplotlib.figure import Figure  # deferred: only the benchmark draws
+
+    fig = Figure(figsize=(10, 3.6))
+    axes = fig.subplots(1, 2)
     for (cname, init), (h, ts) in curves.items():
         ls = "-" if cname == "simple" else "--"
         axes[0].plot(range(1, len(h) + 1), h, ls, label=f"{cname} cell, {init}")
@@ -91,8 +96,8 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
     axes[0].legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(out_dir / "mei_curves.png", dpi=120)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(1.4 * len(bars) + 1, 3.4))
+    fig = Figure(figsize=(1.4 * len(bars) + 1, 3.4))
+    ax = fig.subplots()
     x = torch.arange(len(bars)).float()
     ax.bar(x - 0.2, [b[1] for b in bars], 0.4, label="3D-MEI")
     ax.bar(x + 0.2, [b[2] for b in bars], 0.4, label="pixel MEI")
@@ -101,21 +106,37 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out_dir / "mei_vs_pixel.png", dpi=120)
-    plt.close(fig)
-    grid_rows = []
+
+
+def grid_rows(settings: MEISettings) -> list:
+    """Regularizer-weight grid on the complex cell (200 steps, seed 0, edge weight 30)."""
+    rows = []
     for init in ("sphere", "sheet"):
-        rows_g = grid_search(GaborComplexCell(), 0, init, {"laplacian": [0.0, 30.0, 100.0], "area": [0.0, 1000.0]},
-                             replace(settings, steps=200, seeds=(0,), weights={"edge": 30.0}))
-        for r in rows_g:
+        for r in grid_search(GaborComplexCell(), 0, init, {"laplacian": [0.0, 30.0, 100.0], "area": [0.0, 1000.0]},
+                             replace(settings, steps=200, seeds=(0,), weights={"edge": 30.0})):
             w = r["weights"]
-            grid_rows.append([init, w["laplacian"], w["edge"], w["area"], f"{r['activation']:.3f}",
-                              f"{r['min_quality']:.3f}", f"{r['mean_quality']:.3f}", r["self_intersections"]])
-            print(grid_rows[-1], flush=True)
-    speed = []
+            rows.append([init, w["laplacian"], w["edge"], w["area"], f"{r['activation']:.3f}",
+                         f"{r['min_quality']:.3f}", f"{r['mean_quality']:.3f}", r["self_intersections"]])
+            print(rows[-1], flush=True)
+    return rows
+
+
+def speed_rows() -> list:
+    rows = []
     for size, nv in ((64, 400), (64, 1500), (128, 400), (128, 1500)):
         med, low = time_per_step(size, nv)
-        speed.append([f"{size} x {size}", nv, f"{1000 * med:.1f}", f"{1000 * low:.1f}"])
-        print(speed[-1], flush=True)
+        rows.append([f"{size} x {size}", nv, f"{1000 * med:.1f}", f"{1000 * low:.1f}"])
+        print(rows[-1], flush=True)
+    return rows
+
+
+def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
+    out_dir = out_dir or docs_dir() / "figures"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    settings = MEISettings(steps=steps, seeds=tuple(seeds))
+    curves, rows, bars = cell_runs(settings, pixel_steps)
+    demo_line = demo_run(settings, pixel_steps, bars)
+    plot(curves, bars, out_dir)
     body = "\n".join([
         "## 3D-MEI on simulated cells (`python -m meshmei.benchmarks.mei`)",
         "",
@@ -137,11 +158,11 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
         "Grid search over regularizer weights (`grid_search`; complex cell, 200 steps, seed 0, edge weight 30):",
         "",
         markdown_table(["init", "laplacian", "edge", "area", "response", "min tri quality", "mean tri quality",
-                        "self-intersections"], grid_rows),
+                        "self-intersections"], grid_rows(settings)),
         "",
         "Time per optimisation step (render + encoder + regularizers + backward + Adam; sphere, simple cell):",
         "",
-        markdown_table(["image", "vertices", "median ms/step", "min ms/step"], speed),
+        markdown_table(["image", "vertices", "median ms/step", "min ms/step"], speed_rows()),
         "",
         "The machine is shared: wall times (the 'ms/step' and 's to 0.9' columns, the median) include waiting "
         "for other processes; the minimum is the better estimate of the cost itself.",

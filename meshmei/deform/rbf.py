@@ -19,6 +19,7 @@ import warnings
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from ..errors import MeshError
 from ..metrics import _nn_spacing
@@ -108,6 +109,35 @@ class _FixedMap(torch.autograd.Function):
         return ctx.Wt @ grad.contiguous(), None, None
 
 
+def _check_rest(V0, r_cut, headroom) -> None:
+    if not isinstance(V0, torch.Tensor) or not V0.is_floating_point() or V0.ndim != 2 or V0.shape[1] != 3:
+        got = tuple(V0.shape) if hasattr(V0, "shape") else type(V0).__name__
+        raise MeshError(f"V0 must be an (n, 3) float tensor, got {got}")
+    if V0.shape[0] == 0:
+        raise MeshError("V0 is empty: shape (0, 3)")
+    if not bool(torch.isfinite(V0).all()):
+        raise MeshError(f"V0 holds NaN or Inf coordinates (shape {tuple(V0.shape)})")
+    if not (r_cut > 0 and math.isfinite(r_cut)):
+        raise ValueError(f"r_cut must be positive and finite, got {r_cut!r}")
+    if not headroom >= 1.0:
+        raise ValueError(f"headroom must be at least 1, got {headroom!r}")
+
+
+def _center_index(V0, centers) -> torch.Tensor:
+    """The (K,) vertex index of the kernel centres: all vertices, ``K`` farthest points, or as given."""
+    n = V0.shape[0]
+    if centers is None:
+        return torch.arange(n, device=V0.device)
+    if isinstance(centers, (int, np.integer)) and not isinstance(centers, bool):
+        return farthest_point_sampling(V0, int(centers))
+    cidx = torch.as_tensor(centers, device=V0.device)
+    if cidx.ndim != 1 or cidx.numel() == 0 or cidx.is_floating_point() or cidx.dtype == torch.bool:
+        raise ValueError(f"centers must be None, an int, or a non-empty (K,) integer index, got {cidx.dtype} {tuple(cidx.shape)}")
+    if int(cidx.min()) < 0 or int(cidx.max()) >= n:
+        raise ValueError(f"centers index vertices in [{int(cidx.min())}, {int(cidx.max())}], out of range for {n} vertices")
+    return cidx.long()
+
+
 class RBFDeformer(torch.nn.Module):
     """Learnable Gaussian RBF deformation of fixed rest positions (the paper's deformation model).
 
@@ -163,30 +193,9 @@ class RBFDeformer(torch.nn.Module):
         learn_scales: bool = True,
     ):
         super().__init__()
-        if not isinstance(V0, torch.Tensor) or not V0.is_floating_point() or V0.ndim != 2 or V0.shape[1] != 3:
-            got = tuple(V0.shape) if hasattr(V0, "shape") else type(V0).__name__
-            raise MeshError(f"V0 must be an (n, 3) float tensor, got {got}")
-        if V0.shape[0] == 0:
-            raise MeshError("V0 is empty: shape (0, 3)")
-        if not bool(torch.isfinite(V0).all()):
-            raise MeshError(f"V0 holds NaN or Inf coordinates (shape {tuple(V0.shape)})")
-        if not (r_cut > 0 and math.isfinite(r_cut)):
-            raise ValueError(f"r_cut must be positive and finite, got {r_cut!r}")
-        if not headroom >= 1.0:
-            raise ValueError(f"headroom must be at least 1, got {headroom!r}")
-        n = V0.shape[0]
+        _check_rest(V0, r_cut, headroom)
         V0 = V0.detach()
-        if centers is None:
-            cidx = torch.arange(n, device=V0.device)
-        elif isinstance(centers, (int, np.integer)) and not isinstance(centers, bool):
-            cidx = farthest_point_sampling(V0, int(centers))
-        else:
-            cidx = torch.as_tensor(centers, device=V0.device)
-            if cidx.ndim != 1 or cidx.numel() == 0 or cidx.is_floating_point() or cidx.dtype == torch.bool:
-                raise ValueError(f"centers must be None, an int, or a non-empty (K,) integer index, got {cidx.dtype} {tuple(cidx.shape)}")
-            if int(cidx.min()) < 0 or int(cidx.max()) >= n:
-                raise ValueError(f"centers index vertices in [{int(cidx.min())}, {int(cidx.max())}], out of range for {n} vertices")
-            cidx = cidx.long()
+        cidx = _center_index(V0, centers)
         self.r_cut = float(r_cut)
         self.headroom = float(headroom)
         self.register_buffer("V0", V0)
@@ -194,8 +203,6 @@ class RBFDeformer(torch.nn.Module):
         self._all_vertices = centers is None  # kernel k on vertex k (the default)
         self._v0_np = V0.double().cpu().numpy()
         self._c_np = self._v0_np[cidx.cpu().numpy()]
-        from scipy.spatial import cKDTree
-
         self._tree = cKDTree(self._v0_np)
         K = cidx.numel()
         if sigma is None:
