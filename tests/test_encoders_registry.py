@@ -9,12 +9,14 @@ import pytest
 import torch
 
 from meshmei.encoders import (
+    DEMO_MODEL_PATH,
     CoreReadoutModel,
     GaborComplexCell,
     GaborSimpleCell,
     encoder_from_spec,
     encoder_spec,
     is_demo_model,
+    load_demo_model,
     make_encoder,
 )
 from meshmei.errors import MEIError
@@ -51,8 +53,6 @@ def test_unknown_encoder_name_raises_mei_error():
 # ---------------------------------------------------------------------------------------------- demo model
 
 def _demo_or_skip():
-    from meshmei.encoders import DEMO_MODEL_PATH, load_demo_model
-
     if not DEMO_MODEL_PATH.is_file():
         pytest.skip("demo model not built (python data_gen/make_demo_model.py)")
     return DEMO_MODEL_PATH, load_demo_model()
