@@ -60,7 +60,8 @@ def render_dataset(n_images: int, seed: int, batch: int = 50):
         # light on the forward hemisphere at the camera's distance
         az = 2 * math.pi * torch.rand(b, generator=g)
         el = torch.acos(torch.rand(b, generator=g))  # polar angle from +z, uniform over the hemisphere
-        light = DEFAULT_DISTANCE * torch.stack([torch.sin(el) * torch.cos(az), torch.sin(el) * torch.sin(az), torch.cos(el)], 1)
+        direction = torch.stack([torch.sin(el) * torch.cos(az), torch.sin(el) * torch.sin(az), torch.cos(el)], 1)
+        light = DEFAULT_DISTANCE * direction
         with torch.no_grad():
             images.append(render(Vb, F, camera=cam, light=light, rotation=R, translation=t, settings=st))
         kinds += [kind] * b

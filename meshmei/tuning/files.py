@@ -1,4 +1,4 @@
-"""Sweeps on disk: ``sweep.npz`` (responses and axes), ``sweep.json`` (metadata) and the figures, written atomically."""
+"""Sweeps on disk: ``sweep.npz`` (responses, axes), ``sweep.json`` (metadata) and the figures, written atomically."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import plots
+from .. import plots  # the module: each figure is looked up when drawn (a test swaps one out)
 from .._files import atomic_directory
 from ..errors import TuningError
 from .sweeps import Sweep, response_groups

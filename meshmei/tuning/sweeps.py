@@ -144,7 +144,8 @@ def pose_sweep(result, encoder, *, neurons=None, elevation=np.linspace(-90, 90, 
     t = time.perf_counter()
     resp = _respond(encoder, V, F, neurons, scene, batch_size, rotation=Rf)
     seconds = time.perf_counter() - t
-    ref = _respond(encoder, V, F, neurons, scene, 1, rotation=(base if base is not None else torch.eye(3, dtype=V.dtype))[None])
+    own = base if base is not None else torch.eye(3, dtype=V.dtype)  # the run's own pose
+    ref = _respond(encoder, V, F, neurons, scene, 1, rotation=own[None])
     axes = [("elevation", check_angles("elevation", elevation)), ("azimuth", check_angles("azimuth", azimuth))]
     if roll is not None:
         axes.append(("roll", check_angles("roll", roll)))
