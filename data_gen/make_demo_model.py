@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from meshmei.encoders import CoreReadoutModel, DefaultCore, GaborComplexCell, GaborSimpleCell, Preprocess  # noqa: E402
 from meshmei.mei import random_deformations  # noqa: E402
-from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, render  # noqa: E402
+from meshmei.render import DEFAULT_DISTANCE, Camera, RenderSettings, axis_angle_to_matrix, render  # noqa: E402
 from meshmei.shapes import initial_mesh  # noqa: E402
 
 IMAGE_SIZE = 64
@@ -57,10 +57,11 @@ def render_dataset(n_images: int, seed: int, batch: int = 50):
         aa = torch.randn(b, 3, generator=g) * 0.8  # random rotation, about 45 degrees rms
         R = axis_angle_to_matrix(aa)
         t = torch.cat([0.25 * torch.randn(b, 2, generator=g), torch.zeros(b, 1)], 1)
-        # light on the forward hemisphere at distance 2.5
+        # light on the forward hemisphere at the camera's distance
         az = 2 * math.pi * torch.rand(b, generator=g)
         el = torch.acos(torch.rand(b, generator=g))  # polar angle from +z, uniform over the hemisphere
-        light = 2.5 * torch.stack([torch.sin(el) * torch.cos(az), torch.sin(el) * torch.sin(az), torch.cos(el)], 1)
+        direction = torch.stack([torch.sin(el) * torch.cos(az), torch.sin(el) * torch.sin(az), torch.cos(el)], 1)
+        light = DEFAULT_DISTANCE * direction
         with torch.no_grad():
             images.append(render(Vb, F, camera=cam, light=light, rotation=R, translation=t, settings=st))
         kinds += [kind] * b
@@ -139,14 +140,57 @@ def pearson(a, b):
     return (a * b).sum(0) / (a.norm(dim=0) * b.norm(dim=0)).clamp_min(1e-12)
 
 
-def main(argv=None):
+def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-images", type=int, default=6000)
     ap.add_argument("--epochs", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--noise", type=float, default=0.15, help="Gaussian noise std relative to each neuron's rate std")
     ap.add_argument("--out", default=str(ROOT / "meshmei" / "data" / "demo_model.pt"))
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def fit(model, z, noisy, clean, train, test, epochs, g, t0):
+    """Train ``model`` with a Poisson loss on the ``train`` images, reporting the test correlation every 5 epochs."""
+    with torch.no_grad():  # start each readout where its neuron's input sits and at the right output level
+        model.readout.bias.copy_(torch.log(noisy[train].mean(0)).clamp(-2, 2))
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    for epoch in range(epochs):
+        model.train()
+        order = train[torch.randperm(len(train), generator=g)]
+        total = 0.0
+        for i in range(0, len(order), 64):
+            idx = order[i:i + 64]
+            pred = model(z[idx], preprocessed=True)
+            y = noisy[idx]
+            loss = (pred - y * torch.log(pred + 1e-8)).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(idx)
+        sched.step()
+        if epoch % 5 == 4 or epoch == epochs - 1:
+            model.eval()
+            with torch.no_grad():
+                pt = model(z[test], preprocessed=True)
+            r = pearson(pt, clean[test])
+            print(f"epoch {epoch + 1}: train loss {total / len(order):.4f}, test correlation with ground truth "
+                  f"mean {float(r.mean()):.3f} min {float(r.min()):.3f} ({time.perf_counter() - t0:.0f} s)")
+    return model.eval()
+
+
+def save(model, out: Path, info: dict):
+    """Write the weights (float32, the preprocessing statistics in float64) and ``info`` as JSON beside them."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().clone().float() if v.is_floating_point() and k not in ("preprocess.mean", "preprocess.std")
+             else v.detach().clone() for k, v in model.state_dict().items()}
+    torch.save({"state_dict": state, "core": json.dumps(CORE)}, out)
+    out.with_suffix(".json").write_text(json.dumps(info, indent=1))
+
+
+def main(argv=None):
+    args = parse_args(argv)
     torch.manual_seed(args.seed)
     t0 = time.perf_counter()
     images, kinds = render_dataset(args.n_images, args.seed)
@@ -163,45 +207,13 @@ def main(argv=None):
     n_test = len(images) // 5
     test, train = perm[:n_test], perm[n_test:]
     n = clean.shape[1]
-    model = CoreReadoutModel(n, DefaultCore(**CORE), mean=mean, std=std)
-    with torch.no_grad():  # start each readout where its neuron's input sits and at the right output level
-        model.readout.bias.copy_(torch.log(noisy[train].mean(0)).clamp(-2, 2))
-    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.epochs)
-    zt, yt = z[train], noisy[train]
-    for epoch in range(args.epochs):
-        model.train()
-        order = train[torch.randperm(len(train), generator=g)]
-        total = 0.0
-        for i in range(0, len(order), 64):
-            idx = order[i:i + 64]
-            pred = model(z[idx], preprocessed=True)
-            y = noisy[idx]
-            loss = (pred - y * torch.log(pred + 1e-8)).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            total += float(loss.detach()) * len(idx)
-        sched.step()
-        if epoch % 5 == 4 or epoch == args.epochs - 1:
-            model.eval()
-            with torch.no_grad():
-                pt = model(z[test], preprocessed=True)
-            r = pearson(pt, clean[test])
-            print(f"epoch {epoch + 1}: train loss {total / len(order):.4f}, test correlation with ground truth "
-                  f"mean {float(r.mean()):.3f} min {float(r.min()):.3f} ({time.perf_counter() - t0:.0f} s)")
-    del zt, yt
-    model.eval()
+    model = fit(CoreReadoutModel(n, DefaultCore(**CORE), mean=mean, std=std), z, noisy, clean, train, test,
+                args.epochs, g, t0)
     with torch.no_grad():
         pt = model(z[test], preprocessed=True)
     r_clean = pearson(pt, clean[test])
     r_noisy = pearson(pt, noisy[test])
     ceiling = pearson(clean[test], noisy[test])
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().clone().float() if v.is_floating_point() and k not in ("preprocess.mean", "preprocess.std")
-             else v.detach().clone() for k, v in model.state_dict().items()}
-    torch.save({"state_dict": state, "core": json.dumps(CORE)}, out)
     info = {
         "what": "core + Gaussian readout fitted to SIMULATED neurons (a digital twin of model neurons, not of "
                 "recorded V4 data)",
@@ -222,7 +234,8 @@ def main(argv=None):
         "seconds": round(time.perf_counter() - t0, 1),
         "torch": torch.__version__,
     }
-    out.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    out = Path(args.out)
+    save(model, out, info)
     print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KB) and {out.with_suffix('.json').name}; "
           f"test correlation with ground truth per neuron: {[round(float(x), 2) for x in r_clean]}")
 

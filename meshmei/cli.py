@@ -11,9 +11,9 @@ from pathlib import Path
 
 import torch
 
+from .encoders import make_encoder
 from .errors import MEIError
 from .mei import MEISettings, optimize_mei, pixel_mei, save_run
-from .mei.core import make_encoder  # MERGE: meshmei.encoders
 from .reconstruct import (
     METHODS,
     ReconstructionSettings,

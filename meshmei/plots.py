@@ -1,32 +1,49 @@
-"""Figures for tuning sweeps and MEI runs (matplotlib, written as PNG and PDF)."""
+"""Every figure meshmei writes: 3D-MEI runs, reconstructions, pose and light tuning, and the summary sheet.
+
+Figures take results, sweeps and arrays and draw them; they compute nothing that a caller needs. Drawing
+uses matplotlib's object-oriented API (:class:`matplotlib.figure.Figure`): no pyplot state, and no backend
+switch in the caller's session.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import torch
 
-__all__ = ["plot_pose_heatmap", "plot_light_polar", "summary_sheet"]
+from .render import camera_from_angles, render
 
+__all__ = ["mei_figures", "reconstruction_figures", "plot_pose_heatmap", "plot_light_polar", "summary_sheet"]
 
-def _mpl():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+# the three extra views of a 3D-MEI run's mesh: the camera orbits the origin at these angles (degrees)
+ORBIT_AZIMUTHS = (0, 45, 90)
+ORBIT_ELEVATION = 30
 
 
-def _save(fig, stem: Path):
+def _figure(**kwargs):
+    # matplotlib is imported only when a figure is drawn: importing meshmei stays quick and needs no display
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
+
+
+def _save(fig, stem) -> list[Path]:
+    """Write ``fig`` as ``stem.png`` and ``stem.pdf``; returns both paths."""
     stem = Path(stem)
     paths = []
     for ext in (".png", ".pdf"):
         p = stem.with_suffix(ext)
         fig.savefig(p, dpi=120, bbox_inches="tight")
         paths.append(p)
-    _mpl().close(fig)
     return paths
+
+
+def _gray(ax, image, title, **title_kw):
+    """Show an ``(H, W)`` image in gray levels 0 to 1, titled, without axes."""
+    ax.imshow(image, cmap="gray", vmin=0, vmax=1)
+    ax.set_title(title, **title_kw)
+    ax.axis("off")
 
 
 def _edges(v):
@@ -38,21 +55,127 @@ def _edges(v):
     return np.concatenate([[2 * v[0] - mid[0]], mid, [2 * v[-1] - mid[-1]]])
 
 
+# ------------------------------------------------------------------------------------------- 3D-MEI runs
+
+
+def mei_figures(result, out) -> None:
+    """Write ``render.png``, ``views.png`` and ``activation.png`` of a 3D-MEI run into the folder ``out``.
+
+    Parameters
+    ----------
+    result : MEIResult
+        The run (:func:`meshmei.mei.optimize_mei` or :func:`meshmei.mei.load_run`).
+    out : Path
+        An existing folder.
+    """
+    import matplotlib.image  # deferred with the rest of matplotlib (see _figure)
+
+    out = Path(out)
+    image = result.image[0, 0].detach().cpu().numpy()  # (H, W)
+    matplotlib.image.imsave(out / "render.png", image, cmap="gray", vmin=0, vmax=1)
+    fig = _figure(figsize=(12, 3.2))
+    axes = fig.subplots(1, 4)
+    axes[0].imshow(image, cmap="gray", vmin=0, vmax=1)
+    axes[0].set_title(f"MEI render, response {result.activation:.3f}")
+    for ax, az in zip(axes[1:], ORBIT_AZIMUTHS):
+        ax.imshow(_orbit_view(result, az), cmap="gray", vmin=0, vmax=1)
+        ax.set_title(f"azimuth {az}, elevation {ORBIT_ELEVATION}")
+    for ax in axes:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(out / "views.png", dpi=100)
+    fig = _figure(figsize=(5, 3.2))
+    ax = fig.subplots()
+    ub = result.encoder.get("upper_bound")
+    y = [h / ub for h in result.history] if ub else result.history
+    ax.plot(range(1, len(y) + 1), y)
+    ax.set_xlabel("step")
+    ax.set_ylabel("fraction of upper bound" if ub else "response")
+    ax.set_title(f"neuron {result.neuron}, seed {result.seed}")
+    fig.tight_layout()
+    fig.savefig(out / "activation.png", dpi=100)
+
+
+def _orbit_view(result, azimuth) -> np.ndarray:
+    """The run's mesh seen by a camera turned about the vertical axis by ``azimuth`` degrees, ``(H, W)``."""
+    s = result.settings
+    cam = camera_from_angles(float(azimuth), float(ORBIT_ELEVATION), s.camera_distance, fov_degrees=s.fov_degrees)
+    with torch.no_grad():
+        img = render(result.V, result.F, camera=cam, settings=s.render_settings())
+    return img[0, 0].cpu().numpy()
+
+
+# ----------------------------------------------------------------------------------------- reconstructions
+
+
+def reconstruction_figures(result, out_dir) -> list[Path]:
+    """Write ``loss.png`` (loss against time) and ``metrics.png`` (Chamfer-L2, F-score, normal consistency
+    against time) of a reconstruction into ``out_dir`` (made if missing); returns the paths.
+
+    Parameters
+    ----------
+    result : ReconstructionResult
+        With ``history`` (one dict per step: ``time``, ``loss``) and ``metrics`` (one dict per evaluation:
+        ``time``, ``chamfer_l2``, ``fscore``, ``normal_consistency``).
+    out_dir : str or Path
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    h = result.history
+    fig = _figure(figsize=(5, 3.5))
+    ax = fig.subplots()
+    ax.semilogy([r["time"] for r in h], [r["loss"] for r in h], lw=0.8)
+    ax.set_xlabel("optimisation time (s)")
+    ax.set_ylabel("loss")
+    ax.set_title(f"{result.settings.method}: training loss")
+    fig.tight_layout()
+    p1 = out_dir / "loss.png"
+    fig.savefig(p1, dpi=120)
+    m = result.metrics
+    fig = _figure(figsize=(12, 3.5))
+    axs = fig.subplots(1, 3)
+    t = [r["time"] for r in m]
+    axs[0].semilogy(t, [r["chamfer_l2"] for r in m], "o-")
+    axs[0].set_ylabel("Chamfer-L2")
+    axs[1].plot(t, [r["fscore"] for r in m], "o-")
+    axs[1].set_ylabel("F-score @ 1%")
+    axs[2].plot(t, [r["normal_consistency"] for r in m], "o-")
+    axs[2].set_ylabel("normal consistency")
+    for a in axs:
+        a.set_xlabel("optimisation time (s)")
+    fig.tight_layout()
+    p2 = out_dir / "metrics.png"
+    fig.savefig(p2, dpi=120)
+    return [p1, p2]
+
+
+# ------------------------------------------------------------------------------------------------ tuning
+
+
 def plot_pose_heatmap(sweep, neuron: int, stem) -> list[Path]:
-    """Azimuth x elevation heatmap of one neuron's responses, the original view marked (roll averaged out)."""
-    plt = _mpl()
+    """Azimuth x elevation heatmap of one neuron's responses, the original view marked (roll averaged out).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        A pose sweep (:func:`meshmei.tuning.pose_sweep`), with or without a roll axis.
+    neuron : int
+    stem : str or Path
+        Written as ``stem.png`` and ``stem.pdf``.
+    """
     r = sweep.of(neuron)
     if r.ndim == 3:  # a roll axis: show its mean, and the roll curve beside it
-        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4.2))
-        roll = sweep.axis("roll")
+        fig = _figure(figsize=(10, 4.2))
+        ax, ax2 = fig.subplots(1, 2)
         curve = r.mean(axis=(0, 1))
-        ax2.plot(roll, curve, "o-", ms=3)
+        ax2.plot(sweep.axis("roll"), curve, "o-", ms=3)
         ax2.set_xlabel("roll (deg)")
         ax2.set_ylabel("response (mean over the pose grid)")
         ax2.set_title("in-plane rotation")
         r = r.mean(axis=2)
     else:
-        fig, ax = plt.subplots(figsize=(5.4, 4.2))
+        fig = _figure(figsize=(5.4, 4.2))
+        ax = fig.subplots()
     az, el = sweep.axis("azimuth"), sweep.axis("elevation")
     m = ax.pcolormesh(_edges(az), _edges(el), r, shading="flat", cmap="viridis")
     fig.colorbar(m, ax=ax, label="response")
@@ -68,12 +191,23 @@ def plot_pose_heatmap(sweep, neuron: int, stem) -> list[Path]:
 
 def plot_light_polar(sweep, neuron: int, stem, images: dict | None = None) -> list[Path]:
     """Polar heatmap over the light hemisphere (centre: light at the camera's axis; rim: grazing),
-    with the example renders of the high, mid and low response groups when ``images`` is given."""
-    plt = _mpl()
+    with the example renders of the high, mid and low response groups when ``images`` is given.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        A light sweep (:func:`meshmei.tuning.light_sweep`).
+    neuron : int
+    stem : str or Path
+        Written as ``stem.png`` and ``stem.pdf``.
+    images : dict, optional
+        ``{"high" | "mid" | "low": ((H, W) array, example)}`` as :func:`meshmei.tuning.example_renders`
+        returns, ``example`` a dict with the condition's ``azimuth``, ``elevation`` and ``response``.
+    """
     r = sweep.of(neuron)
     az, el = sweep.axis("azimuth"), sweep.axis("elevation")
     ncol = 1 + (3 if images else 0)
-    fig = plt.figure(figsize=(5.0 + 2.6 * (ncol - 1), 4.4), layout="constrained")
+    fig = _figure(figsize=(5.0 + 2.6 * (ncol - 1), 4.4), layout="constrained")
     ax = fig.add_subplot(1, ncol, 1, projection="polar")
     theta = np.radians(_edges(az))
     rad = 90.0 - np.clip(_edges(el), 0.0, 90.0)  # radius: angle away from the camera axis
@@ -86,49 +220,38 @@ def plot_light_polar(sweep, neuron: int, stem, images: dict | None = None) -> li
     if images:
         for k, label in enumerate(("high", "mid", "low")):
             img, ex = images[label]
-            a = fig.add_subplot(1, ncol, 2 + k)
-            a.imshow(img, cmap="gray", vmin=0, vmax=1)
-            a.set_title(f"{label}: az {ex['azimuth']:.0f}, el {ex['elevation']:.0f}\nresponse {ex['response']:.3f}", fontsize=8)
-            a.axis("off")
+            title = f"{label}: az {ex['azimuth']:.0f}, el {ex['elevation']:.0f}\nresponse {ex['response']:.3f}"
+            _gray(fig.add_subplot(1, ncol, 2 + k), img, title, fontsize=8)
             ax.plot([np.radians(ex["azimuth"])], [90 - ex["elevation"]], "o", mfc="none", mec="c", ms=8)
     return _save(fig, stem)
 
 
-def summary_sheet(run, stem, *, pixel_image=None, pixel_activation=None, views=((45, 20), (90, 0), (-45, -30))) -> list[Path]:
+# ------------------------------------------------------------------------------------------ summary sheet
+
+
+def summary_sheet(run, stem, views, *, pixel_image=None, pixel_activation=None) -> list[Path]:
     """One page for an MEI run: the rendered MEI, three 3D views of the mesh, the activation curve, the
-    pixel MEI and the activation bars (3D-MEI versus pixel MEI)."""
-    import torch
+    pixel MEI and the activation bars (3D-MEI versus pixel MEI).
 
-    from .tuning import pose_rotations
-
-    plt = _mpl()
-    fig = plt.figure(figsize=(13, 6.2))
+    Parameters
+    ----------
+    run : MEIResult
+    stem : str or Path
+        Written as ``stem.png`` and ``stem.pdf``.
+    views : sequence of (azimuth, elevation, (H, W) array)
+        Three renders of the mesh and the pose angles (degrees) they were taken at, e.g. from
+        :func:`meshmei.tuning.turned_views`.
+    pixel_image : (H, W) array, optional
+        The pixel MEI.
+    pixel_activation : float, optional
+        Its response, drawn as a second bar.
+    """
+    fig = _figure(figsize=(13, 6.2))
     gs = fig.add_gridspec(2, 4)
-    ax = fig.add_subplot(gs[0, 0])
-    ax.imshow(run.image[0, 0].cpu().numpy(), cmap="gray", vmin=0, vmax=1)
-    ax.set_title(f"3D-MEI render\nneuron {run.neuron}, response {run.activation:.3f}", fontsize=9)
-    ax.axis("off")
-    import math
-
-    from .render import Camera
-
-    scene = run.scene()
-    base = scene["rotation"]
-    # frame the whole mesh: camera distance from its bounding sphere and the field of view, light at the camera
-    cam = scene["camera"]
-    radius = float((run.V - run.V.mean(0)).norm(dim=1).max())
-    half = math.radians(cam.fov_degrees) / 2
-    dist = max(float(torch.as_tensor(cam.eye).reshape(-1, 3)[0].norm()), 1.15 * radius / math.sin(half))
-    view_cam = Camera(eye=(0.0, 0.0, dist), fov_degrees=cam.fov_degrees, znear=cam.znear, zfar=max(cam.zfar, 4 * dist))
-    light = torch.tensor([0.0, 0.0, dist], dtype=run.V.dtype)
-    for k, (azi, ele) in enumerate(views):
-        R = pose_rotations([ele], [azi], dtype=run.V.dtype).reshape(3, 3) @ base.to(run.V.dtype)
-        with torch.no_grad():
-            img = run.render(rotation=R[None], camera=view_cam, light=light, translation=-(run.V.mean(0) @ R.T))
-        a = fig.add_subplot(gs[0, 1 + k])
-        a.imshow(img[0, 0].cpu().numpy(), cmap="gray", vmin=0, vmax=1)
-        a.set_title(f"mesh, azimuth {azi}, elevation {ele}", fontsize=9)
-        a.axis("off")
+    _gray(fig.add_subplot(gs[0, 0]), run.image[0, 0].cpu().numpy(),
+          f"3D-MEI render\nneuron {run.neuron}, response {run.activation:.3f}", fontsize=9)
+    for k, (azi, ele, img) in enumerate(views):
+        _gray(fig.add_subplot(gs[0, 1 + k]), img, f"mesh, azimuth {azi}, elevation {ele}", fontsize=9)
     a = fig.add_subplot(gs[1, 0:2])
     a.plot(np.arange(1, len(run.history) + 1), run.history, lw=1.5)
     a.set_xlabel("step")

@@ -7,9 +7,15 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
+from .encoders import DEMO_MODEL_PATH, is_demo_model, load_demo_model
+from .mei import MEISettings, optimize_mei, pixel_mei, save_run
+from .plots import summary_sheet
+from .tuning import example_renders, light_sweep, pose_sweep, save_sweep, turned_views
 
 __all__ = ["run_story", "add_parser", "QUICK", "FULL"]
 
@@ -20,10 +26,8 @@ QUICK = dict(image_size=32, n_vertices=150, steps=25, seeds=(0,), pixel_steps=30
 
 def _default_neuron(encoder) -> int:
     """The shipped demo model's best-predicted neuron (highest test correlation with ground truth), else 0."""
-    from .encoders import DEMO_MODEL_PATH
-
     info = DEMO_MODEL_PATH.with_suffix(".json")
-    if getattr(encoder, "_meshmei_demo", False) and info.is_file():
+    if is_demo_model(encoder) and info.is_file():
         corr = json.loads(info.read_text()).get("test_correlation_with_ground_truth")
         if isinstance(corr, list) and corr:
             return int(np.nanargmax(np.asarray(corr, dtype=np.float64)))
@@ -52,12 +56,6 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     -------
     dict with the activations, the sweep maxima and the paths written.
     """
-    from .encoders import load_demo_model
-    from .mei import MEISettings, optimize_mei, save_run
-    from .mei.pixel import pixel_mei
-    from .plots import summary_sheet
-    from .tuning import example_renders, light_sweep, pose_sweep, save_sweep
-
     p = dict(FULL if preset is None else preset)
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
@@ -67,33 +65,13 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     encoder = load_demo_model() if encoder is None else encoder
     neuron = _default_neuron(encoder) if neuron is None else int(neuron)
     encoder.neuron_index(neuron)  # clear error for an out-of-range neuron before any work
-    log(f"[1/5] 3D-MEI of neuron {neuron} from a {init} ({p['steps']} steps x {len(p['seeds'])} seeds, "
-        f"{p['image_size']}x{p['image_size']} px)")
-    st = MEISettings(image_size=p["image_size"], n_vertices=p["n_vertices"], steps=p["steps"], seeds=tuple(p["seeds"]))
-    res = optimize_mei(encoder, neuron, init=init, settings=st, progress=True)
-    log(f"      response {res.activation:.4f} in {res.wall_time:.1f} s")
-
-    log("[2/5] pixel MEI in the same image space")
-    pix = pixel_mei(encoder, neuron, image_size=p["image_size"], steps=p["pixel_steps"], seeds=tuple(p["seeds"]))
-    res.extra["pixel_mei_activation"] = float(pix.activation)
-    log(f"      response {pix.activation:.4f}")
+    res, pix = _optimise(encoder, neuron, init, p, log)
     run_dir = save_run(res, out / "mei", overwrite=True)
-
-    n_pose = p["pose"]
-    log(f"[3/5] pose sweep, {n_pose} x {n_pose} (azimuth x elevation, -90..90 deg)")
-    pose = pose_sweep(res, encoder, elevation=np.linspace(-90, 90, n_pose), azimuth=np.linspace(-90, 90, n_pose))
-    save_sweep(pose, run_dir / "tuning_pose", overwrite=True)
-
-    n_el, n_az = p["light"]
-    log(f"[4/5] light sweep, {n_el} elevations x {n_az} azimuths over the camera-facing hemisphere")
-    light = light_sweep(res, encoder, elevation=np.linspace(0, 90, n_el),
-                        azimuth=np.linspace(0, 360, n_az, endpoint=False))
-    save_sweep(light, run_dir / "tuning_light", overwrite=True, images=example_renders(res, light))
-
+    pose, light = _sweep(res, encoder, run_dir, p, log)
     log("[5/5] summary sheet")
-    pix_img = pix.image[0, 0].detach().cpu().numpy() if hasattr(pix, "image") else None
-    sheet = summary_sheet(res, out / "summary", pixel_image=pix_img, pixel_activation=float(pix.activation))
-
+    pix_img = pix.image[0, 0].detach().cpu().numpy()
+    sheet = summary_sheet(res, out / "summary", turned_views(res), pixel_image=pix_img,
+                          pixel_activation=float(pix.activation))
     best_pose, best_light = pose.argmax(neuron), light.argmax(neuron)
     summary = {
         "neuron": neuron,
@@ -111,16 +89,51 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     }
     with open(out / "story.json", "w") as fh:
         json.dump(summary, fh, indent=1)
+    _report(summary, pose, out, run_dir, log)
+    return summary
+
+
+def _optimise(encoder, neuron, init, p, log):
+    """Steps 1 and 2: the 3D-MEI (carrying the pixel MEI's activation in its ``extra``) and the pixel MEI."""
+    log(f"[1/5] 3D-MEI of neuron {neuron} from a {init} ({p['steps']} steps x {len(p['seeds'])} seeds, "
+        f"{p['image_size']}x{p['image_size']} px)")
+    st = MEISettings(image_size=p["image_size"], n_vertices=p["n_vertices"], steps=p["steps"], seeds=tuple(p["seeds"]))
+    res = optimize_mei(encoder, neuron, init=init, settings=st, progress=True)
+    log(f"      response {res.activation:.4f} in {res.wall_time:.1f} s")
+    log("[2/5] pixel MEI in the same image space")
+    pix = pixel_mei(encoder, neuron, image_size=p["image_size"], steps=p["pixel_steps"], seeds=tuple(p["seeds"]))
+    log(f"      response {pix.activation:.4f}")
+    res = replace(res, extra={**res.extra, "pixel_mei_activation": float(pix.activation)})
+    return res, pix
+
+
+def _sweep(res, encoder, run_dir, p, log):
+    """Steps 3 and 4: the pose and light sweeps of the 3D-MEI, saved inside its run directory."""
+    n_pose = p["pose"]
+    log(f"[3/5] pose sweep, {n_pose} x {n_pose} (azimuth x elevation, -90..90 deg)")
+    pose = pose_sweep(res, encoder, elevation=np.linspace(-90, 90, n_pose), azimuth=np.linspace(-90, 90, n_pose))
+    save_sweep(pose, run_dir / "tuning_pose", overwrite=True)
+    n_el, n_az = p["light"]
+    log(f"[4/5] light sweep, {n_el} elevations x {n_az} azimuths over the camera-facing hemisphere")
+    light = light_sweep(res, encoder, elevation=np.linspace(0, 90, n_el),
+                        azimuth=np.linspace(0, 360, n_az, endpoint=False))
+    save_sweep(light, run_dir / "tuning_light", overwrite=True, images=example_renders(res, light))
+    return pose, light
+
+
+def _report(summary, pose, out, run_dir, log):
+    """The closing lines: responses, tuning maxima and where the files went."""
+    best_pose, best_light = summary["pose_best"], summary["light_best"]
     log("")
-    log(f"neuron {neuron}: 3D-MEI response {res.activation:.4f}, pixel MEI {pix.activation:.4f}")
+    log(f"neuron {summary['neuron']}: 3D-MEI response {summary['mei_activation']:.4f}, "
+        f"pixel MEI {summary['pixel_mei_activation']:.4f}")
     log(f"pose tuning: best {summary['pose_best_response']:.4f} at azimuth {best_pose['azimuth']:.0f}, "
         f"elevation {best_pose['elevation']:.0f} (original view {pose.reference['responses'][0]:.4f}); "
-        f"{n_pose * n_pose} renders in {pose.meta['seconds']:.1f} s")
+        f"{pose.meta['renders']} renders in {pose.meta['seconds']:.1f} s")
     log(f"light tuning: best {summary['light_best_response']:.4f} with the light at azimuth "
         f"{best_light['azimuth']:.0f}, elevation {best_light['elevation']:.0f}")
     log(f"files: {out}/summary.png, {run_dir} (mesh.obj, renders, summary.json), tuning_pose/, tuning_light/")
     log(f"total {summary['total_seconds']:.0f} s")
-    return summary
 
 
 def add_parser(sub) -> None:

@@ -205,23 +205,6 @@ def _demo_or_skip():
     return DEMO_MODEL_PATH, load_demo_model()
 
 
-def test_demo_model_ships_small_with_its_correlations():
-    path, model = _demo_or_skip()
-    info = json.loads(path.with_suffix(".json").read_text())
-    assert path.stat().st_size < 400_000
-    assert model.n_neurons == info["n_neurons"] == len(info["test_correlation_with_ground_truth"])
-    assert "SIMULATED" in info["what"] and not model.training
-    assert float(model.preprocess.mean) == pytest.approx(info["training_mean"])
-    assert info["mean_test_correlation_with_ground_truth"] >= 0.5
-    assert make_encoder_demo_kind(model) == "demo"
-
-
-def make_encoder_demo_kind(model):
-    from meshmei.mei.core import encoder_spec  # MERGE: meshmei.encoders
-
-    return encoder_spec(model)["kind"]
-
-
 def test_demo_neuron_3d_mei_beats_random_meshes_and_pixel_mei_is_higher_still():
     from meshmei.mei import random_mesh_responses
 

@@ -6,9 +6,8 @@ import math
 import pytest
 
 from meshmei.cli import main
-from meshmei.encoders import EncoderError
+from meshmei.encoders import EncoderError, make_encoder
 from meshmei.mei import load_run
-from meshmei.mei.core import make_encoder  # MERGE: meshmei.encoders
 from meshmei.story import QUICK, run_story
 from meshmei.tuning import load_sweep
 

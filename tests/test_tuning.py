@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from meshmei.cli import main
+from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, save_run
-from meshmei.mei.core import make_encoder  # MERGE: meshmei.encoders
 from meshmei.render import RenderSettings
 from meshmei.shapes import initial_mesh
 from meshmei.tuning import (
@@ -20,7 +20,9 @@ from meshmei.tuning import (
     pose_rotations,
     pose_sweep,
     response_groups,
+    run_tuning,
     save_sweep,
+    turned_views,
 )
 
 FREQ, SIGMA, ORIENT = 3.0, 0.3, math.pi / 6
@@ -181,3 +183,21 @@ def test_cli_tune_pose_and_light(tmp_path, sheet_mei, capsys):
     assert "out of range" in capsys.readouterr().err
     assert main(["tune", "pose", "--mei", str(run), "--azimuth", "0:10:0", "--overwrite"]) == 2
     assert "at least one angle" in capsys.readouterr().err
+
+
+def test_run_tuning_refuses_an_unknown_sweep(tmp_path):
+    with pytest.raises(TuningError, match="what must be 'pose' or 'light', got 'colour'"):
+        run_tuning("colour", tmp_path)
+
+
+def test_turned_views_frame_the_whole_mesh(sheet_mei):
+    views = turned_views(sheet_mei, views=((0, 0), (90, 0), (360, 0)))
+    assert [(a, e) for a, e, _ in views] == [(0, 0), (90, 0), (360, 0)]
+    S = sheet_mei.settings.image_size
+    for _, _, img in views:
+        assert img.shape == (S, S)
+        # framed: the whole mesh lies inside the image, so its border is background
+        border = np.concatenate([img[0], img[-1], img[:, 0], img[:, -1]])
+        assert np.allclose(border, border[0]) and (np.abs(img - border[0]) > 1e-3).any()
+    assert np.abs(views[0][2] - views[1][2]).max() > 0.1  # turned a quarter: another picture
+    np.testing.assert_allclose(views[2][2], views[0][2], atol=1e-3)  # turned all the way round: the same

@@ -8,8 +8,7 @@ from dataclasses import replace
 
 import torch
 
-from ..encoders import Encoder
-from .core import eval_mode  # MERGE
+from ..encoders import Encoder, eval_mode
 from ..errors import MEIError
 from .core import mesh_quality  # MERGE
 from .core import REGULARIZERS  # MERGE

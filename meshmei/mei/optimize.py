@@ -11,9 +11,7 @@ import time
 
 import torch
 
-from ..encoders import Encoder
-from .core import encoder_spec  # MERGE
-from .pixel import frozen_encoder  # MERGE: to encoders.base with eval_mode
+from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
 from ..optim import Budget, Progress, Schedule, Trace, minimize

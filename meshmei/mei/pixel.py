@@ -9,17 +9,16 @@ back to the norm sphere. Several random starts are run and the best kept.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as TF
 
-from ..encoders import Encoder, EncoderError
+from ..encoders import Encoder, EncoderError, frozen_encoder
 from ..optim import Budget, Progress, Schedule, Trace, minimize
 
-__all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "eval_mode", "frozen_encoder", "NormalizedAscent"]
+__all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "NormalizedAscent"]
 
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -42,32 +41,6 @@ def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     y = TF.conv2d(TF.pad(y, (r, r, 0, 0), mode="reflect"), k.view(1, 1, 1, -1))
     y = TF.conv2d(TF.pad(y, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))
     return y.view(B, C, H, W)
-
-
-@contextlib.contextmanager
-def eval_mode(module: torch.nn.Module):
-    """Put ``module`` in eval mode (deterministic readout) for the block, then restore its mode."""
-    was = module.training
-    module.eval()
-    try:
-        yield module
-    finally:
-        module.train(was)
-
-
-@contextlib.contextmanager
-def frozen_encoder(encoder: torch.nn.Module):
-    """Eval mode and no parameter gradients for the block; the encoder's mode and flags are restored after."""
-    params = list(encoder.parameters())
-    flags = [p.requires_grad for p in params]
-    with eval_mode(encoder):
-        for p in params:
-            p.requires_grad_(False)
-        try:
-            yield encoder
-        finally:
-            for p, fl in zip(params, flags):
-                p.requires_grad_(fl)
 
 
 @dataclass(frozen=True)

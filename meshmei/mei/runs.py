@@ -10,11 +10,10 @@ from pathlib import Path
 import torch
 
 from .._files import atomic_directory
-from ..encoders import Encoder
-from .core import _encoder_from_spec as encoder_from_spec  # MERGE
+from ..encoders import Encoder, encoder_from_spec
 from ..errors import MEIError
 from ..mesh import save_mesh
-from .core import _figures as mei_figures  # MERGE
+from ..plots import mei_figures
 from .core import mesh_quality  # MERGE
 from .settings import MEIResult, MEISettings, rebuild_deformer
 

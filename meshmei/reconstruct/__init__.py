@@ -1,7 +1,7 @@
 """Shape reconstruction by Chamfer minimisation: settings, schedules, sources and targets, the fit, outputs."""
 
 from .fit import reconstruct, stage_weights
-from .runs import plot_history, save_reconstruction
+from .runs import save_reconstruction
 from .schedule import (
     RBF_THREE_LEVEL_OVERRIDES,
     THREE_LEVEL_MIN_VERTICES,
@@ -39,5 +39,4 @@ __all__ = [
     "target_surface",
     "remesh",
     "save_reconstruction",
-    "plot_history",
 ]

@@ -1,0 +1,65 @@
+"""Sweeps on disk: ``sweep.npz`` (responses, axes), ``sweep.json`` (metadata) and the figures, written atomically."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import plots  # the module: each figure is looked up when drawn (a test swaps one out)
+from .._files import atomic_directory
+from ..errors import TuningError
+from .sweeps import Sweep, response_groups
+
+__all__ = ["SWEEP_FORMAT", "save_sweep", "load_sweep"]
+
+SWEEP_FORMAT = "meshmei-sweep-1"
+
+
+def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: bool = True, images=None) -> Path:
+    """Write ``sweep.npz`` (responses and axes), ``sweep.json`` (metadata) and plots, atomically.
+
+    ``images`` (optional) maps group labels to example renders for the light plot.
+    """
+
+    def write(tmp: Path):
+        np.savez(tmp / "sweep.npz", responses=sweep.responses, **{f"axis_{n}": v for n, v in sweep.axes})
+        if figures:
+            for nrn in sweep.neurons:
+                stem = tmp / f"{sweep.kind}_neuron{nrn}"
+                if sweep.kind == "pose":
+                    plots.plot_pose_heatmap(sweep, nrn, stem)
+                else:
+                    plots.plot_light_polar(sweep, nrn, stem, images=images)
+        meta = {"format": SWEEP_FORMAT, "complete": True, "kind": sweep.kind, "neurons": list(sweep.neurons),
+                "axes": [n for n, _ in sweep.axes], "reference": sweep.reference, "meta": sweep.meta}
+        if sweep.kind == "light":
+            meta["groups"] = {str(n): {k: v for k, v in response_groups(sweep, n).items() if k.endswith("example")}
+                              for n in sweep.neurons}
+        with open(tmp / "sweep.json", "w") as fh:
+            json.dump(meta, fh, indent=1)
+
+    return atomic_directory(directory, write, overwrite=overwrite, error=TuningError)
+
+
+def load_sweep(directory) -> Sweep:
+    """Read a directory written by :func:`save_sweep`; raises TuningError if it is missing or incomplete."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise TuningError(f"no sweep directory at {directory}")
+    try:
+        with open(directory / "sweep.json") as fh:
+            meta = json.load(fh)
+        data = np.load(directory / "sweep.npz")
+        if meta.get("format") != SWEEP_FORMAT or meta.get("complete") is not True:
+            raise TuningError(f"{directory} holds no complete sweep of format {SWEEP_FORMAT}")
+        axes = tuple((n, data[f"axis_{n}"]) for n in meta["axes"])
+        responses = data["responses"]
+    except TuningError:
+        raise
+    except (OSError, KeyError, ValueError, json.JSONDecodeError) as err:
+        raise TuningError(f"{directory} is not a readable sweep: {type(err).__name__}: {err}") from None
+    if responses.shape != (len(meta["neurons"]), *[len(v) for _, v in axes]):
+        raise TuningError(f"{directory}: responses of shape {responses.shape} do not match the axes")
+    return Sweep(meta["kind"], responses, axes, tuple(meta["neurons"]), meta.get("reference", {}), meta.get("meta", {}))

@@ -1,0 +1,69 @@
+"""The grids of a tuning sweep: object rotations over elevation x azimuth (x roll), light positions.
+
+The scene is the paper's: the camera on +z looking at the origin with +y up, so image right is +x and
+image up is +y. Angles are in degrees.
+
+- Pose: the object turns about its own centre. Azimuth turns its front (the face seen by the camera)
+  towards image right (a rotation about +y), elevation tilts the front up (about -x), and roll
+  (optional) turns the image plane counter-clockwise as seen by the camera (about +z, the view axis).
+  They apply in that order, on top of the run's own pose. (0, 0, 0) is the original view.
+- Light: a point light at ``distance`` from the origin on the hemisphere facing the camera, at
+  ``d * (cos(el) cos(az), cos(el) sin(az), sin(el))``: elevation 90 is at the camera's axis, elevation 0
+  grazes in the image plane, azimuth 0 lights from image right, 90 from above, 180 from the left.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..errors import TuningError
+from ..render import axis_angle_to_matrix
+
+__all__ = ["check_angles", "pose_rotations", "light_positions"]
+
+
+def check_angles(name, values, lo=None, hi=None) -> np.ndarray:
+    """Angles in degrees as a flat float64 array ``(g,)``; raise TuningError if empty, not finite or outside
+    ``[lo, hi]``."""
+    a = np.asarray(values, dtype=np.float64).reshape(-1)
+    if a.size == 0:
+        raise TuningError(f"{name} range is empty; give at least one angle")
+    if not np.isfinite(a).all():
+        raise TuningError(f"{name} holds NaN or Inf: {a.tolist()[:8]}")
+    if lo is not None and (a.min() < lo or a.max() > hi):
+        raise TuningError(f"{name} must lie in [{lo}, {hi}] degrees, got [{a.min()}, {a.max()}]")
+    return a
+
+
+def _rot(axis, deg, dtype):
+    aa = torch.zeros(len(deg), 3, dtype=dtype)
+    aa[:, axis] = torch.as_tensor(np.radians(deg), dtype=dtype)
+    return axis_angle_to_matrix(aa)
+
+
+def pose_rotations(elevation, azimuth, roll=None, *, dtype=torch.float32) -> torch.Tensor:
+    """Rotation matrices ``(E, A[, R], 3, 3)`` for a grid of elevation x azimuth (x roll), degrees.
+
+    ``R = R_roll(z) @ R_elevation(-x) @ R_azimuth(y)``: azimuth first, then elevation, then roll.
+    """
+    el, az = check_angles("elevation", elevation), check_angles("azimuth", azimuth)
+    rl = np.zeros(1) if roll is None else check_angles("roll", roll)
+    Ry = _rot(1, az, dtype)  # (A, 3, 3)
+    Rx = _rot(0, -el, dtype)  # (E, 3, 3)
+    Rz = _rot(2, rl, dtype)  # (R, 3, 3)
+    R = Rz[None, None] @ Rx[:, None, None] @ Ry[None, :, None]  # (E, A, R, 3, 3)
+    return R if roll is not None else R[:, :, 0]
+
+
+def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32) -> torch.Tensor:
+    """Light positions ``(E, A, 3)`` on the camera-facing hemisphere (see the module docstring)."""
+    el = np.radians(check_angles("elevation", elevation, 0.0, 90.0))
+    az = np.radians(check_angles("azimuth", azimuth))
+    if not (isinstance(distance, (int, float)) and math.isfinite(distance) and distance > 0):
+        raise TuningError(f"light distance must be a positive number, got {distance!r}")
+    E, A = np.meshgrid(el, az, indexing="ij")
+    P = distance * np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
+    return torch.as_tensor(P, dtype=dtype)

@@ -1,0 +1,82 @@
+"""Building encoders by name, describing them as JSON and rebuilding them; the shipped demo model's record."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from meshmei.encoders import (
+    DEMO_MODEL_PATH,
+    CoreReadoutModel,
+    GaborComplexCell,
+    GaborSimpleCell,
+    encoder_from_spec,
+    encoder_spec,
+    is_demo_model,
+    load_demo_model,
+    make_encoder,
+)
+from meshmei.errors import MEIError
+
+
+@pytest.mark.parametrize("kind, cls", [("gabor-simple", GaborSimpleCell), ("gabor-complex", GaborComplexCell)])
+def test_gabor_spec_round_trip_rebuilds_the_same_cell(kind, cls):
+    cell = make_encoder(kind, orientation=[0.2, 1.0], frequency=3.0, sigma=0.3, mean=0.4, std=0.1)
+    assert isinstance(cell, cls)
+    spec = encoder_spec(cell)
+    assert json.loads(json.dumps(spec)) == spec  # JSON-able as it stands
+    assert spec["kind"] == kind and spec["class"] == cls.__name__ and spec["n_neurons"] == 2
+    assert spec["upper_bound"] == 1.0 and spec["mean"] == pytest.approx(0.4)
+    back = encoder_from_spec(spec)
+    assert isinstance(back, cls) and encoder_spec(back) == spec
+    x = torch.rand(3, 1, 24, 24, dtype=torch.float64)
+    torch.testing.assert_close(back(x), cell(x), rtol=0, atol=0)
+
+
+def test_custom_encoder_is_described_but_not_rebuilt():
+    model = CoreReadoutModel(3, mean=0.2, std=0.5)
+    spec = encoder_spec(model)
+    assert spec["kind"] == "custom" and spec["class"] == "CoreReadoutModel" and spec["upper_bound"] is None
+    assert not is_demo_model(model)
+    with pytest.raises(MEIError, match="cannot rebuild a CoreReadoutModel encoder"):
+        encoder_from_spec(spec)
+
+
+def test_unknown_encoder_name_raises_mei_error():
+    with pytest.raises(MEIError, match="unknown encoder 'gabor'; expected 'gabor-simple', 'gabor-complex' or 'demo'"):
+        make_encoder("gabor", orientation=math.pi)
+
+
+# ---------------------------------------------------------------------------------------------- demo model
+
+def _demo_or_skip():
+    if not DEMO_MODEL_PATH.is_file():
+        pytest.skip("demo model not built (python data_gen/make_demo_model.py)")
+    return DEMO_MODEL_PATH, load_demo_model()
+
+
+def test_demo_model_ships_small_with_its_correlations():
+    path, model = _demo_or_skip()
+    info = json.loads(path.with_suffix(".json").read_text())
+    assert path.stat().st_size < 400_000
+    assert model.n_neurons == info["n_neurons"] == len(info["test_correlation_with_ground_truth"])
+    assert "SIMULATED" in info["what"] and not model.training
+    assert float(model.preprocess.mean) == pytest.approx(info["training_mean"])
+    assert info["mean_test_correlation_with_ground_truth"] >= 0.5
+    assert make_encoder_demo_kind(model) == "demo"
+
+
+def make_encoder_demo_kind(model):
+    return encoder_spec(model)["kind"]
+
+
+def test_demo_model_is_rebuilt_by_name():
+    _, model = _demo_or_skip()
+    assert is_demo_model(model) and is_demo_model(make_encoder("demo"))
+    back = encoder_from_spec(encoder_spec(model))
+    assert is_demo_model(back)
+    x = torch.rand(2, 1, 32, 32)
+    torch.testing.assert_close(back(x), model(x), rtol=0, atol=0)
