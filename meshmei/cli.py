@@ -24,13 +24,15 @@ from .reconstruct import (
     target_surface,
 )
 from .shapes import INITIAL_KINDS
+from .story import FULL, QUICK, run_story
+from .tuning import parse_range, run_tuning
 from .shapes.core import DEFAULT_N_VERTICES  # MERGE: meshmei.shapes
 
 __all__ = ["main", "build_parser"]
 
 ENCODERS = ("gabor-simple", "gabor-complex", "demo")
 # commands whose parsers still live with their modules (MERGE: move here)
-MODULE_COMMANDS = {"demo": "meshmei.story", "regularizers": "meshmei.demo", "tune": "meshmei.tuning"}
+MODULE_COMMANDS = {"regularizers": "meshmei.demo"}
 
 
 def _add_mei(sub) -> None:
@@ -144,13 +146,47 @@ def _run_reconstruct(args) -> int:
     return 0
 
 
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="the main job: 3D-MEI of a demo neuron, its pose and light tuning, plots")
+    p.add_argument("--out", default="meshmei-demo", help="output directory (default: ./meshmei-demo)")
+    p.add_argument("--neuron", type=int, default=None, help="default: the best-predicted demo neuron")
+    p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
+    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=lambda a: run_story(a.out, neuron=a.neuron, init=a.init, preset=QUICK if a.quick else FULL,
+                                            overwrite=a.overwrite) and 0)
+
+
+def _add_tune(sub) -> None:
+    p = sub.add_parser("tune", help="sweep the pose or the light of a saved MEI run and plot the tuning")
+    p.add_argument("what", choices=["pose", "light"])
+    p.add_argument("--mei", required=True, help="a run directory written by 'meshmei mei'")
+    p.add_argument("--out", default=None, help="output directory (default: MEI_DIR/tuning_<what>)")
+    p.add_argument("--neurons", type=int, nargs="+", default=None, help="default: the run's neuron")
+    p.add_argument("--elevation", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:90:10)")
+    p.add_argument("--azimuth", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:350:36)")
+    p.add_argument("--roll", default=None, help="lo:hi:n degrees: add an in-plane roll axis to a pose sweep")
+    p.add_argument("--distance", type=float, default=None, help="light distance (default: the camera's)")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=_run_tune)
+
+
+def _run_tune(args) -> int:
+    # the command line gives ranges as text; everything else is run_tuning's
+    ranges = {k: None if getattr(args, k) is None else parse_range(getattr(args, k))
+              for k in ("elevation", "azimuth", "roll")}
+    run_tuning(args.what, args.mei, args.out, neurons=args.neurons, distance=args.distance,
+               overwrite=args.overwrite, **ranges)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshmei", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     for name, module in MODULE_COMMANDS.items():
         importlib.import_module(module).add_parser(sub)
-    _add_reconstruct(sub)
-    _add_mei(sub)
+    for add in (_add_demo, _add_reconstruct, _add_tune, _add_mei):
+        add(sub)
     return parser
 
 

@@ -17,7 +17,7 @@ from .mei import MEISettings, optimize_mei, pixel_mei, save_run
 from .plots import summary_sheet
 from .tuning import example_renders, light_sweep, pose_sweep, save_sweep, turned_views
 
-__all__ = ["run_story", "add_parser", "QUICK", "FULL"]
+__all__ = ["run_story", "QUICK", "FULL"]
 
 # Sizes of the two presets: the full job (the README's) and a quick one for tests and smoke runs.
 FULL = dict(image_size=64, n_vertices=600, steps=200, seeds=(0, 1), pixel_steps=200, pose=37, light=(10, 36))
@@ -134,14 +134,3 @@ def _report(summary, pose, out, run_dir, log):
         f"{best_light['azimuth']:.0f}, elevation {best_light['elevation']:.0f}")
     log(f"files: {out}/summary.png, {run_dir} (mesh.obj, renders, summary.json), tuning_pose/, tuning_light/")
     log(f"total {summary['total_seconds']:.0f} s")
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser("demo", help="the main job: 3D-MEI of a demo neuron, its pose and light tuning, plots")
-    p.add_argument("--out", default="meshmei-demo", help="output directory (default: ./meshmei-demo)")
-    p.add_argument("--neuron", type=int, default=None, help="default: the best-predicted demo neuron")
-    p.add_argument("--init", default="sheet", choices=["sheet", "sphere", "torus"])
-    p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
-    p.add_argument("--overwrite", action="store_true")
-    p.set_defaults(func=lambda a: run_story(a.out, neuron=a.neuron, init=a.init, preset=QUICK if a.quick else FULL,
-                                            overwrite=a.overwrite) and 0)

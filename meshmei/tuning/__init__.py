@@ -7,8 +7,8 @@ for figures, :mod:`.files` saves and loads sweeps, and :mod:`.run` sweeps a save
 
 from ..errors import TuningError
 from .files import SWEEP_FORMAT, load_sweep, save_sweep
-from .grids import check_angles, light_positions, pose_rotations
-from .run import add_parser, run_tuning
+from .grids import check_angles, light_positions, parse_range, pose_rotations
+from .run import run_tuning
 from .sweeps import Sweep, camera_distance, light_sweep, pose_sweep, response_groups
 from .views import example_renders, turned_views
 
@@ -28,5 +28,5 @@ __all__ = [
     "save_sweep",
     "load_sweep",
     "run_tuning",
-    "add_parser",
+    "parse_range",
 ]

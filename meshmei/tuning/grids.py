@@ -22,7 +22,7 @@ import torch
 from ..errors import TuningError
 from ..render import axis_angle_to_matrix
 
-__all__ = ["check_angles", "pose_rotations", "light_positions"]
+__all__ = ["check_angles", "pose_rotations", "light_positions", "parse_range"]
 
 
 def check_angles(name, values, lo=None, hi=None) -> np.ndarray:
@@ -67,3 +67,16 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32)
     E, A = np.meshgrid(el, az, indexing="ij")
     P = distance * np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
     return torch.as_tensor(P, dtype=dtype)
+
+
+def parse_range(text: str) -> np.ndarray:
+    """``"lo:hi:n"`` -> n angles from lo to hi inclusive."""
+    try:
+        lo, hi, n = text.split(":")
+        n = int(n)
+        lo, hi = float(lo), float(hi)
+    except ValueError:
+        raise TuningError(f"a range is 'lo:hi:n' (degrees, count), got {text!r}") from None
+    if n < 1:
+        raise TuningError(f"a range needs at least one angle, got n={n} in {text!r}")
+    return np.linspace(lo, hi, n)
