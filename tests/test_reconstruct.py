@@ -376,7 +376,7 @@ def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
 
 def test_source_mesh_places_the_torus_for_its_target():
     from meshmei.reconstruct import SOURCE_NAMES, source_mesh
-    from meshmei.shapes import torus_through_opening
+    from meshmei.reconstruct.openings import torus_through_opening
 
     teapot, bunny = target_surface("teapot"), target_surface("bunny")
     centred = initial_mesh("torus", n_vertices=300)

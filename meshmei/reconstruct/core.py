@@ -362,7 +362,8 @@ def source_mesh(spec, *, n_vertices: int = 2500, dtype=torch.float32, target=Non
 
 def _resolve_source(spec, n_vertices, dtype, target):
     """``(V, F, placement)``: placement says how a named torus was placed (None for everything else)."""
-    from ..shapes import find_opening, initial_mesh, torus_through_opening
+    from ..shapes import initial_mesh
+    from .openings import find_opening, torus_through_opening
 
     placement = None
     if isinstance(spec, str) and spec in SOURCE_NAMES:
