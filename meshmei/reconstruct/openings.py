@@ -322,7 +322,9 @@ def torus_through_opening(V, F, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=t
     Returns
     -------
     V : (k, 3) float tensor
+        The placed torus's vertices, in ``dtype``.
     F : (l, 3) int64 tensor
+        Its triangles, those of ``initial_mesh("torus", n_vertices=n_vertices)``.
 
     Raises
     ------

@@ -202,7 +202,9 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
     Returns
     -------
     V : (n, 3) float tensor
+        Centred on the bounding-box centre, at unit bounding-box diagonal.
     F : (m, 3) int64 tensor
+        Triangles, oriented outward; every vertex is referenced.
 
     Raises
     ------

@@ -21,7 +21,7 @@ from .membrane import membrane_floor
 from .problems import BUDGETS, PROBLEMS, RESOLUTIONS, VARIANTS, variant_settings
 from .rbf_cost import rbf_cost
 from .report import render
-from .records import Case, Records, RunKey
+from .records import Records, RunKey
 
 __all__ = ["main", "start_mesh", "decimation_floor", "warm_up"]
 
