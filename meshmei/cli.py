@@ -23,10 +23,9 @@ from .reconstruct import (
     schedule_from_text,
     target_surface,
 )
-from .shapes import INITIAL_KINDS
+from .shapes import DEFAULT_N_VERTICES, INITIAL_KINDS
 from .story import FULL, QUICK, run_story
 from .tuning import parse_range, run_tuning
-from .shapes.core import DEFAULT_N_VERTICES  # MERGE: meshmei.shapes
 
 __all__ = ["main", "build_parser"]
 

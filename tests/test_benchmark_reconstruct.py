@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from meshmei.benchmarks.reconstruct import (_teapot_piece_names, best_of_runs, on_checkpoints, slower_levels,
-                                            time_to_reach)
+from meshmei.benchmarks.reconstruct import best_of_runs, on_checkpoints, slower_levels, time_to_reach
+from meshmei.benchmarks.reconstruct import teapot_piece_names as _teapot_piece_names
 
 
 def test_checkpoints_absorb_the_step_after_each_evaluation_time():
@@ -109,3 +109,59 @@ def test_render_shows_areas_and_checks_blocking_results_against_the_membrane_flo
     assert "Runs of 50 s count in the best of the runs too, for the configurations that have them (teapot 2500 rbf)" \
         in text
     assert "@50 s" not in text
+
+
+def test_keys_are_typed_inside_and_text_only_in_the_json():
+    from meshmei.benchmarks.reconstruct import Case, Records, RunKey
+    from meshmei.benchmarks.reconstruct.records import key_text, ordered
+
+    key = RunKey.from_text("teapot-centred|10000|rbf-3levels")
+    assert key == RunKey("teapot-centred", 10000, "rbf-3levels") and key.case == Case("teapot-centred", 10000)
+    assert key_text(key) == "teapot-centred|10000|rbf-3levels" and key_text(key.case, ", ") == "teapot-centred, 10000"
+    # counts sort as numbers (2500 before 10000), problems and variants in the benchmark's order
+    results = {RunKey("teapot", 10000, "rbf"): 1, RunKey("bunny", 10000, "vertex"): 2, RunKey("bunny", 2500, "vertex"): 3,
+               RunKey("bunny", 10000, "rbf"): 4}
+    assert [v for _, v in ordered(results)] == [3, 4, 2, 1]
+    raw = {"results": {"bunny|2500|rbf": {"run": "r"}}, "floors": {"bunny|2500": {"faces": 1}}}
+    records = Records.from_json(raw)
+    assert records.results == {RunKey("bunny", 2500, "rbf"): {"run": "r"}} and records.membrane == {}
+    assert records.to_json() == dict(raw, membrane={})
+
+
+def test_the_stored_json_reads_and_writes_back_unchanged(tmp_path):
+    from pathlib import Path
+
+    from meshmei.benchmarks.reconstruct import Records
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "reconstruction_benchmark.json"
+    if not path.exists():
+        pytest.skip("no stored benchmark results")
+    Records.load(path).save(tmp_path / "copy.json")
+    assert (tmp_path / "copy.json").read_text() == path.read_text()
+
+
+def test_variants_take_their_schedule_from_default_schedule():
+    from meshmei.benchmarks.reconstruct import RESOLUTIONS, VARIANTS, variant_settings
+    from meshmei.reconstruct import RBF_THREE_LEVEL_OVERRIDES, default_schedule, default_stages
+
+    for name, variant in VARIANTS.items():
+        for n in RESOLUTIONS:
+            settings = variant_settings(name, n)
+            stages, fractions, overrides = default_schedule(variant.method, n, variant.levels)
+            assert (settings["stages"], settings["stage_fractions"], settings["stage_overrides"]) == (stages, fractions,
+                                                                                                    overrides)
+            assert (settings["stages"], settings["stage_fractions"]) == default_stages(n, variant.levels)
+    # what the benchmark ran before its variants came from default_schedule
+    assert variant_settings("rbf-3levels", 10000)["stage_overrides"] == RBF_THREE_LEVEL_OVERRIDES
+    assert variant_settings("largesteps-3levels", 10000)["stage_overrides"] is None
+    assert variant_settings("rbf", 10000) == dict(zip(("stages", "stage_fractions"), default_stages(10000)),
+                                                  stage_overrides=None)
+    assert variant_settings("rbf-nolap", 2500)["w_laplacian"] == 0.0
+
+
+def test_help_works(capsys):
+    from meshmei.benchmarks.reconstruct import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0 and "--render-only" in capsys.readouterr().out

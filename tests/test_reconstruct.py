@@ -11,7 +11,7 @@ from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
 from meshmei.reconstruct import (RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages, reconstruct,
-                                 remesh, source_mesh, target_surface)
+                                 source_mesh, target_surface)
 from meshmei.shapes import initial_mesh, target_mesh
 
 from conftest import icosphere
@@ -157,27 +157,6 @@ def test_target_files_are_normalised(tmp_path):
     ext = Vt.max(0).values - Vt.min(0).values
     assert float(ext.norm()) == pytest.approx(1.0, rel=1e-6)
     assert float((Vt.max(0).values + Vt.min(0).values).abs().max()) < 1e-6
-
-
-def test_remesh_reaches_about_the_requested_count(sphere):
-    V, F = remesh(*sphere, 1000)
-    assert abs(V.shape[0] - 1000) < 200
-    assert F.dtype == torch.int64
-
-
-def test_remesh_rejects_bad_counts_and_zero_area(sphere):
-    # n_vertices=0 returned the input unchanged (with a division warning), NaN returned a coarse mesh,
-    # -5 said 'math domain error'; a zero-area mesh came back from pymeshlab empty ('mesh is empty')
-    V, F = sphere
-    for n in (0, -5, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match=f"n_vertices must be positive and finite, got {n!r}"):
-            remesh(V, F, n)
-    with pytest.raises(ValueError, match="n_vertices must be a positive integer, got 2.5"):
-        remesh(V, F, 2.5)
-    with pytest.raises(ValueError, match="iterations must be positive and finite, got 0"):
-        remesh(V, F, 200, iterations=0)
-    with pytest.raises(MeshError, match=r"cannot remesh a mesh of zero surface area \(\d+ vertices"):
-        remesh(V * 0, F, 200)
 
 
 @pytest.mark.parametrize("method", ["vertex", "largesteps"])
@@ -376,7 +355,7 @@ def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
 
 def test_source_mesh_places_the_torus_for_its_target():
     from meshmei.reconstruct import SOURCE_NAMES, source_mesh
-    from meshmei.shapes import torus_through_opening
+    from meshmei.reconstruct.openings import torus_through_opening
 
     teapot, bunny = target_surface("teapot"), target_surface("bunny")
     centred = initial_mesh("torus", n_vertices=300)

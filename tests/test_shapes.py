@@ -1,4 +1,5 @@
-"""Tests for meshmei.shapes: initial meshes (sheet, sphere, torus) and targets (bunny, teapot)."""
+"""Tests for meshmei.shapes: initial meshes (sheet, sphere, torus), targets (bunny, teapot), remeshing and
+unit-diagonal normalisation."""
 
 import doctest
 import math
@@ -9,7 +10,8 @@ import pytest
 import torch
 
 from meshmei import shapes
-from meshmei.shapes import initial_mesh, target_mesh
+from meshmei.errors import MeshError
+from meshmei.shapes import initial_mesh, normalize_unit_diagonal, remesh, target_mesh
 
 KINDS = ("sheet", "sphere", "torus")
 EULER = {"sheet": 1, "sphere": 2, "torus": 0}
@@ -313,241 +315,74 @@ def test_vertex_count_tracks_the_request_across_icosphere_levels(kind, n):
     assert abs(V.shape[0] - n) <= 0.11 * n
 
 
-def test_find_opening_finds_a_torus_hole_whatever_its_axis_and_place():
-    from meshmei.shapes import find_opening
-
-    V, F = initial_mesh("torus", n_vertices=1500, dtype=torch.float64)
-    centre, axis, clearance = find_opening(V, F)
-    assert np.array_equal(axis, [0, 0, 1])  # within a degree of a coordinate axis: snapped to it
-    np.testing.assert_allclose(centre, [0, 0, 0], atol=0.02)
-    assert clearance == pytest.approx(0.2, abs=0.01)  # hole radius 0.35 - 0.15
-    # turned to axis x and moved: the same hole, found there
-    shift = np.array([0.3, -0.2, 0.1])
-    W = V[:, [2, 0, 1]] + torch.from_numpy(shift)
-    centre, axis, clearance = find_opening(W, F)
-    assert np.array_equal(axis, [1, 0, 0])
-    np.testing.assert_allclose(centre, shift, atol=0.02)
-    assert clearance == pytest.approx(0.2, abs=0.01)
+# --- remeshing (tests as they stand for meshmei.reconstruct.remesh in tests/test_reconstruct.py) ----------
 
 
-@pytest.mark.parametrize("size", [1e-2, 1e-6, 1e3])
-def test_find_opening_is_the_same_at_any_size(size):
-    # libigl's ray caster missed every hit on a mesh 1e-2 across, so a small mesh had no opening at all
-    from meshmei.shapes import find_opening
-
-    V, F = initial_mesh("torus", n_vertices=800, dtype=torch.float64)
-    c1, a1, r1 = find_opening(V, F, grid=12, directions=8)
-    found = find_opening(V * size, F, grid=12, directions=8)
-    assert found is not None
-    centre, axis, clearance = found
-    assert np.array_equal(axis, a1)
-    assert clearance == pytest.approx(r1 * size, rel=1e-6)
-    np.testing.assert_allclose(centre, c1 * size, rtol=0, atol=1e-3 * size)
+@pytest.fixture(scope="module")
+def sphere():
+    return initial_mesh("sphere", n_vertices=300)
 
 
-@pytest.mark.parametrize("seed", [0, 4])
-def test_find_opening_finds_a_tilted_hole_and_its_axis(seed):
-    from scipy.spatial.transform import Rotation
-
-    from meshmei.shapes import find_opening
-
-    # a torus with a ball beside it (so that no principal axis of the vertices is the hole's axis), turned
-    # so that the axis is far from every coordinate axis: only the spread candidate directions can find it
-    V, F = initial_mesh("torus", n_vertices=1500, dtype=torch.float64)
-    S, G = initial_mesh("sphere", n_vertices=300, dtype=torch.float64)
-    V, F = torch.cat([V, 0.4 * S + torch.tensor([0.7, 0.0, 0.45], dtype=torch.float64)]), torch.cat([F, G + len(V)])
-    R = Rotation.random(random_state=seed).as_matrix()
-    shift = np.array([0.3, -0.2, 0.1])
-    W = (V @ torch.from_numpy(R).T + torch.from_numpy(shift)).numpy()
-    principal = np.linalg.eigh(np.cov((W - W.mean(0)).T))[1].T
-    assert np.abs(principal @ R[:, 2]).max() < np.cos(np.deg2rad(20))
-    assert np.abs(R[:, 2]).max() < np.cos(np.deg2rad(30))
-    centre, axis, clearance = find_opening(W, F)
-    assert np.linalg.norm(axis) == pytest.approx(1.0) and axis[np.argmax(np.abs(axis))] > 0
-    assert abs(axis @ R[:, 2]) > np.cos(np.deg2rad(2.0))
-    np.testing.assert_allclose(centre, shift, atol=0.005)
-    assert clearance == pytest.approx(0.2, abs=0.01)
+def test_remesh_reaches_about_the_requested_count(sphere):
+    V, F = remesh(*sphere, 1000)
+    assert abs(V.shape[0] - 1000) < 200
+    assert F.dtype == torch.int64
 
 
-def test_torus_through_a_turned_teapots_opening_turns_with_it():
-    from scipy.spatial.transform import Rotation
-
-    from meshmei.shapes import find_opening, torus_through_opening
-
-    Vt, Ft = target_mesh("teapot", dtype=torch.float64)
-    c0, a0, r0 = find_opening(Vt, Ft)
-    R = Rotation.from_euler("xyz", [35, -20, 50], degrees=True).as_matrix()
-    Vr = Vt @ torch.from_numpy(R).T
-    centre, axis, clearance = find_opening(Vr, Ft)
-    assert np.linalg.norm(centre - R @ c0) < 0.005
-    assert abs(axis @ (R @ a0)) > np.cos(np.deg2rad(2.0))
-    assert clearance == pytest.approx(r0, rel=0.05)
-    V, _ = torus_through_opening(Vr, Ft, n_vertices=800)
-    Vd = V.double().numpy()
-    # centred on the opening, the hole twice the clearance, thin (tube diameter 0.3 * scale) along the axis
-    scale = 2 * clearance / 0.2
-    np.testing.assert_allclose(Vd.mean(0), centre, atol=2e-3)
-    along = (Vd - centre) @ axis
-    assert along.max() - along.min() == pytest.approx(0.3 * scale, rel=0.02)
-    radial = np.linalg.norm((Vd - centre) - along[:, None] * axis, axis=1)
-    assert radial.max() == pytest.approx(0.5 * scale, rel=0.02) and radial.min() == pytest.approx(2 * clearance, rel=0.02)
+def test_remesh_rejects_bad_counts_and_zero_area(sphere):
+    # n_vertices=0 returned the input unchanged (with a division warning), NaN returned a coarse mesh,
+    # -5 said 'math domain error'; a zero-area mesh came back from pymeshlab empty ('mesh is empty')
+    V, F = sphere
+    for n in (0, -5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=f"n_vertices must be positive and finite, got {n!r}"):
+            remesh(V, F, n)
+    with pytest.raises(ValueError, match="n_vertices must be a positive integer, got 2.5"):
+        remesh(V, F, 2.5)
+    with pytest.raises(ValueError, match="iterations must be positive and finite, got 0"):
+        remesh(V, F, 200, iterations=0)
+    with pytest.raises(MeshError, match=r"cannot remesh a mesh of zero surface area \(\d+ vertices"):
+        remesh(V * 0, F, 200)
 
 
-def test_find_opening_on_a_sphere_is_none_and_the_placed_torus_says_why():
-    from meshmei.errors import MeshError
-    from meshmei.shapes import find_opening, torus_through_opening
-
-    V, F = initial_mesh("sphere", n_vertices=800, dtype=torch.float64)
-    assert find_opening(V, F) is None
-    with pytest.raises(MeshError, match="no through-hole"):
-        torus_through_opening(V, F)
+def test_remesh_keeps_dtype_and_device_and_gives_a_clean_closed_mesh(sphere):
+    V, F = remesh(sphere[0].double(), sphere[1], 600)
+    assert V.dtype == torch.float64 and V.device == sphere[0].device
+    _check_clean(*_np(V, F))
+    assert igl.euler_characteristic(F.numpy()) == 2 and len(_boundary_edges(F.numpy())) == 0
 
 
-def test_torus_through_the_teapots_opening_goes_through_the_handle():
-    import igl
-
-    from meshmei.shapes import find_opening, torus_through_opening
-
-    Vt, Ft = target_mesh("teapot", dtype=torch.float64)
-    centre, axis, clearance = find_opening(Vt, Ft)
-    # the handle's opening: left of the body, in the handle's plane y = 0, axis y, empty space
-    assert np.array_equal(axis, [0, 1, 0]) and centre[0] < -0.25 and abs(centre[1]) < 0.01 and 0.03 < clearance < 0.06
-    assert abs(igl.fast_winding_number(Vt.numpy(), Ft.numpy(), centre[None])[0]) < 0.5
-    V, F = torus_through_opening(Vt, Ft, n_vertices=800)
-    assert V.dtype == torch.float32 and F.shape == initial_mesh("torus", n_vertices=800)[1].shape
-    Vd = V.double().numpy()
-    np.testing.assert_allclose(0.5 * (Vd.min(0) + Vd.max(0)), centre, atol=2e-3)
-    # axis y: the torus is thin along y (tube diameter 0.3 * scale) and its hole has radius 2 * clearance
-    scale = 2 * clearance / 0.2
-    np.testing.assert_allclose(Vd.max(0) - Vd.min(0), [scale, 0.3 * scale, scale], atol=5e-3)
-    assert np.linalg.norm(Vd - centre, axis=1).min() == pytest.approx(2 * clearance, rel=0.02)
+def test_remesh_is_deterministic(sphere):
+    V1, F1 = remesh(*sphere, 500)
+    V2, F2 = remesh(*sphere, 500)
+    assert torch.equal(V1, V2) and torch.equal(F1, F2)
 
 
-def test_find_opening_ignores_dents_closed_along_the_axis():
-    from meshmei.shapes import find_opening
-
-    # The bunny (closed, genus 0) has dents that are surrounded in a plane but closed along its normal.
-    assert find_opening(*target_mesh("bunny")) is None
+# --- unit-diagonal normalisation ---------------------------------------------------------------------
 
 
-def test_find_opening_rejects_an_invalid_mesh():
-    from meshmei.errors import MeshError
-    from meshmei.shapes import find_opening
-
-    V, F = initial_mesh("torus", n_vertices=600, dtype=torch.float64)
-    V = V.clone()
-    V[5, 0] = float("nan")
-    with pytest.raises(MeshError, match="NaN"):
-        find_opening(V, F)
-    with pytest.raises(MeshError):
-        find_opening(V[:, :2], F)
-
-
-@pytest.mark.parametrize("kwargs, match", [({"grid": 3}, "grid"), ({"rays": 4}, "rays"), ({"directions": -1}, "directions"),
-                                           ({"grid": 10.5}, "grid"), ({"directions": True}, "directions")])
-def test_find_opening_rejects_bad_settings(kwargs, match):
-    from meshmei.shapes import find_opening
-
-    V, F = initial_mesh("torus", n_vertices=600, dtype=torch.float64)
-    with pytest.raises(ValueError, match=match):
-        find_opening(V, F, **kwargs)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_normalize_unit_diagonal_centres_and_scales(dtype):
+    V = torch.tensor([[1.0, 2.0, 3.0], [5.0, 2.0, 3.0], [1.0, 5.0, 3.0], [2.0, 3.0, 3.0]], dtype=dtype)
+    W = normalize_unit_diagonal(V)
+    assert W.dtype == dtype
+    lo, hi = W.min(0).values, W.max(0).values
+    torch.testing.assert_close(hi + lo, torch.zeros(3, dtype=dtype))
+    assert float((hi - lo).norm()) == pytest.approx(1.0, rel=1e-6)
+    torch.testing.assert_close(W, (V - torch.tensor([3.0, 3.5, 3.0], dtype=dtype)) / 5.0)
+    # a shifted and scaled copy normalises to the same vertices
+    torch.testing.assert_close(normalize_unit_diagonal(7.0 * V - 2.0), W)
 
 
-def test_membrane_floor_of_a_torus_is_the_closed_form_from_below():
-    from meshmei.shapes import membrane_floor
-
-    # Torus R = 0.35, r = 0.15 about z: the hole is the disc of radius a = 0.2, the line through a point at
-    # radius rho comes closest to the torus (a - rho) in the plane z = 0, so a blocking surface pays at
-    # least 2 * integral of (a - rho)^2 over the disc = pi a^4 / 3.
-    V, F = initial_mesh("torus", n_vertices=3000, dtype=torch.float64)
-    exact = math.pi * 0.2**4 / 3
-    coarse = membrane_floor(V, F, spacing=0.01)
-    fine = membrane_floor(V, F, spacing=0.004)
-    # a lower bound that tightens as the spacing falls (0.79 and 0.91 of the closed form here)
-    assert 0.75 * exact < coarse.integral < fine.integral < 1.01 * exact and fine.integral > 0.88 * exact
-    assert fine.opening_area == pytest.approx(math.pi * 0.2**2, rel=0.03)
-    assert fine.target_area == pytest.approx(4 * math.pi**2 * 0.35 * 0.15, rel=0.01)
-    assert fine.accuracy() == pytest.approx(fine.integral / fine.target_area, rel=1e-12)
-    assert fine.accuracy(2 * fine.target_area) == pytest.approx(fine.accuracy() / 2, rel=1e-12)
-    assert np.array_equal(fine.axis, [0, 0, 1]) and fine.clearance == pytest.approx(0.2, abs=0.01)
+def test_normalize_unit_diagonal_rejects_a_mesh_of_zero_extent():
+    V = torch.ones(4, 3)
+    with pytest.raises(MeshError, match=r"mesh has zero extent \(all 4 vertices coincide\); cannot normalise it"):
+        normalize_unit_diagonal(V)
 
 
-def test_membrane_floor_is_the_same_for_a_turned_moved_torus_and_in_float32():
-    from scipy.spatial.transform import Rotation
+@pytest.mark.parametrize("module", ["primitives", "targets", "remeshing"])
+def test_module_docstring_examples(module):
+    import importlib
 
-    from meshmei.shapes import membrane_floor
-
-    V, F = initial_mesh("torus", n_vertices=1500, dtype=torch.float64)
-    base = membrane_floor(V, F, spacing=0.01)
-    R = torch.from_numpy(Rotation.random(random_state=4).as_matrix())
-    W = V @ R.T + torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
-    # the opening found on the turned torus, and the original one carried along: the same floor up to the
-    # grid's placement (cells are laid out in the plane of each)
-    turned = membrane_floor(W, F, spacing=0.01)
-    carried = membrane_floor(W, F, (base.centre @ R.numpy().T + [0.3, -0.2, 0.1], base.axis @ R.numpy().T, 0.2),
-                             spacing=0.01)
-    assert turned.integral == pytest.approx(base.integral, rel=0.01)  # 0.9993 of it
-    assert carried.integral == pytest.approx(base.integral, rel=1e-3)  # 0.999997
-    assert turned.target_area == pytest.approx(base.target_area, rel=1e-9)
-    assert membrane_floor(V.float(), F, spacing=0.01).integral == pytest.approx(base.integral, rel=1e-5)
-
-
-def test_membrane_floor_bounds_the_convex_hull_which_blocks_the_hole():
-    from scipy.spatial import ConvexHull
-
-    from meshmei.metrics import surface_metrics
-    from meshmei.shapes import membrane_floor
-
-    V, F = initial_mesh("torus", n_vertices=3000, dtype=torch.float64)
-    hull = ConvexHull(V.numpy())
-    H = torch.from_numpy(hull.points[hull.vertices])
-    remap = -np.ones(len(hull.points), dtype=np.int64)
-    remap[hull.vertices] = np.arange(len(hull.vertices))
-    FH = torch.from_numpy(remap[hull.simplices])
-    m = surface_metrics(H, FH, V, F, n_samples=200_000, health=False)
-    floor = membrane_floor(V, F, spacing=0.004)
-    hull_area = m.area_ratio * floor.target_area
-    # the hull caps the hole with two flat discs at z = +-0.15, farther from the torus than the plane z = 0
-    # (and flat annuli over the tube's inner half): 2.7x the floor
-    assert m.accuracy > floor.accuracy(hull_area) > 0
-
-
-def test_membrane_floor_says_why_it_cannot():
-    from meshmei.errors import MeshError
-    from meshmei.shapes import membrane_floor
-
-    S, FS = initial_mesh("sphere", n_vertices=400, dtype=torch.float64)
-    with pytest.raises(MeshError, match="no through-hole"):
-        membrane_floor(S, FS)
-    V, F = initial_mesh("torus", n_vertices=600, dtype=torch.float64)
-    z = np.array([0.0, 0.0, 1.0])
-    with pytest.raises(MeshError, match="inside"):
-        membrane_floor(V, F, (np.array([0.35, 0.0, 0.0]), z, 0.1), spacing=0.02)
-    with pytest.raises(MeshError, match="not enclosed"):
-        membrane_floor(V, F, (np.array([0.7, 0.0, 0.0]), z, 0.1), spacing=0.02)
-    for spacing in (0, -0.1, float("nan"), float("inf"), True, "0.1"):
-        with pytest.raises(ValueError, match="spacing"):
-            membrane_floor(V, F, (np.zeros(3), z, 0.2), spacing=spacing)
-    with pytest.raises(ValueError, match="at most 4 million"):
-        membrane_floor(V, F, (np.zeros(3), z, 0.2), spacing=1e-4)
-    for bad in ((np.zeros(3), np.zeros(3), 0.2), (np.zeros(3), z), (np.full(3, np.nan), z, 0.2), (np.zeros(3), z, "x")):
-        with pytest.raises(ValueError, match="opening"):
-            membrane_floor(V, F, bad, spacing=0.02)
-
-
-def test_torus_through_a_given_opening_equals_the_found_one_and_checks_it():
-    from meshmei.shapes import find_opening, torus_through_opening
-
-    Vt, Ft = target_mesh("teapot", dtype=torch.float64)
-    found = find_opening(Vt, Ft)
-    V0, F0 = torus_through_opening(Vt, Ft, n_vertices=400)
-    V1, F1 = torus_through_opening(Vt, Ft, n_vertices=400, opening=found)
-    assert torch.equal(V0, V1) and torch.equal(F0, F1)
-    # the axis either way round, or not of unit length, gives the same torus
-    centre, axis, clearance = found
-    V2, _ = torus_through_opening(Vt, Ft, n_vertices=400, opening=(centre, -3.0 * axis, clearance))
-    torch.testing.assert_close(V2, V0, rtol=0, atol=1e-6)
-    for bad in [(centre, np.zeros(3), clearance), (centre, axis, 0.0), (centre, axis, float("nan")),
-                (np.array([np.nan, 0, 0]), axis, clearance), (centre[:2], axis, clearance), (centre, axis)]:
-        with pytest.raises(ValueError, match="opening"):
-            torus_through_opening(Vt, Ft, n_vertices=400, opening=bad)
+    mod = importlib.import_module(f"meshmei.shapes.{module}")
+    result = doctest.testmod(mod, raise_on_error=True)
+    assert result.failed == 0 and result.attempted > 0

@@ -24,6 +24,7 @@ def docs_dir() -> Path:
 
 
 def machine_line() -> str:
+    """Processor, cores, torch version and threads, and today's date: the line under each section's title."""
     return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical cores, "
             f"torch {torch.__version__}, {torch.get_num_threads()} threads, {time.strftime('%Y-%m-%d')}")
 
@@ -63,6 +64,7 @@ def timeit(fn, *, repeat: int = 5, warmup: int = 1) -> float:
 
 
 def markdown_table(header: list[str], rows: list[list]) -> str:
+    """A markdown table: ``header`` (k,) strings, ``rows`` lists of k cells (written with ``str``)."""
     out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(out)

@@ -7,7 +7,6 @@ import math
 
 import torch
 
-from ..errors import MEIError
 from ..operators import doublearea
 from ..regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
 

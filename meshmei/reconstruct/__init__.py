@@ -17,7 +17,8 @@ from .settings import (
     ReconstructionResult,
     ReconstructionSettings,
 )
-from .sources import SOURCE_NAMES, remesh, resolve_source, source_mesh, target_surface
+from .openings import find_opening, torus_through_opening
+from .sources import SOURCE_NAMES, resolve_source, source_mesh, target_surface
 
 __all__ = [
     "reconstruct",
@@ -37,6 +38,7 @@ __all__ = [
     "source_mesh",
     "resolve_source",
     "target_surface",
-    "remesh",
+    "find_opening",
+    "torus_through_opening",
     "save_reconstruction",
 ]

@@ -18,9 +18,10 @@ from ..deform import PARAMETERISATIONS
 from ..errors import MeshError
 from ..metrics import PointIndex, mesh_health, sample_points, surface_metrics
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
+from ..shapes import remesh
 from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss
 from .settings import ReconstructionResult, ReconstructionSettings
-from .sources import remesh, source_mesh, target_surface
+from .sources import source_mesh, target_surface
 
 __all__ = ["reconstruct"]
 

@@ -1,0 +1,117 @@
+"""Isotropic remeshing with pymeshlab, of the starting primitives and of any mesh (``remesh``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .._checks import check_positive
+from ..errors import MeshError
+from ..mesh import check_mesh
+
+__all__ = ["edge_length_for_count", "count_for_edge_length", "isotropic_remesh", "remesh"]
+
+
+def edge_length_for_count(area, n_vertices):
+    """Edge length whose near-equilateral tiling of a surface of ``area`` has about ``n_vertices`` vertices.
+
+    Each vertex owns two triangles on a closed mesh (F ~ 2V), so ``area ~ n * sqrt(3)/2 * h^2``, that is
+    ``h = sqrt(2 area / (sqrt(3) n))``.
+
+    Examples
+    --------
+    >>> round(edge_length_for_count(math.sqrt(3) / 2, 1), 12)
+    1.0
+    """
+    return math.sqrt(2.0 * area / (math.sqrt(3.0) * n_vertices))
+
+
+def count_for_edge_length(area, h):
+    """The vertex count of :func:`edge_length_for_count` turned round: about ``2 area / (sqrt(3) h^2)``."""
+    return 2.0 * area / (math.sqrt(3.0) * h * h)
+
+
+def isotropic_remesh(ms, h, *, iterations, feature_degrees):
+    """Remesh the current mesh of the pymeshlab ``MeshSet`` ``ms`` in place to edge length ``h`` and return it.
+
+    ``meshing_isotropic_explicit_remeshing`` with reprojection onto the input, edges meeting at more than
+    ``feature_degrees`` kept as creases, then unreferenced vertices removed.
+
+    Parameters
+    ----------
+    ms : pymeshlab.MeshSet
+        Holds the mesh to remesh as its current mesh.
+    h : float
+        Target edge length.
+    iterations : int
+        Iterations of the remesher.
+    feature_degrees : float
+        Crease angle; 180 keeps no creases.
+
+    Returns
+    -------
+    V : (n, 3) float64 array
+    F : (m, 3) int64 array
+    """
+    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
+
+    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PureValue(h), iterations=iterations,
+                                            featuredeg=feature_degrees, reprojectflag=True)
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    return np.asarray(m.vertex_matrix(), dtype=np.float64), np.asarray(m.face_matrix(), dtype=np.int64)
+
+
+def remesh(V, F, n_vertices: int, *, iterations: int = 5):
+    """Isotropic remeshing (pymeshlab) to about ``n_vertices`` vertices, for coarse-to-fine stages.
+
+    The target edge length is ``sqrt(2 A / (sqrt(3) n))`` for total area ``A`` (a near-equilateral closed
+    mesh has two triangles per vertex). Returns float tensors in the dtype of ``V`` and int64 faces.
+
+    Parameters
+    ----------
+    V : (n, 3) float tensor
+    F : (m, 3) int64 tensor
+    n_vertices : int
+        Vertex count to aim for.
+    iterations : int
+        Iterations of the remesher.
+
+    Returns
+    -------
+    V : (k, 3) float tensor
+        In the dtype and on the device of ``V``.
+    F : (l, 3) int64 tensor
+
+    Raises
+    ------
+    ValueError
+        ``n_vertices`` or ``iterations`` is not a positive integer.
+    MeshError
+        An invalid mesh, or one of zero area.
+
+    Examples
+    --------
+    >>> from meshmei.shapes import initial_mesh
+    >>> V, F = remesh(*initial_mesh("sphere", n_vertices=300), 1000)
+    >>> 800 < V.shape[0] < 1200, F.dtype
+    (True, torch.int64)
+    """
+    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
+
+    check_positive("n_vertices", n_vertices, integer=True)
+    check_positive("iterations", iterations, integer=True)
+    V, F = check_mesh(V, F)
+    Vn = V.detach().cpu().double().numpy()
+    Fn = F.cpu().numpy().astype(np.int32)
+    T = Vn[Fn]  # (m, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1).sum()
+    if not area > 0:  # pymeshlab would return an empty mesh
+        raise MeshError(f"cannot remesh a mesh of zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vn, face_matrix=Fn))
+    V2, F2 = isotropic_remesh(ms, edge_length_for_count(area, n_vertices), iterations=iterations,
+                              feature_degrees=180.0)
+    return check_mesh(torch.as_tensor(V2, dtype=V.dtype, device=V.device), torch.as_tensor(F2, device=V.device))
