@@ -7,25 +7,17 @@ import time
 import torch
 
 from .operators import doublearea
-from .regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
+from .regularizers import REGULARIZER_LABELS, REGULARIZERS
 from .shapes import initial_mesh
 
 __all__ = ["run_demo", "add_parser"]
-
-REGULARIZERS = {
-    "laplacian (uniform)": lambda V, V0, F: laplacian_loss(V, F),
-    "laplacian (cotangent)": lambda V, V0, F: laplacian_loss(V, F, method="cotangent"),
-    "edge": lambda V, V0, F: edge_loss(V, F),
-    "area": lambda V, V0, F: area_loss(V, F),
-    "arap (direction)": arap_direction_loss,
-    "arap (Sorkine-Alexa)": arap_loss,
-}
 
 
 def run_demo(n_vertices: int = 2500, seed: int = 0, out=print) -> dict:
     """Evaluate each regularizer on each initial mesh, at rest and after a smooth random bump.
 
-    Returns ``{(kind, state, regularizer): (value, seconds for forward+backward)}`` and prints a table.
+    Returns ``{(kind, state, label): (value, seconds for forward+backward)}`` with the labels of
+    :data:`~meshmei.regularizers.REGULARIZER_LABELS`, and prints a table.
     """
     g = torch.Generator().manual_seed(seed)
     rows = {}
@@ -39,13 +31,13 @@ def run_demo(n_vertices: int = 2500, seed: int = 0, out=print) -> dict:
         bump = w @ (0.1 * torch.randn(4, 3, generator=g))
         out(f"{kind}: {V0.shape[0]} vertices, {F.shape[0]} faces, area {0.5 * doublearea(V0, F).sum():.4f}, built in {build:.2f} s")
         for state, V in (("rest", V0), ("bumped", V0 + bump)):
-            for name, fn in REGULARIZERS.items():
+            for key, name in REGULARIZER_LABELS.items():
                 X = V.clone().requires_grad_(True)
                 t = time.perf_counter()
-                val = fn(X, V0, F)
+                val = REGULARIZERS[key](X, V0, F)
                 val.backward()
                 rows[(kind, state, name)] = (val.item(), time.perf_counter() - t)
-    names = list(REGULARIZERS)
+    names = list(REGULARIZER_LABELS.values())
     out("")
     out(f"{'regularizer':24s}" + "".join(f"{k + ' ' + s:>17s}" for k in ("sheet", "sphere", "torus") for s in ("rest", "bumped")))
     for name in names:

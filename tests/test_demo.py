@@ -1,7 +1,8 @@
 import math
 
 from meshmei.cli import main
-from meshmei.demo import REGULARIZERS, run_demo
+from meshmei.demo import run_demo
+from meshmei.regularizers import REGULARIZERS
 
 
 def test_demo_table_is_finite_and_rest_poses_are_arap_minima():

@@ -30,7 +30,9 @@ from .._checks import check_positive
 from ..errors import MeshError
 from ..mesh import check_mesh, load_mesh, save_mesh
 from ..operators import doublearea
-from ..metrics import PointIndex, SurfaceMetrics, mesh_health, sample_points, surface_metrics
+from ..metrics import SurfaceMetrics, surface_metrics
+from ..quality import mesh_health
+from ..sampling import PointIndex, sample_points
 from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss
 
 __all__ = [
