@@ -100,11 +100,6 @@ def check_mesh(V, F, *, batched: bool | None = False):
 def numpy_mesh(V, F):
     """Validate a triangle mesh (see :func:`check_mesh`) and return it as contiguous numpy arrays for libigl.
 
-    Parameters
-    ----------
-    V : (n, 3) float tensor or array
-    F : (m, 3) integer tensor or array
-
     Returns
     -------
     V : (n, 3) float64 array
@@ -122,12 +117,15 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     Parameters
     ----------
     path : str or os.PathLike
-    dtype : torch float dtype of the returned vertices
-    device : torch device of the returned tensors
+    dtype : torch.dtype
+        Float dtype of the returned vertices (float32 by default).
+    device : torch.device, optional
+        Device of both returned tensors.
 
     Returns
     -------
     V : (n, 3) float tensor
+        The vertices as stored, in ``dtype``.
     F : (m, 3) int64 tensor
 
     Raises

@@ -60,7 +60,7 @@ def _check_rest(V, V0, F):
         raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
     if V0.ndim == 3 and V.ndim == 2:
         raise MeshError(f"a batched rest pose {tuple(V0.shape)} needs a batched V, got {tuple(V.shape)}")
-    V0, _ = check_mesh(V0, F, batched=V0.ndim == 3)
+    V0, _ = check_mesh(V0, F, batched=None)
     return V, V0.to(V.dtype), F
 
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from meshmei.errors import MeshError
-from meshmei.sampling import PointIndex, chamfer_distance, nearest_neighbors, sample_points
+from meshmei.sampling import PointIndex, chamfer_distance, nearest_neighbors, nn_spacing, sample_points
 
 from conftest import icosphere
 
@@ -173,3 +173,10 @@ def test_point_index_rejects_bad_input():
         PointIndex(Q).query(bad)
     with pytest.raises(ValueError, match=r"P must be an \(n, 3\) point array, got shape \(5, 2\)"):
         PointIndex(Q).query(np.zeros((5, 2)))
+
+
+def test_nn_spacing_ignores_duplicates():
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [3, 0, 0]])
+    assert nn_spacing(X) == pytest.approx((1 + 1 + 2) / 3)
+    assert nn_spacing(np.concatenate([X, X])) == pytest.approx((1 + 1 + 2) / 3)  # seams do not shrink it
+    assert nn_spacing(np.zeros((4, 3))) == float("inf")
