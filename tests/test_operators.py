@@ -7,7 +7,7 @@ import torch
 from meshmei import operators as ops
 from meshmei.topology import mesh_topology
 
-from conftest import hard_cases, icosphere, perturbed_sphere, random_rotation
+from conftest import grid_sheet, hard_cases, icosphere, perturbed_sphere, random_rotation
 
 
 @pytest.fixture(scope="module", params=["bunny", "teapot", "sheet", "perturbed_sphere"])
@@ -224,3 +224,18 @@ def test_unchecked_kernels_equal_the_checked_operators():
     assert torch.equal(ops.cot_laplacian_from_cot(V, F, terms.cot), ops.cot_laplacian(V, F))
     topo = mesh_topology(F, V.shape[0])
     assert torch.equal(ops.uniform_laplacian_from_topology(V, topo), ops.uniform_laplacian(V, F))
+
+
+def test_topology_twins_pair_the_two_half_edges_of_each_interior_edge():
+    V, F = icosphere(1)
+    tw = mesh_topology(F, V.shape[0]).twins.reshape(-1)
+    assert bool((tw >= 0).all())  # closed: every half-edge has a twin
+    assert torch.equal(tw[tw], torch.arange(tw.numel()))
+    f, k = torch.arange(tw.numel()) // 3, torch.arange(tw.numel()) % 3
+    g, l = tw // 3, tw % 3
+    # the twin runs the other way along the same edge
+    assert torch.equal(F[f, (k + 1) % 3], F[g, (l + 2) % 3]) and torch.equal(F[f, (k + 2) % 3], F[g, (l + 1) % 3])
+    # an open sheet: boundary half-edges have none
+    Vs, Fs = grid_sheet(3, 3)
+    tws = mesh_topology(Fs, Vs.shape[0]).twins
+    assert int((tws < 0).sum()) == 8  # the 2 x 2 grid's boundary has 8 edges

@@ -18,7 +18,6 @@ graph holds O(pixels) values, so backward needs no re-enumeration. See ``docs/re
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -32,35 +31,6 @@ from .settings import RenderSettings
 __all__ = ["PixelSamples", "RasterPasses", "run_passes"]
 
 _NONE = torch.iinfo(torch.int64).max  # z-buffer key of an empty pixel
-
-
-# --------------------------------------------------------------------------------------------------
-# topology: the twin of each half-edge, cached per MeshTopology
-_TWINS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
-def _twins(F: torch.Tensor, n: int) -> torch.Tensor:
-    """``(m, 3)`` int64: the half-edge ``3 g + l`` sharing edge ``(f, k)`` when exactly two faces do, else -1.
-
-    Half-edge ``(f, k)`` is the edge opposite corner ``k``, from ``F[f, k+1]`` to ``F[f, k+2]``.
-    """
-    topo = mesh_topology(F, n)
-    hit = _TWINS.get(topo)
-    if hit is not None:
-        return hit
-    fe = topo.face_edges.reshape(-1)  # (3m,) edge id or -1
-    E = topo.n_edges
-    key = torch.where(fe >= 0, fe, torch.full_like(fe, E))
-    order = torch.argsort(key, stable=True)
-    cnt = torch.bincount(key, minlength=E + 1)[:E]
-    start = torch.cumsum(cnt, 0) - cnt
-    two = (cnt == 2).nonzero().squeeze(1)
-    h1, h2 = order[start[two]], order[start[two] + 1]
-    twin = torch.full_like(fe, -1)
-    twin[h1], twin[h2] = h2, h1
-    twin = twin.view(-1, 3)
-    _TWINS[topo] = twin
-    return twin
 
 
 # --------------------------------------------------------------------------------------------------
@@ -268,7 +238,7 @@ def _contour_segments(sc: _Screen, U, Vv, F, n_vertices):
     kb, kf = sc.kb, sc.kf
     Fk = F[kf]  # (K, 3)
     ku, kv = sc.fu[kb, kf], sc.fv[kb, kf]  # (K, 3)
-    twin = _twins(F, n_vertices)[kf]  # (K, 3)
+    twin = mesh_topology(F, n_vertices).twins[kf]  # (K, 3)
     tf = twin.clamp_min(0) // 3
     tk = twin.clamp_min(0) % 3
     tkeep = (twin >= 0) & sc.keep[kb.unsqueeze(1), tf]
