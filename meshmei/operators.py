@@ -42,6 +42,7 @@ __all__ = [
     "corners",
     "FaceTerms",
     "face_terms",
+    "cross_from_corners",
     "doublearea_from_corners",
     "sq_edge_sum_from_corners",
     "cot_laplacian_from_cot",
@@ -157,10 +158,17 @@ def doublearea(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     return doublearea_from_corners(corners(V, F))
 
 
+def cross_from_corners(T: torch.Tensor) -> torch.Tensor:
+    """``(T1 - T0) x (T2 - T0)`` for each face of ``T`` (..., m, 3, 3), ``(..., m, 3)``; no validation.
+
+    Normal to the face by the right-hand rule on the corner order, as long as twice the face's area.
+    """
+    return torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
+
+
 def doublearea_from_corners(T: torch.Tensor) -> torch.Tensor:
     """Twice the area of each face of the corner tensor ``T`` (..., m, 3, 3), ``(..., m)``; no validation."""
-    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
-    return safe_norm(c)
+    return safe_norm(cross_from_corners(T))
 
 
 def face_areas(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
@@ -184,7 +192,7 @@ def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -
     """
     V, F = check_mesh(V, F, batched=None)
     T = corners(V, F)
-    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
+    c = cross_from_corners(T)
     return _normalize(c, resolve_eps(eps, V.dtype) * sq_edge_sum_from_corners(T))
 
 
@@ -197,7 +205,7 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
     """
     V, F = check_mesh(V, F, batched=None)
     T = corners(V, F)
-    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)  # (..., m, 3)
+    c = cross_from_corners(T)  # (..., m, 3)
     idx = F.reshape(-1)
     c3 = c.unsqueeze(-2).expand(*c.shape[:-1], 3, 3).reshape(*c.shape[:-2], -1, 3)  # (..., 3m, 3)
     acc = torch.zeros_like(V).index_add_(-2, idx, c3)

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from .errors import MeshError
 from .mesh import check_mesh
+from .operators import cross_from_corners
 
 __all__ = [
     "sample_points",
@@ -75,7 +76,7 @@ def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False,
     n = int(n)
     g = _generator(generator, V.device)
     T = V[F]  # (m, 3, 3)
-    cross = torch.linalg.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0], dim=-1)  # (m, 3)
+    cross = cross_from_corners(T)  # (m, 3)
     dbl = cross.detach().norm(dim=-1)
     total = float(dbl.sum())
     if not total > 0:
