@@ -50,7 +50,14 @@ def triangle_measures(V, F) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def triangle_quality(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
-    """Per-face quality ``4 sqrt(3) A / (l1^2 + l2^2 + l3^2)``: 1 for equilateral, 0 for degenerate, ``(m,)``."""
+    """Per-face quality ``4 sqrt(3) A / (l1^2 + l2^2 + l3^2)``: 1 for equilateral, 0 for degenerate, ``(m,)``.
+
+    Examples
+    --------
+    >>> V = torch.tensor([[0.0, 0, 0], [2, 0, 0], [1, 3 ** 0.5, 0], [4, 0, 0]], dtype=torch.float64)
+    >>> [round(q, 12) for q in triangle_quality(V, torch.tensor([[0, 1, 2], [0, 1, 3]])).tolist()]
+    [1.0, 0.0]
+    """
     dbl, l2 = triangle_measures(V, F)
     return 2.0 * math.sqrt(3.0) * dbl / l2.clamp_min(torch.finfo(dbl.dtype).tiny)
 

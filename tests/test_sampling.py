@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import doctest
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -180,3 +183,9 @@ def test_nn_spacing_ignores_duplicates():
     assert nn_spacing(X) == pytest.approx((1 + 1 + 2) / 3)
     assert nn_spacing(np.concatenate([X, X])) == pytest.approx((1 + 1 + 2) / 3)  # seams do not shrink it
     assert nn_spacing(np.zeros((4, 3))) == float("inf")
+
+
+@pytest.mark.parametrize("module", ["meshmei.sampling", "meshmei.metrics", "meshmei.quality", "meshmei.mesh"])
+def test_docstring_examples_run(module):
+    res = doctest.testmod(importlib.import_module(module))
+    assert res.attempted > 0 and res.failed == 0
