@@ -27,7 +27,8 @@ from .shapes import bunny_path, initial_mesh, target_mesh
 from .topology import MeshTopology, mesh_topology
 from .render import Camera, Fragments, RenderSettings, camera_from_angles, rasterize, render
 from .deform import RBFDeformer
-from .metrics import SurfaceMetrics, chamfer_distance, sample_points, surface_metrics
+from .metrics import SurfaceMetrics, surface_metrics
+from .sampling import chamfer_distance, sample_points
 from .reconstruct import ReconstructionResult, ReconstructionSettings, reconstruct
 from .encoders import GaborComplexCell, GaborSimpleCell, CoreReadoutModel, load_demo_model
 from .mei import MEIResult, MEISettings, load_run, optimize_mei, pixel_mei, save_run

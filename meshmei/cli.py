@@ -4,7 +4,6 @@ settings dataclasses, and a thin runner that calls the library."""
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -14,6 +13,7 @@ import torch
 from .encoders import make_encoder
 from .errors import MEIError
 from .mei import MEISettings, optimize_mei, pixel_mei, save_run
+from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
     METHODS,
     ReconstructionSettings,
@@ -30,8 +30,6 @@ from .tuning import parse_range, run_tuning
 __all__ = ["main", "build_parser"]
 
 ENCODERS = ("gabor-simple", "gabor-complex", "demo")
-# commands whose parsers still live with their modules (MERGE: move here)
-MODULE_COMMANDS = {"regularizers": "meshmei.demo"}
 
 
 def _add_mei(sub) -> None:
@@ -145,6 +143,13 @@ def _run_reconstruct(args) -> int:
     return 0
 
 
+def _add_regularizers(sub) -> None:
+    p = sub.add_parser("regularizers", help="build initial meshes and tabulate every regularizer")
+    p.add_argument("--n-vertices", type=int, default=DEFAULT_N_VERTICES)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=lambda a: tabulate_regularizers(a.n_vertices, a.seed) and 0)
+
+
 def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="the main job: 3D-MEI of a demo neuron, its pose and light tuning, plots")
     p.add_argument("--out", default="meshmei-demo", help="output directory (default: ./meshmei-demo)")
@@ -182,9 +187,7 @@ def _run_tune(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshmei", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, module in MODULE_COMMANDS.items():
-        importlib.import_module(module).add_parser(sub)
-    for add in (_add_demo, _add_reconstruct, _add_tune, _add_mei):
+    for add in (_add_regularizers, _add_demo, _add_reconstruct, _add_tune, _add_mei):
         add(sub)
     return parser
 

@@ -10,7 +10,7 @@ import torch
 
 from .errors import MeshError
 
-__all__ = ["check_mesh", "load_mesh", "save_mesh", "MESH_FORMATS"]
+__all__ = ["check_mesh", "numpy_mesh", "load_mesh", "save_mesh", "MESH_FORMATS"]
 
 MESH_FORMATS = (".obj", ".ply", ".off", ".stl")
 
@@ -28,7 +28,7 @@ def _as_tensor(x, name):
     raise MeshError(f"{name} must be a torch tensor or numpy array, got {type(x).__name__}")
 
 
-def check_mesh(V, F, *, batched: bool = False):
+def check_mesh(V, F, *, batched: bool | None = False):
     """Validate a triangle mesh and return it as torch tensors.
 
     Parameters
@@ -37,8 +37,9 @@ def check_mesh(V, F, *, batched: bool = False):
         Vertex positions. float32 and float64 are kept as they are; other float types are kept too.
     F : (m, 3) integer tensor or array
         Triangle indices into the vertices (0-based).
-    batched : bool
-        Accept a leading batch dimension on ``V`` (all members share ``F``).
+    batched : bool or None
+        Accept a leading batch dimension on ``V`` (all members share ``F``); None: batched exactly when
+        ``V`` has three axes.
 
     Returns
     -------
@@ -60,6 +61,8 @@ def check_mesh(V, F, *, batched: bool = False):
     """
     V = _as_tensor(V, "V")
     F = _as_tensor(F, "F")
+    if batched is None:
+        batched = V.ndim == 3
     if not V.is_floating_point():
         raise MeshError(f"V must have a floating-point dtype, got {V.dtype} with shape {tuple(V.shape)}")
     want = "(B, n, 3)" if batched else "(n, 3)"
@@ -94,6 +97,18 @@ def check_mesh(V, F, *, batched: bool = False):
     return V, F
 
 
+def numpy_mesh(V, F):
+    """Validate a triangle mesh (see :func:`check_mesh`) and return it as contiguous numpy arrays for libigl.
+
+    Returns
+    -------
+    V : (n, 3) float64 array
+    F : (m, 3) int64 array
+    """
+    V, F = check_mesh(V, F)
+    return np.ascontiguousarray(V.detach().cpu().double().numpy()), np.ascontiguousarray(F.cpu().numpy())
+
+
 def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     """Read a triangle mesh with trimesh (OBJ, PLY, OFF, STL and what else trimesh reads).
 
@@ -102,12 +117,15 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     Parameters
     ----------
     path : str or os.PathLike
-    dtype : torch float dtype of the returned vertices
-    device : torch device of the returned tensors
+    dtype : torch.dtype
+        Float dtype of the returned vertices (float32 by default).
+    device : torch.device, optional
+        Device of both returned tensors.
 
     Returns
     -------
     V : (n, 3) float tensor
+        The vertices as stored, in ``dtype``.
     F : (m, 3) int64 tensor
 
     Raises
@@ -117,7 +135,7 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     MeshError
         The file is not a readable triangle mesh, or the mesh in it is invalid (see ``check_mesh``).
     """
-    import trimesh
+    import trimesh  # deferred: importing trimesh takes about 0.35 s and only file I/O needs it
 
     path = Path(os.fspath(path))
     if not path.is_file():
@@ -148,7 +166,7 @@ def save_mesh(path, V, F) -> None:
     V : (n, 3) float tensor or array
     F : (m, 3) integer tensor or array
     """
-    import trimesh
+    import trimesh  # deferred, as in load_mesh
 
     V, F = check_mesh(V, F)
     path = Path(os.fspath(path))

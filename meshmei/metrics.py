@@ -1,431 +1,39 @@
-"""Surface sampling, Chamfer distance and the reconstruction metrics (Chamfer-L2, F-score, normals, health).
+"""Reconstruction quality in float64, not differentiable: Chamfer-L2, F-score, normals, Hausdorff, by part.
 
-Two kinds of function live here:
-
-- differentiable losses for optimisation, on plain tensors: :func:`sample_points` (area-uniform samples
-  with gradients to the vertices) and :func:`chamfer_distance` (nearest neighbours from a scipy KD-tree,
-  distances in torch, both directions);
-- evaluation, in float64 numpy, not differentiable: :func:`surface_metrics` (exact point-to-surface
-  distances with libigl, so there is no sampling floor) and :func:`mesh_health`.
+Distances are exact point-to-triangle distances (libigl), so two identical surfaces score 0 up to round-off:
+there is no sampling floor. The differentiable per-step side (sampling, Chamfer) is :mod:`meshmei.sampling`;
+mesh health is :mod:`meshmei.quality`.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
+import igl
 import numpy as np
+import scipy.sparse as sp
 import torch
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
-from .errors import MeshError
-from .mesh import check_mesh
+from .mesh import numpy_mesh
+from .operators import doublearea, face_normals
+from .quality import count_degenerate_faces, count_self_intersections
+from .sampling import sample_points
 
 __all__ = [
-    "sample_points",
-    "nearest_neighbors",
-    "chamfer_distance",
-    "PointIndex",
-    "surface_metrics",
     "SurfaceMetrics",
-    "mesh_health",
-    "MeshHealth",
-    "error_by_part",
+    "surface_metrics",
     "face_components",
+    "error_by_part",
     "hidden_surface",
 ]
 
 
-def _generator(generator, device):
-    if generator is None or isinstance(generator, torch.Generator):
-        return generator
-    if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
-        return torch.Generator(device=device).manual_seed(int(generator))
-    raise TypeError(f"generator must be None, an int seed or a torch.Generator, got {type(generator).__name__}")
-
-
-def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False, return_faces: bool = False):
-    """Points drawn uniformly by area on a triangle mesh, differentiable in the vertex positions.
-
-    A face is drawn with probability proportional to its area (the choice carries no gradient), then a
-    point uniformly inside it: ``(1 - sqrt(r1)) a + sqrt(r1) (1 - r2) b + sqrt(r1) r2 c``. The point is a
-    fixed barycentric combination of its corners, so gradients flow to ``V``.
-
-    Parameters
-    ----------
-    V : (n_v, 3) float tensor
-    F : (m, 3) integer tensor
-    n : int
-        Number of samples (``0`` gives an empty ``(0, 3)`` tensor).
-    generator : None, int or torch.Generator
-        Source of randomness; an int seeds a fresh generator (same seed, same points).
-    return_normals : bool
-        Also return the unit normal of each sample's face, ``(n, 3)`` (differentiable).
-    return_faces : bool
-        Also return the face index of each sample, ``(n,)`` int64.
-
-    Returns
-    -------
-    P : (n, 3) float tensor, dtype and device of ``V``; plus normals and/or face indices if asked.
-
-    Raises
-    ------
-    MeshError
-        Invalid mesh, or a mesh whose faces all have zero area.
-
-    Examples
-    --------
-    >>> V = torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0]], requires_grad=True)
-    >>> P = sample_points(V, torch.tensor([[0, 1, 2]]), 100, generator=0)
-    >>> bool((P[:, 2] == 0).all()), bool((P[:, :2].sum(1) <= 1 + 1e-6).all())
-    (True, True)
-    """
-    V, F = check_mesh(V, F)
-    if isinstance(n, bool) or int(n) != n or n < 0:
-        raise ValueError(f"n must be a non-negative integer, got {n!r}")
-    n = int(n)
-    g = _generator(generator, V.device)
-    T = V[F]  # (m, 3, 3)
-    cross = torch.linalg.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0], dim=-1)  # (m, 3)
-    dbl = cross.detach().norm(dim=-1)
-    total = float(dbl.sum())
-    if not total > 0:
-        raise MeshError(f"cannot sample a mesh whose {F.shape[0]} faces all have zero area")
-    if not math.isfinite(total):  # squared coordinates beyond the dtype's range (float32: about 1e19)
-        raise MeshError(f"the face areas overflow {V.dtype} (largest coordinate {float(V.detach().abs().max()):.3g}, "
-                        f"shape {tuple(V.shape)}); rescale the mesh or use float64")
-    if n == 0:
-        face = torch.zeros(0, dtype=torch.int64, device=V.device)
-    else:
-        face = torch.multinomial(dbl.double(), n, replacement=True, generator=g)
-    r = torch.rand(n, 2, dtype=V.dtype, device=V.device, generator=g)
-    s = r[:, :1].sqrt()
-    w = torch.cat([1 - s, s * (1 - r[:, 1:]), s * r[:, 1:]], dim=1)  # (n, 3) barycentric
-    P = (w.unsqueeze(-1) * T[face]).sum(1)
-    out = [P]
-    if return_normals:
-        c = cross[face]
-        out.append(c / c.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(V.dtype).tiny))
-    if return_faces:
-        out.append(face)
-    return out[0] if len(out) == 1 else tuple(out)
-
-
-def _check_points(P, name):
-    if not isinstance(P, torch.Tensor) or P.ndim != 2 or P.shape[1] != 3 or not P.is_floating_point():
-        got = f"{P.dtype} {tuple(P.shape)}" if isinstance(P, torch.Tensor) else type(P).__name__
-        raise ValueError(f"{name} must be an (n, 3) float tensor, got {got}")
-    if P.shape[0] == 0:
-        raise ValueError(f"{name} is empty: shape {tuple(P.shape)}")
-
-
-def nearest_neighbors(P: torch.Tensor, Q: torch.Tensor, *, tree=None, exact_within: float | None = None,
-                      approx_eps: float = 1.0) -> torch.Tensor:
-    """Index of the nearest point of ``Q`` for every point of ``P`` (scipy KD-tree, no gradient).
-
-    A KD-tree query costs about ``(d / h)^2`` point visits for a query at distance ``d`` from a surface
-    sampled at spacing ``h``: far from a dense target it is slow. With ``exact_within`` set, every query
-    first gets a ``(1 + approx_eps)``-approximate neighbour (cheap at any distance); those closer than
-    ``exact_within`` are then answered exactly, the farther ones keep the approximate neighbour (at most
-    ``1 + approx_eps`` times farther than the nearest).
-
-    Parameters
-    ----------
-    P : (n, 3) float tensor
-    Q : (k, 3) float tensor
-    tree : scipy.spatial.cKDTree, optional
-        A tree already built on ``Q`` (reuse it when ``Q`` is fixed across calls).
-    exact_within : float, optional
-        Distance below which neighbours are exact; None (default): all exact.
-    approx_eps : float
-        Relative error allowed beyond ``exact_within``.
-
-    Returns
-    -------
-    (n,) int64 tensor on the device of ``P``.
-    """
-    from scipy.spatial import cKDTree
-
-    _check_points(P, "P")
-    _check_points(Q, "Q")
-    if tree is None:
-        tree = cKDTree(Q.detach().cpu().numpy())
-    elif tree.n != Q.shape[0]:
-        raise ValueError(f"tree holds {tree.n} points but Q has {Q.shape[0]}")
-    Pn = P.detach().cpu().numpy()
-    if exact_within is None:
-        _, idx = tree.query(Pn, k=1)
-    else:
-        d, idx = tree.query(Pn, k=1, eps=approx_eps, workers=-1)
-        near = np.flatnonzero(d < exact_within)
-        if len(near):
-            _, idx[near] = tree.query(Pn[near], k=1)
-    return torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(P.device)
-
-
-def _nn_spacing(X: np.ndarray, tree=None, sample: int | None = None) -> float:
-    """Mean distance from each point of ``X`` (the first ``sample`` of them) to its nearest *distinct* point.
-
-    Duplicated points (a mesh's seams, an STL file's vertices) would otherwise measure a spacing of 0.
-    Returns inf when ``X`` holds fewer than two distinct points. ``tree`` is a KD-tree on ``X``, if built.
-    """
-    from scipy.spatial import cKDTree
-
-    head = X if sample is None else X[:sample]
-    d, _ = (tree if tree is not None else cKDTree(X)).query(head, k=2)
-    d = d[:, 1]
-    if (d == 0).any():
-        U = np.unique(X, axis=0)
-        if len(U) < 2:
-            return float("inf")
-        d, _ = cKDTree(U).query(np.unique(head, axis=0), k=2)
-        d = d[:, 1]
-    return float(np.mean(d))
-
-
-def _point_array(X, name: str, shape: str = "(n, 3)", *, nonempty: bool = False) -> np.ndarray:
-    """``X`` as a contiguous ``(k, 3)`` numpy array of finite points, or a ValueError naming ``name``."""
-    Xn = np.ascontiguousarray(X.detach().cpu().numpy() if isinstance(X, torch.Tensor) else np.asarray(X))
-    if Xn.ndim != 2 or Xn.shape[1] != 3 or (nonempty and len(Xn) == 0):
-        raise ValueError(f"{name} must be {'a non-empty' if nonempty else 'an'} {shape} point array, "
-                         f"got shape {Xn.shape}")
-    bad = ~np.isfinite(Xn).all(1)
-    if bad.any():
-        raise ValueError(f"{name} holds NaN or Inf ({int(bad.sum())} of {len(Xn)} points, first at index "
-                         f"{int(np.flatnonzero(bad)[0])})")
-    return Xn
-
-
-class PointIndex:
-    """Nearest-neighbour queries into a fixed point set, fast at any query distance.
-
-    A KD-tree query at distance ``d`` from points spaced ``h`` apart visits about ``(d / h)^2`` points,
-    which makes queries far from a dense target slow, and a query from inside a closed surface, where
-    every point is nearly equidistant, visits most of them. This index keeps KD-trees on nested prefixes of
-    the (randomly ordered) points, each ``factor`` times smaller than the last. A query searches the
-    coarsest level, then goes straight to the finest level where it is still cheap (its distance so far
-    below ``exact_within * sqrt(n / n_level)``), and again from there, until no query can go finer. A query
-    that reaches the finest level gets the true nearest point; the others get a point of a coarser prefix
-    at most ``1 + far_eps`` times as far as that prefix's nearest, which exceeds the true distance by at
-    most about the prefix's spacing.
-
-    With ``near_first`` (by default when most of the previous call's queries lay within
-    ``exact_within``, as in an optimisation that has closed in on its target), a call first searches the
-    finest tree bounded at ``exact_within``: every query within ``exact_within`` of a point gets the true
-    nearest in that one search, and the search gives up early on the others, which then go through the
-    levels.
-
-    Measured with 10,000 queries, one thread: into the bunny's 200,000-point pool, 7 to 9 ms for queries
-    about 1e-3 from the surface (one full-tree search: 8 to 12 ms; one search per level, as this index
-    did before: 30 ms) and 17 ms at 0.1 (full tree: 350 ms). From the bunny's samples into the samples of
-    a sphere around it (the start of a reconstruction; index built per call, as there): 17 ms, 35 ms with
-    ``near_first``, 85 ms with one search per level. Far answers are at most 1.5x the true distance in
-    the tests (median 1.02x from the sphere into the pool).
-
-    Parameters
-    ----------
-    Q : (k, 3) float tensor or array
-        The points, in random order (e.g. from :func:`sample_points`), so that every prefix covers the
-        surface evenly.
-    exact_within : float
-        Radius of exact answers (above), positive. Default: 10 times the mean spacing of ``Q`` estimated from
-        its nearest-neighbour distances (to the nearest distinct point: duplicated points do not shrink it).
-    factor : int
-        Size ratio of consecutive levels.
-    min_points : int
-        Size of the coarsest level (at least this many points, fewer than ``factor`` times as many).
-    far_eps : float
-        Searches of the coarser levels (never of the finest) return a point at most ``1 + far_eps`` times
-        as far as the nearest of that level (scipy's ``eps``). Those answers are approximate anyway; the
-        slack makes the worst queries, from inside a closed surface, where every point is nearly
-        equidistant, 2x cheaper.
-    """
-
-    def __init__(self, Q, *, exact_within: float | None = None, factor: int = 4, min_points: int = 500,
-                 far_eps: float = 0.5):
-        from scipy.spatial import cKDTree
-
-        Qn = _point_array(Q, "Q", "(k, 3)", nonempty=True)
-        if not far_eps >= 0:
-            raise ValueError(f"far_eps must be non-negative, got {far_eps!r}")
-        for name, value, least in (("factor", factor, 2), ("min_points", min_points, 1)):
-            # factor 1 or min_points 0 would add levels forever
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-                raise ValueError(f"{name} must be an integer of at least {least}, got {value!r}")
-        if exact_within is not None and not exact_within > 0:
-            raise ValueError(f"exact_within must be positive, got {exact_within!r}")
-        self.far_eps = float(far_eps)
-        self.n = len(Qn)
-        sizes = [self.n]
-        while sizes[-1] // factor >= min_points:
-            sizes.append(sizes[-1] // factor)
-        self.sizes = sizes[::-1]  # coarse to fine
-        self.trees = [cKDTree(Qn[:m]) for m in self.sizes]
-        if exact_within is None:
-            exact_within = 10.0 * _nn_spacing(Qn, self.trees[-1], 2000) if self.n > 1 else np.inf
-        self.exact_within = float(exact_within)
-        # A query at distance d is cheap on level l when d < exact_within * sqrt(n_l / n) (spacing grows
-        # with the square root of the thinning).
-        self.cheap = [self.exact_within * np.sqrt(self.n / m) for m in self.sizes]
-        self.far_share = 0.0  # share of the last call's queries farther than exact_within (picks the search)
-
-    def query(self, P, *, near_first: bool | None = None) -> np.ndarray:
-        """Index into ``Q`` of the (near-)nearest point for each row of ``P`` ``(n, 3)``; ``(n,)`` int64.
-
-        ``near_first``: start with the bounded search of the finest tree (worth it when most queries are
-        near the points); ``None`` decides from the previous call (:attr:`far_share` below one half). A
-        caller that builds a new index for each batch can pass what the last index's ``far_share`` said.
-        """
-        Pn = _point_array(P, "P")
-        if near_first is None:
-            near_first = self.far_share < 0.5
-        if near_first:
-            # most queries were near the points last time (a fit that is close): one search of the finest
-            # tree bounded at exact_within answers those exactly and gives up early on the rest
-            d, idx = self.trees[-1].query(Pn, k=1, distance_upper_bound=self.exact_within)
-            idx = np.asarray(idx, dtype=np.int64)
-            far = np.flatnonzero(~np.isfinite(d))
-            if len(far):
-                idx[far] = self._cascade(Pn[far])[1]
-            self.far_share = len(far) / max(len(Pn), 1)
-            return idx
-        d, idx = self._cascade(Pn)
-        self.far_share = float(np.mean(d >= self.exact_within)) if len(Pn) else 0.0
-        return idx
-
-    def _cascade(self, Pn):
-        """Distances and indices, searching the coarsest level first and then, for each query, the finest
-        level where it is still cheap (its nearest point there is no farther than the one found so far,
-        since each level holds the coarser ones), until no query can go finer."""
-        last = len(self.trees) - 1
-        d, idx = self.trees[0].query(Pn, k=1, eps=self.far_eps if last > 0 else 0.0)
-        idx = np.asarray(idx, dtype=np.int64)
-        level = np.zeros(len(Pn), dtype=np.int64)
-        cheap = np.asarray(self.cheap)
-        while True:
-            finest = (d[:, None] < cheap[None, :]).sum(1) - 1
-            todo = np.flatnonzero(finest > level)
-            if len(todo) == 0:
-                return d, idx
-            for lvl in np.unique(finest[todo]):
-                sel = todo[finest[todo] == lvl]
-                d[sel], idx[sel] = self.trees[lvl].query(Pn[sel], k=1, eps=self.far_eps if lvl < last else 0.0)
-                level[sel] = lvl
-
-
-def chamfer_distance(P: torch.Tensor, Q: torch.Tensor, *, Q_tree=None, return_directions: bool = False):
-    """Symmetric squared Chamfer distance ``mean_p min_q |p - q|^2 + mean_q min_p |q - p|^2``.
-
-    The nearest neighbours come from scipy KD-trees and carry no gradient; the distances are computed in
-    torch from the chosen pairs, so gradients flow to both point sets (this is the exact gradient almost
-    everywhere, since the minimising index is locally constant).
-
-    Parameters
-    ----------
-    P : (n, 3) float tensor
-    Q : (k, 3) float tensor, same dtype
-    Q_tree : scipy.spatial.cKDTree, optional
-        A tree already built on ``Q`` (a fixed target); a tree on ``P`` is built per call.
-    return_directions : bool
-        Return the two directed terms ``(P -> Q, Q -> P)`` instead of their sum.
-
-    Returns
-    -------
-    () float tensor, or a pair of them.
-
-    Examples
-    --------
-    >>> P = torch.tensor([[0., 0, 0], [1, 0, 0]])
-    >>> float(chamfer_distance(P, P + torch.tensor([0., 0, 0.5])))
-    0.5
-    """
-    _check_points(P, "P")
-    _check_points(Q, "Q")
-    i_pq = nearest_neighbors(P, Q, tree=Q_tree)
-    i_qp = nearest_neighbors(Q, P)
-    d_pq = ((P - Q[i_pq]) ** 2).sum(-1).mean()
-    d_qp = ((Q - P[i_qp]) ** 2).sum(-1).mean()
-    return (d_pq, d_qp) if return_directions else d_pq + d_qp
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Evaluation (float64, not differentiable)
-
-
-def _np_mesh(V, F):
-    V, F = check_mesh(V, F)
-    return np.ascontiguousarray(V.detach().cpu().double().numpy()), np.ascontiguousarray(F.cpu().numpy())
-
-
-def _face_normals_np(V, F):
-    c = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    nrm = np.linalg.norm(c, axis=1, keepdims=True)
-    return c / np.maximum(nrm, np.finfo(np.float64).tiny), nrm.ravel()
-
-
-@dataclass(frozen=True)
-class MeshHealth:
-    """Defects of a triangle mesh.
-
-    Attributes
-    ----------
-    self_intersections : int or None
-        Intersecting pairs of non-adjacent faces (``igl.predicates.find_self_intersections``, exact
-        predicates); None when not computed.
-    degenerate_faces : int
-        Faces whose double area is at most ``eps`` times their summed squared edge lengths.
-    flipped_faces : int or None
-        Faces whose normal points against the same face's normal in the rest pose ``V0`` (None without
-        ``V0``).
-    """
-
-    self_intersections: int | None
-    degenerate_faces: int
-    flipped_faces: int | None
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-
-def _self_intersections(V, F) -> int:
-    import igl.predicates
-
-    _, pairs, _ = igl.predicates.find_self_intersections(V, F, False)
-    return int(len(pairs))
-
-
-def mesh_health(V, F, V0=None, *, self_intersections: bool = True, eps: float = 1e-12) -> MeshHealth:
-    """Count self-intersecting face pairs, degenerate faces and (given a rest pose) flipped faces.
-
-    Parameters
-    ----------
-    V : (n, 3) float tensor or array
-    F : (m, 3) integer tensor or array
-    V0 : (n, 3) float tensor or array, optional
-        Rest pose with the same faces; a face is flipped when its normal has a negative dot product with
-        its rest normal.
-    self_intersections : bool
-        Run the (exact, AABB-accelerated) self-intersection test.
-    eps : float
-        Relative area threshold for degenerate faces.
-
-    Returns
-    -------
-    MeshHealth
-    """
-    Vn, Fn = _np_mesh(V, F)
-    N, dbl = _face_normals_np(Vn, Fn)
-    T = Vn[Fn]
-    scale = ((T - T[:, [1, 2, 0]]) ** 2).sum((1, 2))
-    degenerate = int(np.sum(dbl <= eps * scale))
-    flipped = None
-    if V0 is not None:
-        V0n, _ = _np_mesh(V0, F)
-        if V0n.shape != Vn.shape:
-            raise MeshError(f"rest pose V0 of shape {V0n.shape} does not match V of shape {Vn.shape}")
-        N0, dbl0 = _face_normals_np(V0n, Fn)
-        flipped = int(np.sum(((N * N0).sum(1) < 0) & (dbl > 0) & (dbl0 > 0)))
-    si = _self_intersections(Vn, Fn) if self_intersections else None
-    return MeshHealth(si, degenerate, flipped)
+def _normals_np(V, F):
+    """Unit normals ``(m, 3)`` (zero for zero-area faces) and double areas ``(m,)`` of a numpy mesh, as numpy."""
+    Vt, Ft = torch.from_numpy(V), torch.from_numpy(F)
+    return face_normals(Vt, Ft, eps=0.0).numpy(), doublearea(Vt, Ft).numpy()
 
 
 @dataclass(frozen=True)
@@ -456,7 +64,7 @@ class SurfaceMetrics:
         added where it costs little (folds and wrinkles lying on the target) lowers it; a ratio well
         above 1 flags a score bought that way (docs/reconstruction.md, *Why the teapot stops*).
     self_intersections, degenerate_faces : int or None
-        Health of the mesh (see :class:`MeshHealth`).
+        Health of the mesh (see :class:`meshmei.quality.MeshHealth`).
     inverted_faces : int
         Mesh faces whose normal points against the target normal at the target point closest to the
         face's centroid (folds, or an orientation opposite to the target's).
@@ -522,21 +130,26 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
     ------
     MeshError
         Either mesh is invalid or has zero area.
-    """
-    import igl
 
+    Examples
+    --------
+    >>> V, F = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), torch.tensor([[0, 1, 2]])
+    >>> m = surface_metrics(V, F, V, F, n_samples=1000)
+    >>> m.chamfer_l2 < 1e-20, m.fscore, m.self_intersections, m.degenerate_faces
+    (True, 1.0, 0, 0)
+    """
     if isinstance(n_samples, bool) or int(n_samples) != n_samples or n_samples < 1:
         raise ValueError(f"n_samples must be a positive integer, got {n_samples!r}")
     if not fscore_threshold > 0:
         raise ValueError(f"fscore_threshold must be positive, got {fscore_threshold!r}")
-    V, F = _np_mesh(V, F)
-    Vt, Ft = _np_mesh(Vt, Ft)
+    V, F = numpy_mesh(V, F)
+    Vt, Ft = numpy_mesh(Vt, Ft)
     P, NP = _sample_np(V, F, int(n_samples), seed)
     Q, NQ = _sample_np(Vt, Ft, int(n_samples), seed + 1)
     d_pq, f_pq, _ = igl.point_mesh_squared_distance(P, Vt, Ft)
     d_qp, f_qp, _ = igl.point_mesh_squared_distance(Q, V, F)
-    Nt, dbl_t = _face_normals_np(Vt, Ft)
-    Ns, dbl = _face_normals_np(V, F)
+    Nt, dbl_t = _normals_np(Vt, Ft)
+    Ns, dbl = _normals_np(V, F)
     nc = 0.5 * (np.abs((NP * Nt[f_pq]).sum(1)).mean() + np.abs((NQ * Ns[f_qp]).sum(1)).mean())
     tau = fscore_threshold * float(np.linalg.norm(Vt.max(0) - Vt.min(0)))
     precision = float(np.mean(d_pq <= tau * tau))
@@ -544,8 +157,6 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
     fscore = 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
     _, f_c, _ = igl.point_mesh_squared_distance(V[F].mean(1), Vt, Ft)
     inverted = int(np.sum(((Ns * Nt[f_c]).sum(1) < 0) & (dbl > 0)))
-    T = V[F]
-    degenerate = int(np.sum(dbl <= 1e-12 * ((T - T[:, [1, 2, 0]]) ** 2).sum((1, 2))))
     return SurfaceMetrics(
         chamfer_l2=float(d_pq.mean() + d_qp.mean()),
         accuracy=float(d_pq.mean()),
@@ -557,8 +168,8 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
         normal_consistency=float(nc),
         hausdorff=float(np.sqrt(max(d_pq.max(), d_qp.max()))),
         area_ratio=float(dbl.sum() / dbl_t.sum()),
-        self_intersections=_self_intersections(V, F) if health else None,
-        degenerate_faces=degenerate,
+        self_intersections=count_self_intersections(V, F) if health else None,
+        degenerate_faces=count_degenerate_faces(V, F),
         inverted_faces=inverted,
         n_samples=int(n_samples),
         seed=int(seed),
@@ -568,9 +179,6 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fs
 def face_components(F, n_vertices: int) -> np.ndarray:
     """Label each face with its piece: faces that share a vertex, directly or through other faces, are in
     the same piece. Returns an ``(m,)`` int array of labels ``0 .. pieces - 1``."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     F = np.asarray(F.cpu() if isinstance(F, torch.Tensor) else F, dtype=np.int64)
     i = F[:, [0, 1, 2]].ravel()
     j = F[:, [1, 2, 0]].ravel()
@@ -595,10 +203,8 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
     area), ``accuracy`` and ``completeness`` (contributions to the means, same units as Chamfer-L2),
     ``bbox_min`` and ``bbox_max`` (of the piece's vertices).
     """
-    import igl
-
-    V, F = _np_mesh(V, F)
-    Vt, Ft = _np_mesh(Vt, Ft)
+    V, F = numpy_mesh(V, F)
+    Vt, Ft = numpy_mesh(Vt, Ft)
     P, _ = _sample_np(V, F, int(n_samples), seed)
     Q, fq = sample_points(torch.from_numpy(Vt), torch.from_numpy(Ft), int(n_samples), generator=seed + 1,
                           return_faces=True)
@@ -606,7 +212,7 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
     d_pq, f_pq, _ = igl.point_mesh_squared_distance(P, Vt, Ft)
     d_qp, _, _ = igl.point_mesh_squared_distance(Q, V, F)
     face_label = face_components(Ft, len(Vt))
-    _, area = _face_normals_np(Vt, Ft)
+    _, area = _normals_np(Vt, Ft)
     out = []
     for c in np.unique(face_label):
         faces = face_label == c
@@ -638,10 +244,7 @@ def hidden_surface(V, F, *, n_samples: int = 100_000, seed: int = 0, offset: flo
     samples of the squared distance from each hidden sample to the nearest visible sample), and
     ``hidden`` (boolean mask over the samples) with ``points`` ``(n_samples, 3)``.
     """
-    import igl
-    from scipy.spatial import cKDTree
-
-    V, F = _np_mesh(V, F)
+    V, F = numpy_mesh(V, F)
     Q, N = _sample_np(V, F, int(n_samples), seed + 1)
     h = offset * float(np.linalg.norm(V.max(0) - V.min(0)))
     w_out = igl.fast_winding_number(V, F, Q + h * N)

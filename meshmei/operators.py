@@ -1,20 +1,27 @@
 """Differentiable geometry operators on plain tensors, in libigl's vocabulary (validated against libigl).
 
 Every function takes vertex positions ``V`` of shape ``(n, 3)`` or a batch ``(B, n, 3)`` sharing one face
-array ``F`` of shape ``(m, 3)`` (int64), and returns results on the device and in the dtype of ``V``.
+array ``F`` of shape ``(m, 3)`` (int64; tensors, numpy arrays or nested lists), and returns results on the device and in the dtype of ``V``.
 Topology (edges, 1-rings) comes from :func:`meshmei.topology.mesh_topology` and is cached per face array.
 
 Degenerate meshes never produce NaN or Inf: where a division can meet zero, an ``eps`` keyword sets a
 guard that is *relative to the local squared edge lengths*, so it behaves the same at any coordinate scale.
 ``eps=None`` (the default) picks a guard from the dtype (:func:`resolve_eps`).
+
+The kernels named ``*_from_*`` and :func:`corners` take tensors that are already validated (the corner
+tensor ``T = V[F]``, a topology, per-face terms) and skip the checks: they are the building blocks that the
+regularizers call once per optimisation step, after validating their input once.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
-from .mesh import _as_tensor, check_mesh
-from .topology import mesh_topology
+from .errors import MeshError
+from .mesh import check_mesh
+from .topology import MeshTopology, mesh_topology
 
 __all__ = [
     "edges",
@@ -30,6 +37,17 @@ __all__ = [
     "massmatrix",
     "safe_norm",
     "resolve_eps",
+    "EPS",
+    "gather",
+    "corners",
+    "FaceTerms",
+    "face_terms",
+    "cross_from_corners",
+    "doublearea_from_corners",
+    "sq_edge_sum_from_corners",
+    "cot_laplacian_from_cot",
+    "massmatrix_from_terms",
+    "uniform_laplacian_from_topology",
 ]
 
 EPS = None  # resolved per dtype by resolve_eps
@@ -79,12 +97,31 @@ def _edges_opposite(T: torch.Tensor):
     return T2 - T1, T0 - T2, T1 - T0
 
 
-def _face_terms(T: torch.Tensor, eps):
-    """Per-face quantities shared by the cotangent Laplacian and the Voronoi mass.
+class FaceTerms(NamedTuple):
+    """Per-face quantities shared by the cotangent Laplacian and the Voronoi mass (see :func:`face_terms`).
 
-    Returns ``(l2, dot, dbl, C)``: squared length of the edge opposite each corner ``(..., m, 3)``, the dot
-    product of the two edges leaving each corner ``(..., m, 3)`` (negative at an obtuse corner), twice
-    the face area ``(..., m)`` and the cotangent of each corner angle ``(..., m, 3)``.
+    Attributes
+    ----------
+    l2 : (..., m, 3) float tensor
+        Squared length of the edge opposite each corner.
+    dot : (..., m, 3) float tensor
+        Dot product of the two edges leaving each corner (negative at an obtuse corner).
+    dbl : (..., m) float tensor
+        Twice the face area.
+    cot : (..., m, 3) float tensor
+        Cotangent of each corner angle, guarded as in :func:`cot_weights`.
+    """
+
+    l2: torch.Tensor
+    dot: torch.Tensor
+    dbl: torch.Tensor
+    cot: torch.Tensor
+
+
+def face_terms(T: torch.Tensor, eps: float | None = EPS) -> FaceTerms:
+    """Edge lengths, corner dot products, double areas and cotangents of the corner tensor ``T`` (..., m, 3, 3).
+
+    No validation (``T`` is :func:`corners` of a checked mesh); ``eps`` as in :func:`cot_weights`.
     """
     d0, d1, d2 = _edges_opposite(T)
     l2 = torch.stack([(d0 * d0).sum(-1), (d1 * d1).sum(-1), (d2 * d2).sum(-1)], -1)
@@ -93,25 +130,18 @@ def _face_terms(T: torch.Tensor, eps):
     dbl = safe_norm(torch.linalg.cross(d1, d2, dim=-1))
     scale = l2.sum(-1, keepdim=True) - l2  # |u|^2 + |w|^2 at each corner
     den = torch.maximum(dbl.unsqueeze(-1), resolve_eps(eps, T.dtype) * scale).clamp_min(torch.finfo(T.dtype).tiny)
-    return l2, dot, dbl, dot / den
+    return FaceTerms(l2, dot, dbl, dot / den)
 
 
-def _check(V, F):
-    # arrays and nested lists are welcome, as check_mesh takes them; a leading batch axis is optional
-    V = _as_tensor(V, "V")
-    return check_mesh(V, F, batched=V.ndim == 3)
-
-
-def _corners(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
-    return gather(V, F)  # (..., m, 3, 3): face, corner, xyz
+def corners(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """Corner positions of every face, ``(..., m, 3, 3)`` (face, corner, xyz); ``V`` and ``F`` are not checked."""
+    return gather(V, F)
 
 
 def edges(F) -> torch.Tensor:
     """Unique undirected edges ``(E, 2)`` int64, ``i < j``, lexicographically sorted (``igl.edges`` up to order)."""
     F = torch.as_tensor(F)
     if F.ndim != 2 or F.shape[1] != 3 or F.numel() == 0:
-        from .errors import MeshError
-
         raise MeshError(f"F must be a non-empty (m, 3) integer array, got shape {tuple(F.shape)}")
     return mesh_topology(F.long()).edges
 
@@ -124,13 +154,21 @@ def adjacency_list(F, n_vertices: int | None = None) -> list[list[int]]:
 
 def doublearea(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """Twice the area of each face, ``(..., m)``; 0 for degenerate faces, with a finite gradient."""
-    V, F = _check(V, F)
-    return _doublearea(_corners(V, F))
+    V, F = check_mesh(V, F, batched=None)
+    return doublearea_from_corners(corners(V, F))
 
 
-def _doublearea(T: torch.Tensor) -> torch.Tensor:
-    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
-    return safe_norm(c)
+def cross_from_corners(T: torch.Tensor) -> torch.Tensor:
+    """``(T1 - T0) x (T2 - T0)`` for each face of ``T`` (..., m, 3, 3), ``(..., m, 3)``; no validation.
+
+    Normal to the face by the right-hand rule on the corner order, as long as twice the face's area.
+    """
+    return torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
+
+
+def doublearea_from_corners(T: torch.Tensor) -> torch.Tensor:
+    """Twice the area of each face of the corner tensor ``T`` (..., m, 3, 3), ``(..., m)``; no validation."""
+    return safe_norm(cross_from_corners(T))
 
 
 def face_areas(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
@@ -138,8 +176,11 @@ def face_areas(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     return 0.5 * doublearea(V, F)
 
 
-def _sq_edge_scale(T: torch.Tensor) -> torch.Tensor:
-    # sum of squared edge lengths of each face: the scale that relative guards multiply
+def sq_edge_sum_from_corners(T: torch.Tensor) -> torch.Tensor:
+    """Sum of the squared edge lengths of each face of ``T`` (..., m, 3, 3), ``(..., m)``; no validation.
+
+    The scale that relative guards multiply: a face's double area over it is scale-free.
+    """
     return sum((d * d).sum(-1) for d in _edges_opposite(T))
 
 
@@ -149,10 +190,10 @@ def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -
     A face whose double area is below ``eps`` times its summed squared edge lengths gets a normal
     shrunk towards zero (exactly zero for a fully degenerate face) instead of NaN.
     """
-    V, F = _check(V, F)
-    T = _corners(V, F)
-    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)
-    return _normalize(c, resolve_eps(eps, V.dtype) * _sq_edge_scale(T))
+    V, F = check_mesh(V, F, batched=None)
+    T = corners(V, F)
+    c = cross_from_corners(T)
+    return _normalize(c, resolve_eps(eps, V.dtype) * sq_edge_sum_from_corners(T))
 
 
 def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
@@ -162,9 +203,9 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
     ``eps`` times the summed double areas around the vertex (so cancelling normals give a short vector,
     not NaN).
     """
-    V, F = _check(V, F)
-    T = _corners(V, F)
-    c = torch.linalg.cross(T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :], dim=-1)  # (..., m, 3)
+    V, F = check_mesh(V, F, batched=None)
+    T = corners(V, F)
+    c = cross_from_corners(T)  # (..., m, 3)
     idx = F.reshape(-1)
     c3 = c.unsqueeze(-2).expand(*c.shape[:-1], 3, 3).reshape(*c.shape[:-2], -1, 3)  # (..., 3m, 3)
     acc = torch.zeros_like(V).index_add_(-2, idx, c3)
@@ -175,12 +216,12 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
 
 def uniform_laplacian(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """Uniform (umbrella) Laplacian ``v_i - mean_{j in N(i)} v_j``, ``(..., n, 3)``; zero for isolated vertices."""
-    V, F = _check(V, F)
-    topo = mesh_topology(F, V.shape[-2])
-    return _uniform_laplacian(V, topo)
+    V, F = check_mesh(V, F, batched=None)
+    return uniform_laplacian_from_topology(V, mesh_topology(F, V.shape[-2]))
 
 
-def _uniform_laplacian(V, topo):
+def uniform_laplacian_from_topology(V: torch.Tensor, topo: MeshTopology) -> torch.Tensor:
+    """:func:`uniform_laplacian` of ``V`` (..., n, 3) over the 1-rings of ``topo``; no validation."""
     nb = torch.zeros_like(V).index_add_(-2, topo.nbr_src, gather(V, topo.nbr_idx))
     deg = topo.degree.to(V.dtype).clamp_min(1).unsqueeze(-1)
     mean = torch.where(topo.degree.unsqueeze(-1) > 0, nb / deg, V)
@@ -193,15 +234,15 @@ def cot_weights(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) ->
     ``cot = (u . w) / |u x w|`` with the denominator held above ``eps * (|u|^2 + |w|^2)`` so that
     degenerate faces give large but finite weights rather than Inf.
     """
-    V, F = _check(V, F)
-    return _cot(_corners(V, F), eps)
+    V, F = check_mesh(V, F, batched=None)
+    return face_terms(corners(V, F), eps).cot
 
 
-def _cot(T: torch.Tensor, eps) -> torch.Tensor:
-    return _face_terms(T, eps)[3]
+def cot_laplacian_from_cot(X: torch.Tensor, F: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+    """``L X`` for the cotangent Laplacian whose corner cotangents are ``C`` (..., m, 3); no validation.
 
-
-def _cot_apply(X: torch.Tensor, F: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+    ``X`` is (..., n, d); ``C`` comes from :func:`face_terms` (``.cot``) or :func:`cot_weights`.
+    """
     # (L X)_i = sum_j 0.5 * (cot a_ij + cot b_ij) (x_j - x_i), accumulated per half-edge
     a = F[:, [1, 2, 0]].reshape(-1)
     b = F[:, [2, 0, 1]].reshape(-1)
@@ -218,9 +259,9 @@ def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = Non
     Same sign convention as ``igl.cotmatrix`` (negative semi-definite): ``cot_laplacian(V, F, X) ==
     cotmatrix(V, F) @ X``. Returns ``(..., n, d)``.
     """
-    V, F = _check(V, F)
-    C = _cot(_corners(V, F), eps)
-    return _cot_apply(V if X is None else X, F, C)
+    V, F = check_mesh(V, F, batched=None)
+    C = face_terms(corners(V, F), eps).cot
+    return cot_laplacian_from_cot(V if X is None else X, F, C)
 
 
 def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
@@ -232,7 +273,7 @@ def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> t
     V, F = check_mesh(V, F)
     n = V.shape[0]
     indices, slot = mesh_topology(F, n).cot_pattern
-    C = 0.5 * _cot(_corners(V, F), eps).reshape(-1)  # (3m,)
+    C = 0.5 * face_terms(corners(V, F), eps).cot.reshape(-1)  # (3m,)
     vals = torch.zeros(indices.shape[1], dtype=V.dtype, device=V.device).index_add(0, slot, torch.cat([C, C, -C, -C]))
     return torch.sparse_coo_tensor(indices, vals, (n, n), is_coalesced=True, check_invariants=False)
 
@@ -244,11 +285,12 @@ def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> 
     ``(l_ij^2 cot_k + l_ik^2 cot_j) / 8``; in an obtuse triangle the obtuse corner gets half the
     face area and the other two a quarter each. Unreferenced vertices get 0.
     """
-    V, F = _check(V, F)
-    return _massmatrix(F, V.shape[-2], _face_terms(_corners(V, F), eps))
+    V, F = check_mesh(V, F, batched=None)
+    return massmatrix_from_terms(F, V.shape[-2], face_terms(corners(V, F), eps))
 
 
-def _massmatrix(F: torch.Tensor, n: int, terms) -> torch.Tensor:
+def massmatrix_from_terms(F: torch.Tensor, n: int, terms: FaceTerms) -> torch.Tensor:
+    """:func:`massmatrix` of ``n`` vertices from the :func:`face_terms` of their faces ``F``; no validation."""
     l2, dot, dbl, C = terms
     lc = l2 * C  # corner k touches the edges opposite corners k+1 and k+2
     vor = (lc.sum(-1, keepdim=True) - lc) / 8.0

@@ -16,6 +16,8 @@ They are differentiable, work in float32 and float64, and stay finite on degener
                        with rest cotangent weights ``w_ij`` (``igl.cotmatrix`` entries) and best-fit
                        rotations ``R_i`` held fixed in the gradient (exact at the fit)
 =====================  ==========================================================================
+
+:data:`REGULARIZERS` names each of them, as ``loss(V, V0, F)``, for settings that pick regularizers by name.
 """
 
 from __future__ import annotations
@@ -24,7 +26,18 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import EPS, resolve_eps, _corners, _cot, _cot_apply, _doublearea, _face_terms, _massmatrix, _uniform_laplacian, gather, safe_norm
+from .operators import (
+    EPS,
+    corners,
+    cot_laplacian_from_cot,
+    doublearea_from_corners,
+    face_terms,
+    gather,
+    massmatrix_from_terms,
+    resolve_eps,
+    safe_norm,
+    uniform_laplacian_from_topology,
+)
 from .topology import mesh_topology
 
 __all__ = [
@@ -34,23 +47,20 @@ __all__ = [
     "arap_direction_loss",
     "arap_loss",
     "best_fit_rotations",
+    "REGULARIZERS",
+    "REGULARIZER_LABELS",
 ]
 
 
-def _check(V, F):
-    V, F = check_mesh(V, F, batched=isinstance(V, torch.Tensor) and V.ndim == 3)
-    return V, F
-
-
 def _check_rest(V, V0, F):
-    V, F = _check(V, F)
+    V, F = check_mesh(V, F, batched=None)
     if not isinstance(V0, torch.Tensor):
         V0 = torch.as_tensor(V0)
     if V0.shape[-2:] != V.shape[-2:] or (V0.ndim == 3 and V.ndim == 3 and V0.shape[0] != V.shape[0]):
         raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
     if V0.ndim == 3 and V.ndim == 2:
         raise MeshError(f"a batched rest pose {tuple(V0.shape)} needs a batched V, got {tuple(V.shape)}")
-    V0, _ = check_mesh(V0, F, batched=V0.ndim == 3)
+    V0, _ = check_mesh(V0, F, batched=None)
     return V, V0.to(V.dtype), F
 
 
@@ -85,10 +95,10 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
     -------
     () or (B,) float tensor
     """
-    V, F = _check(V, F)
+    V, F = check_mesh(V, F, batched=None)
     topo = mesh_topology(F, V.shape[-2])
     if method == "uniform":
-        d = _uniform_laplacian(V, topo)
+        d = uniform_laplacian_from_topology(V, topo)
         live = topo.degree > 0
         return ((d * d).sum(-1) * live).sum(-1) / live.sum().clamp_min(1)
     if method == "cotangent":
@@ -97,9 +107,9 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
         # extent is exact, so the loss is computed at unit scale and brought back, with identical values.
         s = _pow2_extent(V)
         V = V / s
-        terms = _face_terms(_corners(V, F), eps)  # shared by L and M
-        LV = _cot_apply(V, F, terms[3])
-        M = _massmatrix(F, V.shape[-2], terms)
+        terms = face_terms(corners(V, F), eps)  # shared by L and M
+        LV = cot_laplacian_from_cot(V, F, terms.cot)
+        M = massmatrix_from_terms(F, V.shape[-2], terms)
         interior = ~topo.boundary_vertex
         total = (M * interior).sum(-1, keepdim=True)
         mean_mass = M.sum(-1, keepdim=True) / M.shape[-1]
@@ -117,7 +127,7 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
 
 def edge_loss(V, F) -> torch.Tensor:
     """Edge-length uniformity: ``mean_e (|e| - mean |e|)^2`` over unique edges. Returns () or (B,)."""
-    V, F = _check(V, F)
+    V, F = check_mesh(V, F, batched=None)
     E = mesh_topology(F, V.shape[-2]).edges
     if E.shape[0] == 0:
         return V.sum((-1, -2)) * 0.0
@@ -127,8 +137,8 @@ def edge_loss(V, F) -> torch.Tensor:
 
 def area_loss(V, F) -> torch.Tensor:
     """Triangle-area uniformity: ``mean_t (A_t - mean A)^2``. Returns () or (B,)."""
-    V, F = _check(V, F)
-    A = 0.5 * _doublearea(_corners(V, F))
+    V, F = check_mesh(V, F, batched=None)
+    A = 0.5 * doublearea_from_corners(corners(V, F))
     return ((A - A.mean(-1, keepdim=True)) ** 2).mean(-1)
 
 
@@ -154,12 +164,20 @@ def arap_direction_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     return (r * r).sum(-1).mean(-1)
 
 
-def _arap_halfedges(F):
-    # directed spokes i -> j for every face corner pair, each carrying the weight of the edge opposite k
+def _spokes(V, V0, F, C0):
+    """The directed spokes ``i -> j`` of every face corner pair, with their rest cotangent weights.
+
+    Returns ``i`` (6m,), ``w`` (..., 6m) (each pair weighs ``0.5 cot`` of the corner opposite it, so a
+    spoke's two faces add up to the ``igl.cotmatrix`` entry) and the rest and current spoke vectors
+    ``e0``, ``e`` (..., 6m, 3).
+    """
     i = F[:, [1, 2, 0, 2, 0, 1]].reshape(-1)  # (6m,)
     j = F[:, [2, 0, 1, 1, 2, 0]].reshape(-1)
     k = torch.arange(3, device=F.device).repeat(2)  # which corner's cotangent weighs the pair
-    return i, j, k
+    w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)  # (..., 6m)
+    e0 = gather(V0, j) - gather(V0, i)
+    e = gather(V, j) - gather(V, i)
+    return i, w, e0, e
 
 
 def best_fit_rotations(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
@@ -171,14 +189,11 @@ def best_fit_rotations(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     """
     V, V0, F = _check_rest(V, V0, F)
     with torch.no_grad():
-        return _rotations(V.detach(), V0, F, _cot(_corners(V0, F), eps))
+        return _rotations(V.detach(), V0, F, face_terms(corners(V0, F), eps).cot)
 
 
 def _rotations(V, V0, F, C0):
-    i, j, k = _arap_halfedges(F)
-    w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)  # (..., 6m)
-    e0 = gather(V0, j) - gather(V0, i)
-    e = gather(V, j) - gather(V, i)
+    i, w, e0, e = _spokes(V, V0, F, C0)
     if e0.ndim < e.ndim:
         e0 = e0.expand_as(e)
         w = w.expand(e.shape[:-1])
@@ -206,12 +221,30 @@ def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
     Returns () or (B,).
     """
     V, V0, F = _check_rest(V, V0, F)
-    C0 = _cot(_corners(V0, F), eps)
+    C0 = face_terms(corners(V0, F), eps).cot
     with torch.no_grad():
         R = _rotations(V.detach(), V0.detach(), F, C0.detach())
-    i, j, k = _arap_halfedges(F)
-    w = 0.5 * C0[..., :, k].reshape(*C0.shape[:-2], -1)
-    e0 = gather(V0, j) - gather(V0, i)
-    e = gather(V, j) - gather(V, i)
+    i, w, e0, e = _spokes(V, V0, F, C0)
     r = e - (gather(R, i, dim=-3) @ e0.unsqueeze(-1)).squeeze(-1)
     return (w * (r * r).sum(-1)).sum(-1)
+
+
+# name -> loss(V, V0, F); the paper's four first, then the two variants beyond it
+REGULARIZERS = {
+    "laplacian": lambda V, V0, F: laplacian_loss(V, F),
+    "edge": lambda V, V0, F: edge_loss(V, F),
+    "area": lambda V, V0, F: area_loss(V, F),
+    "arap": lambda V, V0, F: arap_direction_loss(V, V0, F),
+    "laplacian_cot": lambda V, V0, F: laplacian_loss(V, F, method="cotangent"),
+    "arap_sorkine": lambda V, V0, F: arap_loss(V, V0, F),
+}
+
+# name in REGULARIZERS -> its label in tables, in the order tables list them
+REGULARIZER_LABELS = {
+    "laplacian": "laplacian (uniform)",
+    "laplacian_cot": "laplacian (cotangent)",
+    "edge": "edge",
+    "area": "area",
+    "arap": "arap (direction)",
+    "arap_sorkine": "arap (Sorkine-Alexa)",
+}

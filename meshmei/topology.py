@@ -68,6 +68,25 @@ class MeshTopology:
         uniq, slot = torch.unique(rows * n + cols, return_inverse=True)
         return torch.stack([uniq // n, uniq % n]), slot
 
+    @cached_property
+    def twins(self) -> torch.Tensor:
+        """``(m, 3)`` int64: the half-edge ``3 g + l`` sharing edge ``(f, k)`` when exactly two faces do, else -1.
+
+        Half-edge ``(f, k)`` is the edge opposite corner ``k``, from ``F[f, k+1]`` to ``F[f, k+2]``. The
+        rasterizer finds the silhouette's edges with it.
+        """
+        fe = self.face_edges.reshape(-1)  # (3m,) edge id or -1
+        E = self.n_edges
+        key = torch.where(fe >= 0, fe, torch.full_like(fe, E))
+        order = torch.argsort(key, stable=True)
+        cnt = torch.bincount(key, minlength=E + 1)[:E]
+        start = torch.cumsum(cnt, 0) - cnt
+        two = (cnt == 2).nonzero().squeeze(1)
+        h1, h2 = order[start[two]], order[start[two] + 1]
+        twin = torch.full_like(fe, -1)
+        twin[h1], twin[h2] = h2, h1
+        return twin.view(-1, 3)
+
     def adjacency_list(self) -> list[list[int]]:
         """Sorted neighbour lists, one per vertex (as ``igl.adjacency_list`` gives them, up to order)."""
         ptr = self.nbr_ptr.tolist()

@@ -11,7 +11,6 @@ import torch
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
 from meshmei.mei import MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
-from meshmei.mei.core import mesh_quality, triangle_quality  # MERGE: meshmei.quality
 
 TINY = dict(image_size=32, n_vertices=80, steps=4, seeds=(0,))
 
@@ -144,14 +143,6 @@ def test_grid_search_reports_activation_and_quality():
     for r in rows:
         assert {"activation", "fraction_of_bound", "min_quality", "mean_quality", "self_intersections", "seconds"} <= set(r)
         assert isinstance(r["self_intersections"], int)
-
-
-def test_triangle_quality():
-    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0.5, math.sqrt(3) / 2, 0], [2, 0, 0]], dtype=torch.float64)
-    F = torch.tensor([[0, 1, 2], [0, 1, 3]])
-    q = triangle_quality(V, F)
-    torch.testing.assert_close(q, torch.tensor([1.0, 0.0], dtype=torch.float64))
-    assert mesh_quality(V, F)["min_quality"] == 0.0
 
 
 def test_bad_input_raises_mei_error():

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from meshmei.errors import MeshError
-from meshmei.mesh import check_mesh, load_mesh, save_mesh
+from meshmei.mesh import check_mesh, load_mesh, numpy_mesh, save_mesh
 
 from conftest import icosphere
 
@@ -95,3 +95,22 @@ def test_save_mesh_rejects_unknown_format(tmp_path):
     V, F = icosphere(0)
     with pytest.raises(MeshError, match="unsupported mesh format '.xyz'"):
         save_mesh(tmp_path / "m.xyz", V, F)
+
+
+def test_check_mesh_infers_the_batch_axis_with_batched_none():
+    V, F = icosphere(1)
+    Vb, _ = check_mesh(torch.stack([V, 2 * V]).numpy(), F, batched=None)
+    assert Vb.shape == (2, V.shape[0], 3)
+    assert check_mesh(V, F, batched=None)[0] is V
+    with pytest.raises(MeshError, match=r"V must have shape \(n, 3\)"):
+        check_mesh(torch.zeros(2, 4, 3), [[0, 1, 2]])
+
+
+def test_numpy_mesh_gives_contiguous_float64_and_int64_arrays():
+    V, F = icosphere(1)
+    Vn, Fn = numpy_mesh(V.float(), F.int())
+    assert Vn.dtype == np.float64 and Fn.dtype == np.int64
+    assert Vn.flags.c_contiguous and Fn.flags.c_contiguous
+    np.testing.assert_array_equal(Fn, F.numpy())
+    with pytest.raises(MeshError, match="out of range"):
+        numpy_mesh(V, F + V.shape[0])

@@ -7,7 +7,7 @@ import torch
 from meshmei import operators as ops
 from meshmei.topology import mesh_topology
 
-from conftest import hard_cases, icosphere, perturbed_sphere, random_rotation
+from conftest import grid_sheet, hard_cases, icosphere, perturbed_sphere, random_rotation
 
 
 @pytest.fixture(scope="module", params=["bunny", "teapot", "sheet", "perturbed_sphere"])
@@ -208,3 +208,34 @@ def test_operators_take_nested_lists_and_reject_non_arrays(fn):
     torch.testing.assert_close(fn(V.expand(2, -1, -1).tolist(), F), fn(V.expand(2, -1, -1), F))
     with pytest.raises(MeshError, match="V must be a torch tensor or numpy array, got NoneType"):
         fn(None, F)
+
+
+def test_unchecked_kernels_equal_the_checked_operators():
+    V, F = perturbed_sphere(2, 0.05)
+    T = ops.corners(V, F)  # (m, 3, 3)
+    assert T.shape == (F.shape[0], 3, 3) and torch.equal(T[5, 1], V[F[5, 1]])
+    terms = ops.face_terms(T)
+    assert isinstance(terms, ops.FaceTerms) and terms.l2.shape == terms.cot.shape == (F.shape[0], 3)
+    assert torch.equal(terms.cot, ops.cot_weights(V, F))
+    torch.testing.assert_close(terms.dbl, ops.doublearea(V, F), rtol=1e-12, atol=0)
+    assert torch.equal(ops.doublearea_from_corners(T), ops.doublearea(V, F))
+    torch.testing.assert_close(ops.sq_edge_sum_from_corners(T), terms.l2.sum(-1), rtol=1e-12, atol=0)
+    assert torch.equal(ops.massmatrix_from_terms(F, V.shape[0], terms), ops.massmatrix(V, F))
+    assert torch.equal(ops.cot_laplacian_from_cot(V, F, terms.cot), ops.cot_laplacian(V, F))
+    topo = mesh_topology(F, V.shape[0])
+    assert torch.equal(ops.uniform_laplacian_from_topology(V, topo), ops.uniform_laplacian(V, F))
+
+
+def test_topology_twins_pair_the_two_half_edges_of_each_interior_edge():
+    V, F = icosphere(1)
+    tw = mesh_topology(F, V.shape[0]).twins.reshape(-1)
+    assert bool((tw >= 0).all())  # closed: every half-edge has a twin
+    assert torch.equal(tw[tw], torch.arange(tw.numel()))
+    f, k = torch.arange(tw.numel()) // 3, torch.arange(tw.numel()) % 3
+    g, l = tw // 3, tw % 3
+    # the twin runs the other way along the same edge
+    assert torch.equal(F[f, (k + 1) % 3], F[g, (l + 2) % 3]) and torch.equal(F[f, (k + 2) % 3], F[g, (l + 1) % 3])
+    # an open sheet: boundary half-edges have none
+    Vs, Fs = grid_sheet(3, 3)
+    tws = mesh_topology(Fs, Vs.shape[0]).twins
+    assert int((tws < 0).sum()) == 8  # the 2 x 2 grid's boundary has 8 edges

@@ -401,3 +401,16 @@ def test_bad_input():
         reg.arap_direction_loss(V, V.expand(2, -1, -1), F)
     with pytest.raises(MeshError, match="NaN"):
         reg.edge_loss(V * float("nan"), F)
+
+
+def test_registry_names_every_regularizer_once_and_labels_them():
+    V0, F = perturbed_sphere(1, 0.0)
+    V = perturbed_sphere(1, 0.05)[0]
+    assert list(reg.REGULARIZERS) == ["laplacian", "edge", "area", "arap", "laplacian_cot", "arap_sorkine"]
+    assert set(reg.REGULARIZER_LABELS) == set(reg.REGULARIZERS)
+    assert len(set(reg.REGULARIZER_LABELS.values())) == len(reg.REGULARIZERS)
+    direct = {"laplacian": reg.laplacian_loss(V, F), "edge": reg.edge_loss(V, F), "area": reg.area_loss(V, F),
+              "arap": reg.arap_direction_loss(V, V0, F), "laplacian_cot": reg.laplacian_loss(V, F, method="cotangent"),
+              "arap_sorkine": reg.arap_loss(V, V0, F)}
+    for name, loss in reg.REGULARIZERS.items():
+        assert torch.equal(loss(V, V0, F), direct[name])

@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_from_angles, rasterize, render
+from meshmei.render import (Camera, RenderError, RenderSettings, axis_angle_to_matrix, camera_from_angles, rasterize,
+                            render)
+from meshmei.render.passes import run_passes
+from meshmei.render.raster import prepare_inputs
 from meshmei.shapes import initial_mesh, target_mesh
 
 
@@ -317,3 +320,30 @@ def test_float32_matches_float64(sphere64):
     b = render(V.float(), F, settings=st)
     assert b.dtype == torch.float32
     assert (a.float() - b).abs().max() < 1e-3
+
+
+# ---------------------------------------------------------------------------------------------
+# the steps inside rasterize: checked inputs, then the passes
+def test_prepare_inputs_broadcasts_poses_and_cameras():
+    V, F = initial_mesh("sphere", n_vertices=80)
+    cams = camera_from_angles(torch.tensor([0.0, 90.0, 180.0]), torch.zeros(3))
+    inp = prepare_inputs(V, F, cams, None, None, None)
+    assert inp.batch_size == 3 and inp.n_vertices == V.shape[0] and inp.settings == RenderSettings()
+    Vw, eye, R = inp.expanded(3)
+    assert Vw.shape == (3, V.shape[0], 3) and eye.shape == (3, 3) and R.shape == (3, 3, 3)
+    with pytest.raises(RenderError, match="camera has batch size 3, incompatible with batch size 2"):
+        prepare_inputs(torch.stack([V, V]), F, cams, None, None, None)
+
+
+def test_run_passes_pairs_every_covered_pixel_with_its_face():
+    V, F = initial_mesh("sphere", n_vertices=300)
+    st = RenderSettings(image_size=32)
+    inp = prepare_inputs(V, F, None, None, None, st)
+    Vw, eye, R = inp.expanded(inp.batch_size)
+    r = run_passes(Vw, inp.F, eye, R, inp.camera, st, inp.n_vertices)
+    assert int(r.hit.sum()) == r.inside.pix.numel() == int((r.face_id >= 0).sum()) > 0
+    assert torch.equal(r.face_id.view(-1)[r.inside.pix], r.inside.f)
+    torch.testing.assert_close(r.inside.l.sum(1), torch.ones(r.inside.pix.numel()))
+    assert r.fringe.pix.numel() > 0 and bool((r.coverage[r.fringe.pix] < 1).all())
+    frags = rasterize(V, F, settings=st)
+    torch.testing.assert_close(frags.coverage.view(-1), r.coverage, rtol=0, atol=0)

@@ -16,7 +16,7 @@ import torch
 from meshmei.benchmarks._report import docs_dir, machine_line, markdown_table, write_section
 from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
 from meshmei.mei import MEISettings, grid_search, optimize_mei, pixel_mei, random_mesh_responses
-from meshmei.mei.core import mesh_quality  # MERGE: meshmei.quality
+from meshmei.quality import mesh_quality
 
 
 def _first(xs, ts, level):

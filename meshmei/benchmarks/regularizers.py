@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from meshmei import operators as ops
-from meshmei import regularizers as reg
 from meshmei.benchmarks._report import machine_line, markdown_table, timeit, write_section
+from meshmei.regularizers import REGULARIZER_LABELS, REGULARIZERS
 
 
 def torus_grid(n_vertices: int, seed: int = 0):
@@ -34,15 +34,9 @@ def torus_grid(n_vertices: int, seed: int = 0):
 
 
 def _torch_cases(V0, F):
-    return {
-        "laplacian (uniform)": lambda V: reg.laplacian_loss(V, F),
-        "laplacian (cotangent)": lambda V: reg.laplacian_loss(V, F, method="cotangent"),
-        "edge": lambda V: reg.edge_loss(V, F),
-        "area": lambda V: reg.area_loss(V, F),
-        "arap (direction)": lambda V: reg.arap_direction_loss(V, V0, F),
-        "arap (Sorkine-Alexa)": lambda V: reg.arap_loss(V, V0, F),
-        "cotmatrix assembly": lambda V: ops.cotmatrix(V, F).values(),
-    }
+    cases = {label: (lambda V, loss=REGULARIZERS[name]: loss(V, V0, F)) for name, label in REGULARIZER_LABELS.items()}
+    cases["cotmatrix assembly"] = lambda V: ops.cotmatrix(V, F).values()
+    return cases
 
 
 def _igl_cases(V0, F, V):

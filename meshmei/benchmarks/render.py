@@ -17,6 +17,8 @@ import sys
 import numpy as np
 import torch
 
+from ..render import RenderSettings, camera_from_angles, rasterize, render
+from ..shapes import initial_mesh, target_mesh
 from ._report import docs_dir, machine_line, markdown_table, timeit, timings, write_section
 
 MESHES = {"sphere-1k": ("sphere", 500), "sphere-5k": ("sphere", 2500), "sphere-30k": ("sphere", 13000),
@@ -28,8 +30,6 @@ PAPER = {("sphere-5k", 128): 6.6, ("bunny", 256): 35.0}
 
 
 def _mesh(key, dtype=torch.float32):
-    from ..shapes import initial_mesh, target_mesh
-
     kind, n = MESHES[key]
     return target_mesh("bunny", dtype=dtype) if kind == "bunny" else initial_mesh(kind, n_vertices=n, dtype=dtype)
 
@@ -40,8 +40,6 @@ def _rss_mb():
 
 def run_one(key: str, size: int, repeat: int) -> dict:
     """Time forward and forward+backward of one configuration in this process (call in a fresh one)."""
-    from ..render import RenderSettings, render
-
     V, F = _mesh(key)
     st = RenderSettings(image_size=size)
     W = torch.randn(1, 1, size, size, generator=torch.Generator().manual_seed(0))
@@ -75,7 +73,7 @@ def _subprocess(key, size, repeat, threads):
 # ---------------------------------------------------------------------------------------------
 def _reference_coverage(V, F, cam, S, sub):
     """Supersampled ray-cast coverage (libigl AABB), ``sub x sub`` rays per pixel."""
-    import igl
+    import igl  # deferred, as scipy.ndimage below: the --one processes report peak memory, which it would raise
 
     eye, R = cam.frame(torch.float64)
     eye, R = eye[0].numpy(), R[0].numpy()
@@ -92,9 +90,7 @@ def _reference_coverage(V, F, cam, S, sub):
 
 def speed_vs_error(size=128, repeat=5):
     """Silhouette coverage error (vs 64-sample ray casting) and forward+backward time per setting."""
-    from scipy.ndimage import binary_dilation
-
-    from ..render import RenderSettings, camera_from_angles, rasterize, render
+    from scipy.ndimage import binary_dilation  # deferred (see _reference_coverage)
 
     V, F = _mesh("bunny")
     views = [(0.0, 0.0), (60.0, 20.0), (200.0, -30.0)]
@@ -170,7 +166,6 @@ def _fit(results, threads):
 
 
 def _report(results, se, machine, load):
-    ths = sorted({k[0] for k in results})
     lines = [f"Written by `python -m meshmei.benchmarks.render`. Machine: {machine}; "
              f"1-minute load average at the start {load:.1f} (other jobs share the cores, so times are noisy).",
              "",
@@ -180,6 +175,18 @@ def _report(results, se, machine, load):
              "that imported torch, built the mesh and ran every measurement; 'above base' subtracts the resident "
              "size before the first render.",
              ""]
+    ths = sorted({k[0] for k in results})
+    lines += _timing_tables(results, ths) + _cost_and_targets(results, ths) + _speed_error_section(se)
+    return "\n".join(lines)
+
+
+def _threads(th):
+    return f"{th} thread{'s' if th > 1 else ''}"
+
+
+def _timing_tables(results, ths):
+    """One table per thread count: times and peak memory of every (mesh, size)."""
+    lines = []
     for th in ths:
         rows = []
         for (t, key, size), r in results.items():
@@ -190,44 +197,56 @@ def _report(results, se, machine, load):
                          f"{1e3 * r['fwd_bwd']:.1f} ({1e3 * r['best_fwd_bwd']:.1f})",
                          f"{r['peak_mb']:.0f}", f"{r['peak_mb'] - r['base_mb']:.0f}",
                          f"{paper:.1f} s (quoted)" if paper else ""])
-        lines += [f"**{th} thread{'s' if th > 1 else ''}**", "",
+        lines += [f"**{_threads(th)}**", "",
                   markdown_table(["mesh", "faces", "px", "forward ms median (best)", "fwd+bwd ms median (best)", "peak MB", "above base MB",
                                   "paper's renderer, fwd+bwd"], rows), ""]
+    return lines
+
+
+def _cost_and_targets(results, ths):
+    """The fitted cost model per thread count, and the issue's targets."""
+    lines = []
     for th in ths:
         c, r2 = _fit(results, th)
-        lines.append(f"Cost model ({th} thread{'s' if th > 1 else ''}), least squares over the table: fwd+bwd "
+        lines.append(f"Cost model ({_threads(th)}), least squares over the table: fwd+bwd "
                      f"= {1e3 * c[0]:.1f} ms + {1e6 * c[1]:.2f} us/face x faces + {1e6 * c[2]:.3f} us/pixel x "
                      f"pixels (R^2 = {r2:.3f}).")
     lines.append("")
     for th in ths:
         r5, rb = results.get((th, "sphere-5k", 128)), results.get((th, "bunny", 256))
         if r5 and rb:
-            lines.append(f"Targets (issue 3), {th} thread{'s' if th > 1 else ''}: 5k-face sphere at 128 px fwd+bwd "
+            lines.append(f"Targets (issue 3), {_threads(th)}: 5k-face sphere at 128 px fwd+bwd "
                          f"{1e3 * r5['fwd_bwd']:.0f} ms median, {1e3 * r5['best_fwd_bwd']:.0f} ms best (target < "
                          f"100 ms); bunny at 256 px {1e3 * rb['fwd_bwd']:.0f} ms median, "
                          f"{1e3 * rb['best_fwd_bwd']:.0f} ms best (target < 1 s), peak {rb['peak_mb']:.0f} MB (target < 1 GB).")
     lines.append("The paper's renderer numbers (6.6 s and 35 s) are quoted from the issue, not measured here. "
                  "With more threads than free cores, torch's thread pool waits on descheduled threads after "
                  "each of the renderer's many small operations; the single-thread rows are then the relevant ones.")
-    lines += ["", "**Speed against silhouette error** (bunny, 128 px, three views): mean |coverage - reference| over "
-              "pixels within one pixel of the silhouette, the reference being 8x8 = 64 rays per pixel cast with "
-              "libigl's AABB tree; time is fwd+bwd of one view on 1 thread; 'k x k supersampled' renders at k times "
-              "the resolution (sigma in fine pixels) and average-pools (the box filter of the pooling is the "
-              "area coverage; the hard variants have almost no silhouette gradient).", "",
-              markdown_table(["setting", "coverage error", "fwd+bwd ms"],
-                             [[r["label"], f"{r['err']:.4f}", f"{1e3 * r['time']:.1f}"] for r in se]),
-              "", "![speed vs error](render_speed_error.png) ![cost](render_cost.png)"]
-    return "\n".join(lines)
+    return lines
+
+
+def _speed_error_section(se):
+    return ["", "**Speed against silhouette error** (bunny, 128 px, three views): mean |coverage - reference| over "
+            "pixels within one pixel of the silhouette, the reference being 8x8 = 64 rays per pixel cast with "
+            "libigl's AABB tree; time is fwd+bwd of one view on 1 thread; 'k x k supersampled' renders at k times "
+            "the resolution (sigma in fine pixels) and average-pools (the box filter of the pooling is the "
+            "area coverage; the hard variants have almost no silhouette gradient).", "",
+            markdown_table(["setting", "coverage error", "fwd+bwd ms"],
+                           [[r["label"], f"{r['err']:.4f}", f"{1e3 * r['time']:.1f}"] for r in se]),
+            "", "![speed vs error](render_speed_error.png) ![cost](render_cost.png)"]
 
 
 def _plots(results, se, threads):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out = docs_dir()
-    fig, ax = plt.subplots(figsize=(6, 4))
+    _plot_speed_error(se, out / "render_speed_error.png")
+    _plot_cost(results, out / "render_cost.png")
+
+
+def _plot_speed_error(se, path):
+    from matplotlib.figure import Figure  # deferred: matplotlib is heavy, and the --one processes report peak memory
+
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
     for r in se:
         ax.scatter(1e3 * r["time"], r["err"], color="C1" if r["k"] > 1 else "C0")
         ax.annotate(r["label"], (1e3 * r["time"], r["err"]), fontsize=7, xytext=(4, 2), textcoords="offset points")
@@ -236,12 +255,16 @@ def _plots(results, se, threads):
     ax.set_ylabel("mean |coverage error| on silhouette pixels")
     ax.set_title("meshmei rasterizer: speed vs silhouette error")
     fig.tight_layout()
-    fig.savefig(out / "render_speed_error.png", dpi=120)
-    plt.close(fig)
+    fig.savefig(path, dpi=120)
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+
+def _plot_cost(results, path):
+    from matplotlib.figure import Figure  # deferred (see _plot_speed_error)
+
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
     th = max(k[0] for k in results)
-    for i, key in enumerate(MESHES):
+    for key in MESHES:
         rs = [results[(th, key, s)] for s in SIZES if (th, key, s) in results]
         ax.plot([r["size"] ** 2 for r in rs], [1e3 * r["fwd_bwd"] for r in rs], "o-", label=f"{key} ({rs[0]['faces']:,} faces)")
     ax.set_xscale("log")
@@ -251,8 +274,7 @@ def _plots(results, se, threads):
     ax.set_title(f"cost vs image size, CPU float32, {th} thread(s)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "render_cost.png", dpi=120)
-    plt.close(fig)
+    fig.savefig(path, dpi=120)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..errors import MeshError
-from ..metrics import _nn_spacing
+from ..sampling import nn_spacing
 
 __all__ = ["RBFDeformer", "farthest_point_sampling", "rbf_dense"]
 
@@ -207,7 +207,7 @@ class RBFDeformer(torch.nn.Module):
         K = cidx.numel()
         if sigma is None:
             # to the nearest distinct centre: duplicated vertices (seams, STL files) gave a spacing of 0
-            spacing = _nn_spacing(self._c_np) if K > 1 else math.inf
+            spacing = nn_spacing(self._c_np) if K > 1 else math.inf
             if not math.isfinite(spacing):  # one kernel, or all at one point
                 spacing = float(np.linalg.norm(self._v0_np.max(0) - self._v0_np.min(0))) or 1.0
             sigma = sigma_factor * spacing

@@ -10,8 +10,8 @@ import torch
 
 from ..encoders import Encoder, eval_mode
 from ..errors import MEIError
-from .core import mesh_quality  # MERGE
-from .core import REGULARIZERS  # MERGE
+from ..quality import mesh_quality
+from ..regularizers import REGULARIZERS
 from ..render import render
 from .optimize import initial, optimize_mei
 from .settings import MEISettings

@@ -15,7 +15,7 @@ from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
 from ..optim import Budget, Progress, Schedule, Trace, minimize
-from .core import REGULARIZERS  # MERGE
+from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..shapes import INITIAL_KINDS, initial_mesh
 from .settings import MEIResult, MEISettings, make_deformer

@@ -14,7 +14,7 @@ from ..encoders import Encoder, encoder_from_spec
 from ..errors import MEIError
 from ..mesh import save_mesh
 from ..plots import mei_figures
-from .core import mesh_quality  # MERGE
+from ..quality import mesh_quality
 from .settings import MEIResult, MEISettings, rebuild_deformer
 
 __all__ = ["RUN_FORMAT", "save_run", "load_run"]

@@ -11,7 +11,7 @@ import torch
 from ..deform import RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
-from .core import REGULARIZERS  # MERGE
+from ..regularizers import REGULARIZERS
 from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
 

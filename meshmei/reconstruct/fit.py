@@ -16,10 +16,12 @@ import torch
 
 from ..deform import PARAMETERISATIONS
 from ..errors import MeshError
-from ..metrics import PointIndex, mesh_health, sample_points, surface_metrics
+from ..metrics import surface_metrics
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..shapes import remesh
+from ..quality import mesh_health
 from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss
+from ..sampling import PointIndex, sample_points
+from ..shapes import remesh
 from .settings import ReconstructionResult, ReconstructionSettings
 from .sources import source_mesh, target_surface
 

@@ -22,7 +22,8 @@ from typing import Any
 
 import torch
 
-from .settings import RenderError, _finite
+from .settings import RenderError, finite_float
+from .transforms import unit
 
 __all__ = ["Camera", "camera_from_angles", "DEFAULT_DISTANCE", "DEFAULT_FOV_DEGREES"]
 
@@ -41,11 +42,6 @@ def _vec3(name, x, dtype, device):
     if not bool(torch.isfinite(t).all()):
         raise RenderError(f"{name} holds NaN or Inf: {t.detach().cpu().tolist()}")
     return t
-
-
-def _unit(x, eps):
-    n = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
-    return x / n.clamp_min(eps)
 
 
 @dataclass(frozen=True)
@@ -82,10 +78,10 @@ class Camera:
     zfar: float = 100.0
 
     def __post_init__(self):
-        fov = _finite("fov_degrees", self.fov_degrees)
+        fov = finite_float("fov_degrees", self.fov_degrees)
         if not 0 < fov < 180:
             raise RenderError(f"fov_degrees must lie in (0, 180), got {self.fov_degrees!r}")
-        near, far = _finite("znear", self.znear), _finite("zfar", self.zfar)
+        near, far = finite_float("znear", self.znear), finite_float("zfar", self.zfar)
         if not 0 < near < far:
             raise RenderError(f"need 0 < znear < zfar, got znear={self.znear!r}, zfar={self.zfar!r}")
         sizes = {_batch_of(name, getattr(self, name)) for name in ("eye", "at", "up")}
@@ -117,11 +113,11 @@ class Camera:
         d = at - eye
         if bool((torch.linalg.vector_norm(d, dim=-1) <= eps).any()):
             raise RenderError("camera eye and at coincide; the viewing direction is undefined")
-        fwd = _unit(d, eps)
+        fwd = unit(d, eps)
         side = torch.linalg.cross(fwd, up, dim=-1)
         if bool((torch.linalg.vector_norm(side, dim=-1) <= 1e-6 * torch.linalg.vector_norm(up, dim=-1)).any()):
             raise RenderError("camera up is parallel to the viewing direction (at - eye); choose another up")
-        right = _unit(side, eps)
+        right = unit(side, eps)
         upo = torch.linalg.cross(right, fwd, dim=-1)
         return eye, torch.stack([right, upo, fwd], dim=-2)  # (B, 3), (B, 3, 3)
 

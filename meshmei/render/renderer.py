@@ -6,10 +6,11 @@ import torch
 
 from ..operators import face_normals, vertex_normals
 from .camera import Camera
-from .raster import Fragments, _perspective, _prepare, _raster
+from .passes import run_passes
+from .raster import Fragments, prepare_inputs
 from .settings import RenderError, RenderSettings
 from .shading import lambert
-from .transforms import _check_batch
+from .transforms import as_points, check_batch
 
 __all__ = ["render", "Renderer"]
 
@@ -18,13 +19,7 @@ def _light(light, eye, dtype, device):
     """Light positions ``(B, 3)``; default: at each camera centre."""
     if light is None:
         return eye.detach() if not eye.requires_grad else eye
-    t = light if isinstance(light, torch.Tensor) else torch.as_tensor(light, dtype=dtype)
-    t = t.to(dtype=dtype, device=device)
-    if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
-        raise RenderError(f"light must have shape (3,) or (B, 3), got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise RenderError("light holds NaN or Inf")
-    return t.reshape(-1, 3)
+    return as_points("light", light, dtype, device)
 
 
 def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, translation=None,
@@ -66,22 +61,24 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     >>> render(V, F, settings=RenderSettings(image_size=32)).shape
     torch.Size([1, 1, 32, 32])
     """
-    V, F, n, Vb, eye, R, camera, st = _prepare(V, F, camera, rotation, translation, settings)
-    L = _light(light, eye, V.dtype, V.device)
-    _check_batch("light", L.shape[0], max(Vb.shape[0], eye.shape[0]))
-    B = max(Vb.shape[0], eye.shape[0], L.shape[0])
-    Vw, eye, R = Vb.expand(B, *Vb.shape[1:]), eye.expand(B, 3), R.expand(B, 3, 3)
+    inp = prepare_inputs(V, F, camera, rotation, translation, settings)
+    V, F, st = inp.V, inp.F, inp.settings
+    L = _light(light, inp.eye, V.dtype, V.device)
+    check_batch("light", L.shape[0], inp.batch_size)
+    B = max(inp.batch_size, L.shape[0])
+    Vw, eye, R = inp.expanded(B)
     L = L.expand(B, 3)
-    r = _raster(Vw, F, eye, R, camera, st, n)
+    r = run_passes(Vw, F, eye, R, inp.camera, st, inp.n_vertices)
     S = r.S
     if st.shading == "smooth":
-        normals = vertex_normals(Vb, F, eps=1e-12)  # on the un-expanded batch
+        normals = vertex_normals(inp.posed, F, eps=1e-12)  # on the un-expanded batch
         normals = normals.expand(B, *normals.shape[1:])
     else:
-        normals = face_normals(Vb, F).expand(B, F.shape[0], 3)
+        normals = face_normals(inp.posed, F).expand(B, F.shape[0], 3)
 
-    def shade(b, f, l):
-        bary, depth = _perspective(r, F, b, f, l)
+    def shade(samples):
+        b, f = samples.b, samples.f
+        bary, depth = r.perspective_correct(F, samples)
         Fi = F[f]
         P = (bary.unsqueeze(-1) * Vw[b.unsqueeze(1), Fi]).sum(1)  # (N, 3) surface points
         if st.shading == "smooth":
@@ -94,11 +91,11 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
                        eps=st.eps), bary, depth
 
     dt, dev = V.dtype, V.device
-    shade_in, bary_in, depth_in = shade(r.b_in, r.f_in, r.l_in)
-    outside = ~r.hit[r.pix_s]
-    shade_out, _, _ = shade(r.b_s[outside], r.f_s[outside], r.l_s[outside])
-    sh = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.pix_in,), shade_in)
-    sh = sh.index_put((r.pix_s[outside],), shade_out)
+    shade_in, bary_in, depth_in = shade(r.inside)
+    outside = r.fringe[~r.hit[r.fringe.pix]]
+    shade_out, _, _ = shade(outside)
+    sh = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.inside.pix,), shade_in)
+    sh = sh.index_put((outside.pix,), shade_out)
     c = r.coverage
     # zero-weight anchor: an empty image still depends (with zero gradient) on every differentiable input
     zero = 0.0 * (r.Vc.sum() + L.sum())
@@ -106,8 +103,8 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     if not return_fragments:
         return image
 
-    bary = torch.zeros(B * S * S, 3, dtype=dt, device=dev).index_put((r.pix_in,), bary_in)
-    depth = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.pix_in,), depth_in)
+    bary = torch.zeros(B * S * S, 3, dtype=dt, device=dev).index_put((r.inside.pix,), bary_in)
+    depth = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.inside.pix,), depth_in)
     frags = Fragments(face_id=r.face_id, bary=bary.view(B, S, S, 3), depth=depth.view(B, S, S),
                       coverage=c.view(B, S, S))
     return image, frags

@@ -7,14 +7,15 @@ from dataclasses import dataclass
 
 from ..errors import RenderError
 
-__all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS"]
+__all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS", "finite_float"]
 
 # Soft coverage is evaluated only within this many sigmas of the silhouette: beyond it the logistic
 # differs from 0 or 1 by less than 1e-3 (sigmoid(-7) = 9.1e-4), the size of the jump we accept there.
 SOFT_MARGIN_SIGMAS = 7.0
 
 
-def _finite(name, value):
+def finite_float(name: str, value) -> float:
+    """``value`` as a float, or a RenderError naming ``name`` when it is not a finite real number."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -74,12 +75,12 @@ class RenderSettings:
         size = self.image_size
         if isinstance(size, bool) or not isinstance(size, int) or not 1 <= size <= 8192:
             raise RenderError(f"image_size must be an integer in [1, 8192], got {size!r}")
-        sigma = _finite("sigma", self.sigma)
+        sigma = finite_float("sigma", self.sigma)
         if sigma <= 0:
             raise RenderError(f"sigma must be > 0 pixels, got {self.sigma!r}")
-        _finite("background", self.background)
+        finite_float("background", self.background)
         for name in ("ambient", "light_intensity", "albedo"):
-            if _finite(name, getattr(self, name)) < 0:
+            if finite_float(name, getattr(self, name)) < 0:
                 raise RenderError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if self.shading not in ("smooth", "flat"):
             raise RenderError(f"shading must be 'smooth' or 'flat', got {self.shading!r}")
@@ -88,7 +89,7 @@ class RenderSettings:
         cs = self.chunk_size
         if isinstance(cs, bool) or not isinstance(cs, int) or cs < 1024:
             raise RenderError(f"chunk_size must be an integer >= 1024, got {cs!r}")
-        eps = _finite("eps", self.eps)
+        eps = finite_float("eps", self.eps)
         if not 0 < eps < 1e-2:
             raise RenderError(f"eps must lie in (0, 1e-2), got {self.eps!r}")
 

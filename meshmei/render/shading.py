@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import torch
+from .transforms import unit
 
 __all__ = ["lambert"]
-
-
-def _unit(x, eps):
-    return x / torch.linalg.vector_norm(x, dim=-1, keepdim=True).clamp_min(eps)
 
 
 def lambert(points, normals, light, *, ambient=0.2, intensity=0.8, albedo=1.0, eps=1e-9):
@@ -36,6 +32,6 @@ def lambert(points, normals, light, *, ambient=0.2, intensity=0.8, albedo=1.0, e
     >>> float(lambert(p, n, torch.tensor([[0.0, 0.0, 2.0]])))
     1.0
     """
-    n = _unit(normals, eps)
-    l = _unit(light - points, eps)
+    n = unit(normals, eps)
+    l = unit(light - points, eps)
     return albedo * (ambient + intensity * (n * l).sum(-1).clamp_min(0.0))

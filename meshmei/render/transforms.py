@@ -1,4 +1,4 @@
-"""Rigid object pose: rotations from axis-angle vectors and their application to vertex batches."""
+"""Rigid object pose (rotations from axis-angle vectors, applied to vertex batches) and the scene's vector checks."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import torch
 
 from .settings import RenderError
 
-__all__ = ["axis_angle_to_matrix", "apply_pose"]
+__all__ = ["axis_angle_to_matrix", "apply_pose", "check_batch", "as_points", "unit"]
 
 
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
@@ -74,21 +74,38 @@ def apply_pose(V: torch.Tensor, rotation=None, translation=None) -> torch.Tensor
     Vb = V if V.ndim == 3 else V.unsqueeze(0)
     if rotation is not None:
         R = _rotation(rotation, V.dtype, V.device)
-        _check_batch("rotation", R.shape[0], Vb.shape[0])
+        check_batch("rotation", R.shape[0], Vb.shape[0])
         Vb = torch.matmul(Vb, R.transpose(-1, -2))
     if translation is not None:
-        t = translation if isinstance(translation, torch.Tensor) else torch.as_tensor(translation, dtype=V.dtype)
-        t = t.to(dtype=V.dtype, device=V.device)
-        if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
-            raise RenderError(f"translation must have shape (3,) or (B, 3), got {tuple(t.shape)}")
-        if not bool(torch.isfinite(t).all()):
-            raise RenderError("translation holds NaN or Inf")
-        t = t.reshape(-1, 3)
-        _check_batch("translation", t.shape[0], Vb.shape[0])
+        t = as_points("translation", translation, V.dtype, V.device)
+        check_batch("translation", t.shape[0], Vb.shape[0])
         Vb = Vb + t.unsqueeze(1)
     return Vb
 
 
-def _check_batch(name, b, B):
+def check_batch(name: str, b: int, B: int) -> None:
+    """Raise RenderError unless batch sizes ``b`` (of ``name``) and ``B`` broadcast: equal, or one of them 1."""
     if b != 1 and B != 1 and b != B:
         raise RenderError(f"{name} has batch size {b}, incompatible with batch size {B}")
+
+
+def as_points(name: str, x, dtype, device) -> torch.Tensor:
+    """``x`` (a (3,) or (B, 3) tensor or sequence) as a finite ``(B, 3)`` tensor, keeping its autograd graph.
+
+    Raises
+    ------
+    RenderError
+        Wrong shape (the message names ``name`` and the shape), or NaN / Inf.
+    """
+    t = x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=dtype)
+    t = t.to(dtype=dtype, device=device)
+    if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
+        raise RenderError(f"{name} must have shape (3,) or (B, 3), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise RenderError(f"{name} holds NaN or Inf")
+    return t.reshape(-1, 3)
+
+
+def unit(x: torch.Tensor, eps: float) -> torch.Tensor:
+    """``x / max(|x|, eps)`` along the last axis."""
+    return x / torch.linalg.vector_norm(x, dim=-1, keepdim=True).clamp_min(eps)

@@ -1,4 +1,4 @@
-"""``meshmei regularizers``: make the initial meshes, deform them, and tabulate every regularizer."""
+"""Every regularizer on every initial mesh, at rest and deformed: the table of ``meshmei regularizers``."""
 
 from __future__ import annotations
 
@@ -7,25 +7,17 @@ import time
 import torch
 
 from .operators import doublearea
-from .regularizers import arap_direction_loss, arap_loss, area_loss, edge_loss, laplacian_loss
-from .shapes import initial_mesh
+from .regularizers import REGULARIZER_LABELS, REGULARIZERS
+from .shapes import DEFAULT_N_VERTICES, initial_mesh
 
-__all__ = ["run_demo", "add_parser"]
-
-REGULARIZERS = {
-    "laplacian (uniform)": lambda V, V0, F: laplacian_loss(V, F),
-    "laplacian (cotangent)": lambda V, V0, F: laplacian_loss(V, F, method="cotangent"),
-    "edge": lambda V, V0, F: edge_loss(V, F),
-    "area": lambda V, V0, F: area_loss(V, F),
-    "arap (direction)": arap_direction_loss,
-    "arap (Sorkine-Alexa)": arap_loss,
-}
+__all__ = ["tabulate_regularizers"]
 
 
-def run_demo(n_vertices: int = 2500, seed: int = 0, out=print) -> dict:
+def tabulate_regularizers(n_vertices: int = DEFAULT_N_VERTICES, seed: int = 0, out=print) -> dict:
     """Evaluate each regularizer on each initial mesh, at rest and after a smooth random bump.
 
-    Returns ``{(kind, state, regularizer): (value, seconds for forward+backward)}`` and prints a table.
+    Returns ``{(kind, state, label): (value, seconds for forward+backward)}`` with the labels of
+    :data:`~meshmei.regularizers.REGULARIZER_LABELS`, and prints a table.
     """
     g = torch.Generator().manual_seed(seed)
     rows = {}
@@ -39,13 +31,13 @@ def run_demo(n_vertices: int = 2500, seed: int = 0, out=print) -> dict:
         bump = w @ (0.1 * torch.randn(4, 3, generator=g))
         out(f"{kind}: {V0.shape[0]} vertices, {F.shape[0]} faces, area {0.5 * doublearea(V0, F).sum():.4f}, built in {build:.2f} s")
         for state, V in (("rest", V0), ("bumped", V0 + bump)):
-            for name, fn in REGULARIZERS.items():
+            for key, name in REGULARIZER_LABELS.items():
                 X = V.clone().requires_grad_(True)
                 t = time.perf_counter()
-                val = fn(X, V0, F)
+                val = REGULARIZERS[key](X, V0, F)
                 val.backward()
                 rows[(kind, state, name)] = (val.item(), time.perf_counter() - t)
-    names = list(REGULARIZERS)
+    names = list(REGULARIZER_LABELS.values())
     out("")
     out(f"{'regularizer':24s}" + "".join(f"{k + ' ' + s:>17s}" for k in ("sheet", "sphere", "torus") for s in ("rest", "bumped")))
     for name in names:
@@ -54,10 +46,3 @@ def run_demo(n_vertices: int = 2500, seed: int = 0, out=print) -> dict:
     finite = all(torch.isfinite(torch.tensor(v)) for v, _ in rows.values())
     out(f"\nall {len(rows)} values finite: {finite}; {len(rows)} forward+backward passes took {total:.2f} s in all")
     return rows
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser("regularizers", help="build initial meshes and tabulate every regularizer")
-    p.add_argument("--n-vertices", type=int, default=2500)
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=lambda a: run_demo(a.n_vertices, a.seed) and 0)

@@ -1,12 +1,13 @@
 import math
 
 from meshmei.cli import main
-from meshmei.demo import REGULARIZERS, run_demo
+from meshmei.regularizer_table import tabulate_regularizers
+from meshmei.regularizers import REGULARIZERS
 
 
 def test_demo_table_is_finite_and_rest_poses_are_arap_minima():
     lines = []
-    rows = run_demo(n_vertices=300, out=lines.append)
+    rows = tabulate_regularizers(n_vertices=300, out=lines.append)
     assert len(rows) == 3 * 2 * len(REGULARIZERS)
     assert all(math.isfinite(v) for v, _ in rows.values())
     for kind in ("sheet", "sphere", "torus"):

@@ -1,0 +1,168 @@
+"""Mesh health, in one place: self-intersecting face pairs, degenerate and flipped faces, triangle quality.
+
+Every measure is built on two per-face quantities, the double area and the summed squared edge lengths
+(:func:`triangle_measures`), and on one self-intersection test (libigl's exact predicates,
+:func:`count_self_intersections`). Counts are evaluated in float64 and carry no gradient.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import igl.predicates
+import torch
+
+from .errors import MeshError
+from .mesh import check_mesh, numpy_mesh
+from .operators import corners, doublearea_from_corners, face_normals, sq_edge_sum_from_corners
+
+__all__ = [
+    "MeshHealth",
+    "mesh_health",
+    "mesh_quality",
+    "triangle_quality",
+    "triangle_measures",
+    "count_degenerate_faces",
+    "count_flipped_faces",
+    "count_self_intersections",
+]
+
+
+def triangle_measures(V, F) -> tuple[torch.Tensor, torch.Tensor]:
+    """Twice the area and the summed squared edge lengths of every face.
+
+    Parameters
+    ----------
+    V : (n, 3) float tensor or array
+    F : (m, 3) integer tensor or array
+
+    Returns
+    -------
+    dbl : (m,) float tensor, dtype and device of ``V``
+    l2 : (m,) float tensor
+        ``|e1|^2 + |e2|^2 + |e3|^2``: ``dbl / l2`` is scale-free, and largest (``1 / (2 sqrt(3))``) for
+        an equilateral triangle.
+    """
+    V, F = check_mesh(V, F)
+    T = corners(V, F)  # (m, 3, 3)
+    return doublearea_from_corners(T), sq_edge_sum_from_corners(T)
+
+
+def triangle_quality(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """Per-face quality ``4 sqrt(3) A / (l1^2 + l2^2 + l3^2)``: 1 for equilateral, 0 for degenerate, ``(m,)``.
+
+    Examples
+    --------
+    >>> V = torch.tensor([[0.0, 0, 0], [2, 0, 0], [1, 3 ** 0.5, 0], [4, 0, 0]], dtype=torch.float64)
+    >>> [round(q, 12) for q in triangle_quality(V, torch.tensor([[0, 1, 2], [0, 1, 3]])).tolist()]
+    [1.0, 0.0]
+    """
+    dbl, l2 = triangle_measures(V, F)
+    return 2.0 * math.sqrt(3.0) * dbl / l2.clamp_min(torch.finfo(dbl.dtype).tiny)
+
+
+def count_degenerate_faces(V, F, *, eps: float = 1e-12) -> int:
+    """Faces whose double area is at most ``eps`` times their summed squared edge lengths (in float64)."""
+    V, F = check_mesh(V, F)
+    dbl, l2 = triangle_measures(V.detach().double(), F)
+    return int((dbl <= eps * l2).sum())
+
+
+def count_flipped_faces(V, V0, F) -> int:
+    """Faces whose normal points against the same face's normal in the rest pose ``V0`` (in float64).
+
+    Faces of zero area in either pose have no direction and are not counted.
+
+    Raises
+    ------
+    MeshError
+        ``V0`` is not a valid mesh with ``F`` or differs from ``V`` in shape.
+    """
+    V, F = check_mesh(V, F)
+    V0, _ = check_mesh(V0, F)
+    if V0.shape != V.shape:
+        raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
+    V, V0 = V.detach().double(), V0.detach().double().to(V.device)
+    dbl, _ = triangle_measures(V, F)
+    dbl0, _ = triangle_measures(V0, F)
+    # a normal's direction is all that counts: the guard of face_normals only shrinks it
+    facing = (face_normals(V, F) * face_normals(V0, F)).sum(-1)
+    return int(((facing < 0) & (dbl > 0) & (dbl0 > 0)).sum())
+
+
+def count_self_intersections(V, F) -> int:
+    """The number of intersecting pairs of non-adjacent faces of ``(V, F)`` (tensors or arrays).
+
+    libigl's exact predicates over an AABB tree (``igl.predicates.find_self_intersections``): about 1, 7
+    and 25 ms at 400, 2.5k and 10k vertices.
+    """
+    Vn, Fn = numpy_mesh(V, F)
+    _, pairs, _ = igl.predicates.find_self_intersections(Vn, Fn, False)
+    return int(len(pairs))
+
+
+@dataclass(frozen=True)
+class MeshHealth:
+    """Defects of a triangle mesh.
+
+    Attributes
+    ----------
+    self_intersections : int or None
+        Intersecting pairs of non-adjacent faces (``igl.predicates.find_self_intersections``, exact
+        predicates); None when not computed.
+    degenerate_faces : int
+        Faces whose double area is at most ``eps`` times their summed squared edge lengths.
+    flipped_faces : int or None
+        Faces whose normal points against the same face's normal in the rest pose ``V0`` (None without
+        ``V0``).
+    """
+
+    self_intersections: int | None
+    degenerate_faces: int
+    flipped_faces: int | None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def mesh_health(V, F, V0=None, *, self_intersections: bool = True, eps: float = 1e-12) -> MeshHealth:
+    """Count self-intersecting face pairs, degenerate faces and (given a rest pose) flipped faces.
+
+    Parameters
+    ----------
+    V : (n, 3) float tensor or array
+    F : (m, 3) integer tensor or array
+    V0 : (n, 3) float tensor or array, optional
+        Rest pose with the same faces; a face is flipped when its normal has a negative dot product with
+        its rest normal.
+    self_intersections : bool
+        Run the (exact, AABB-accelerated) self-intersection test.
+    eps : float
+        Relative area threshold for degenerate faces.
+
+    Returns
+    -------
+    MeshHealth
+    """
+    V, F = check_mesh(V, F)
+    V = V.detach().cpu().double()
+    flipped = None if V0 is None else count_flipped_faces(V, V0, F)
+    degenerate = count_degenerate_faces(V, F, eps=eps)
+    si = count_self_intersections(V, F) if self_intersections else None
+    return MeshHealth(self_intersections=si, degenerate_faces=degenerate, flipped_faces=flipped)
+
+
+def mesh_quality(V: torch.Tensor, F: torch.Tensor, *, self_intersections: bool = True) -> dict:
+    """Minimum and mean triangle quality, and self-intersecting face pairs (libigl, exact predicates).
+
+    Returns
+    -------
+    dict with ``min_quality`` and ``mean_quality`` (floats, see :func:`triangle_quality`) and
+    ``self_intersections`` (int, or None when not asked for).
+    """
+    q = triangle_quality(V.detach().double(), F)
+    out = {"min_quality": float(q.min()), "mean_quality": float(q.mean()), "self_intersections": None}
+    if self_intersections:
+        out["self_intersections"] = count_self_intersections(V, F)
+    return out

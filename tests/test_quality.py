@@ -1,0 +1,80 @@
+"""Mesh health and triangle quality: self-intersections, degenerate and flipped faces."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from meshmei.errors import MeshError
+from meshmei.quality import (count_degenerate_faces, count_flipped_faces, count_self_intersections, mesh_health,
+                             mesh_quality, triangle_measures, triangle_quality)
+
+from conftest import grid_sheet
+
+
+def test_mesh_health_counts():
+    # two triangles crossing each other, one degenerate triangle, none sharing vertices
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0],
+                      [0.2, 0.2, -0.5], [0.2, 0.2, 0.5], [0.8, -0.5, 0.0],
+                      [5, 5, 5], [6, 5, 5], [7, 5, 5]], dtype=torch.float64)
+    F = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    h = mesh_health(V, F)
+    assert h.self_intersections == 1
+    assert h.degenerate_faces == 1
+    assert h.flipped_faces is None
+    Vs, Fs = grid_sheet(4, 4)
+    W = Vs.clone()
+    W[:, 0] *= -1  # mirror the flat sheet in x: every normal turns from +z to -z
+    assert mesh_health(W, Fs, Vs).flipped_faces == Fs.shape[0]
+    assert mesh_health(Vs, Fs, Vs).as_dict() == {"self_intersections": 0, "degenerate_faces": 0, "flipped_faces": 0}
+    with pytest.raises(MeshError):
+        mesh_health(Vs, Fs, Vs[:5])
+
+
+def test_triangle_quality():
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0.5, math.sqrt(3) / 2, 0], [2, 0, 0]], dtype=torch.float64)
+    F = torch.tensor([[0, 1, 2], [0, 1, 3]])
+    q = triangle_quality(V, F)
+    torch.testing.assert_close(q, torch.tensor([1.0, 0.0], dtype=torch.float64))
+    assert mesh_quality(V, F)["min_quality"] == 0.0
+
+
+def _slow_counts(V, V0, F):
+    # one face at a time, in numpy: (degenerate, flipped)
+    degenerate = flipped = 0
+    for f in F.tolist():
+        a, b, c = V[f].numpy()
+        a0, b0, c0 = V0[f].numpy()
+        n, n0 = np.cross(b - a, c - a), np.cross(b0 - a0, c0 - a0)
+        l2 = ((b - a) ** 2).sum() + ((c - b) ** 2).sum() + ((a - c) ** 2).sum()
+        degenerate += np.linalg.norm(n) <= 1e-12 * l2
+        flipped += np.linalg.norm(n) > 0 and np.linalg.norm(n0) > 0 and n @ n0 < 0
+    return int(degenerate), int(flipped)
+
+
+def test_counts_agree_with_mesh_health_and_a_slow_reference():
+    Vs, Fs = grid_sheet(4, 4)
+    W = Vs.clone()
+    W[:, 0] *= -1
+    W[5] = W[6]  # faces holding both vertices 5 and 6 collapse to segments
+    degenerate, flipped = _slow_counts(W, Vs, Fs)
+    assert degenerate >= 1 and flipped >= 1
+    h = mesh_health(W, Fs, Vs)
+    assert count_flipped_faces(W, Vs, Fs) == h.flipped_faces == flipped
+    assert count_degenerate_faces(W, Fs) == h.degenerate_faces == degenerate
+    assert count_self_intersections(Vs, Fs) == 0
+    with pytest.raises(MeshError, match=r"rest pose V0 of shape \(16, 3\) does not match V of shape \(15, 3\)"):
+        count_flipped_faces(Vs[:15], Vs, Fs[:1])
+
+
+def test_triangle_measures_are_scale_free_in_their_ratio():
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0.5, math.sqrt(3) / 2, 0]], dtype=torch.float64)
+    F = torch.tensor([[0, 1, 2]])
+    dbl, l2 = triangle_measures(V, F)
+    torch.testing.assert_close(dbl, torch.tensor([math.sqrt(3) / 2], dtype=torch.float64))
+    torch.testing.assert_close(l2, torch.tensor([3.0], dtype=torch.float64))
+    dbl7, l27 = triangle_measures(7 * V, F)
+    torch.testing.assert_close(dbl7 / l27, dbl / l2)

@@ -1,0 +1,191 @@
+"""Sampling, Chamfer distance (against brute force) and the multi-level point index."""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+
+import numpy as np
+import pytest
+import torch
+
+from meshmei.errors import MeshError
+from meshmei.sampling import PointIndex, chamfer_distance, nearest_neighbors, nn_spacing, sample_points
+
+from conftest import icosphere
+
+
+def _brute_chamfer(P, Q):
+    D = torch.cdist(P, Q) ** 2
+    return D.min(1).values.mean() + D.min(0).values.mean()
+
+
+def two_triangles():
+    # areas 0.5 and 1.5 (the second three times the first), in z = 0
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [3, 0, 0], [3, 1, 0], [6, 0, 0]], dtype=torch.float64)
+    F = torch.tensor([[0, 1, 2], [3, 5, 4]])
+    return V, F
+
+
+def test_samples_lie_on_their_faces_and_are_seeded():
+    V, F = icosphere(1)
+    P, N, face = sample_points(V, F, 3000, generator=7, return_normals=True, return_faces=True)
+    assert P.shape == (3000, 3) and N.shape == (3000, 3) and face.dtype == torch.int64
+    # barycentric coordinates of each point in its face are non-negative and sum to one
+    T = V[F[face]]
+    A = torch.stack([T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]], dim=2)  # (n, 3, 2)
+    uv = torch.linalg.lstsq(A, (P - T[:, 0]).unsqueeze(-1)).solution.squeeze(-1)
+    torch.testing.assert_close(torch.bmm(A, uv.unsqueeze(-1)).squeeze(-1), P - T[:, 0])
+    assert float(uv.min()) >= -1e-12 and float(uv.sum(1).max()) <= 1 + 1e-12
+    torch.testing.assert_close(N.norm(dim=1), torch.ones(3000, dtype=V.dtype))
+    P2 = sample_points(V, F, 3000, generator=7)
+    assert torch.equal(P, P2)
+    g = torch.Generator().manual_seed(7)
+    assert torch.equal(sample_points(V, F, 3000, generator=g), P)
+    assert not torch.equal(sample_points(V, F, 3000, generator=8), P)
+
+
+def test_samples_are_uniform_by_area():
+    V, F = two_triangles()
+    n = 40_000
+    P, face = sample_points(V, F, n, generator=0, return_faces=True)
+    frac = float((face == 0).double().mean())
+    sd = (0.25 * 0.75 / n) ** 0.5
+    assert abs(frac - 0.25) < 4 * sd
+    # uniform inside a face: the fraction of face 0's samples with x < 0.5 is 3/4 of its area
+    x = P[face == 0, 0]
+    assert abs(float((x < 0.5).double().mean()) - 0.75) < 0.02
+
+
+def test_sample_gradients_reach_vertices():
+    V, F = icosphere(1)
+    V = V.clone().requires_grad_(True)
+    P, face = sample_points(V, F, 500, generator=1, return_faces=True)
+    P.sum().backward()
+    # each sample is an affine combination of its face's corners: the weights per sample sum to one
+    torch.testing.assert_close(V.grad.sum(0), torch.full((3,), 500.0, dtype=V.dtype))
+    used = torch.zeros(V.shape[0], dtype=torch.bool)
+    used[F[face].reshape(-1)] = True
+    assert bool((V.grad[~used] == 0).all())
+
+
+def test_sample_edge_cases():
+    V, F = icosphere(0)
+    P = sample_points(V, F, 0)
+    assert P.shape == (0, 3)
+    with pytest.raises(MeshError, match="zero area"):
+        sample_points(torch.zeros(3, 3), torch.tensor([[0, 1, 2]]), 10)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        sample_points(V, F, -1)
+    with pytest.raises(MeshError):
+        sample_points(V, torch.tensor([[0, 1, 99]]), 10)
+    with pytest.raises(TypeError, match="generator"):
+        sample_points(V, F, 5, generator="seed")
+    # finite float32 coordinates whose squares overflow: torch.multinomial used to stop on an Inf weight
+    with pytest.raises(MeshError, match=r"face areas overflow torch.float32 \(largest coordinate \S+e\+19, shape \(12, 3\)\)"):
+        sample_points(V.float() * 1e20, F, 5)
+    assert torch.isfinite(sample_points(V * 1e20, F, 5)).all()  # float64 has the range
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_chamfer_matches_brute_force_in_value_and_gradient(dtype):
+    g = torch.Generator().manual_seed(0)
+    P = torch.rand(300, 3, generator=g, dtype=dtype).requires_grad_(True)
+    Q = (torch.rand(200, 3, generator=g, dtype=dtype) + 0.2).requires_grad_(True)
+    cd = chamfer_distance(P, Q)
+    ref = _brute_chamfer(P, Q)
+    torch.testing.assert_close(cd, ref)
+    gP, gQ = torch.autograd.grad(cd, [P, Q])
+    rP, rQ = torch.autograd.grad(ref, [P, Q])
+    torch.testing.assert_close(gP, rP)
+    torch.testing.assert_close(gQ, rQ)
+    a, b = chamfer_distance(P, Q, return_directions=True)
+    torch.testing.assert_close(a + b, cd)
+    D = torch.cdist(P, Q) ** 2
+    torch.testing.assert_close(a, D.min(1).values.mean())
+
+
+def test_chamfer_with_a_prebuilt_tree_and_errors():
+    from scipy.spatial import cKDTree
+
+    P, Q = torch.rand(50, 3, dtype=torch.float64), torch.rand(80, 3, dtype=torch.float64)
+    tree = cKDTree(Q.numpy())
+    torch.testing.assert_close(chamfer_distance(P, Q, Q_tree=tree), _brute_chamfer(P, Q))
+    assert float(chamfer_distance(P, P)) == 0.0
+    with pytest.raises(ValueError, match="empty"):
+        chamfer_distance(torch.zeros(0, 3), Q)
+    with pytest.raises(ValueError, match=r"\(n, 3\)"):
+        chamfer_distance(torch.zeros(4, 2), Q)
+    with pytest.raises(ValueError, match="tree holds"):
+        nearest_neighbors(P, Q[:10], tree=tree)
+
+
+def test_point_index_is_exact_near_and_close_to_exact_far():
+    V, F = icosphere(3)
+    Q = sample_points(V, F, 50_000, generator=0)
+    index = PointIndex(Q, min_points=1000)
+    assert len(index.sizes) >= 3
+    near = sample_points(V, F, 2000, generator=1) * 1.001
+    torch.testing.assert_close(torch.from_numpy(index.query(near)), nearest_neighbors(near, Q), rtol=0, atol=0)
+    far = torch.randn(2000, 3, dtype=V.dtype, generator=torch.Generator().manual_seed(2))
+    far = far / far.norm(dim=1, keepdim=True) * (1.2 + torch.rand(2000, 1, dtype=V.dtype))
+    best = (far - Q[nearest_neighbors(far, Q)]).norm(dim=1)
+    exact = nearest_neighbors(near, Q)
+    # the search order follows the last call (bounded finest search after near queries, levels first after
+    # far ones): both orders give exact answers near and close answers far
+    for queries, near_first in ((far, None), (far, None), (near, None), (near, None), (far, None), (near, False),
+                                (far, True)):
+        got = torch.from_numpy(index.query(queries, near_first=near_first))
+        if queries is near:
+            assert torch.equal(got, exact) and index.far_share == 0.0
+        else:
+            assert float(((far - Q[got]).norm(dim=1) / best).max()) < 1.5 and index.far_share > 0.9
+    with pytest.raises(ValueError):
+        PointIndex(np.zeros((0, 3)))
+
+
+def test_point_index_on_duplicated_points_stays_exact_near():
+    # every point twice (as a mesh's seams or an STL file's vertices give them): the spacing estimate was
+    # 0, so no answer was exact and near queries got points of the coarsest level, up to 20x too far
+    V, F = icosphere(3)
+    Q = sample_points(V, F, 20_000, generator=0)
+    Qd = torch.cat([Q, Q])[torch.randperm(40_000, generator=torch.Generator().manual_seed(1))]
+    index = PointIndex(Qd, min_points=1000)
+    assert index.exact_within > 0
+    near = sample_points(V, F, 2000, generator=1) * 1.001
+    got = torch.from_numpy(index.query(near))
+    want = nearest_neighbors(near, Qd)
+    assert torch.equal((near - Qd[got]).norm(dim=1), (near - Qd[want]).norm(dim=1))
+    # a single distinct point: every answer is that point, exactly
+    assert PointIndex(np.zeros((10, 3))).exact_within == np.inf
+
+
+def test_point_index_rejects_bad_input():
+    Q = np.random.default_rng(0).normal(size=(100, 3))
+    for kw, msg in (({"factor": 1}, "factor must be an integer of at least 2, got 1"),  # used to loop forever
+                    ({"min_points": 0}, "min_points must be an integer of at least 1, got 0"),  # so did this
+                    ({"exact_within": 0.0}, "exact_within must be positive, got 0.0"),
+                    ({"exact_within": float("nan")}, "exact_within must be positive, got nan")):
+        with pytest.raises(ValueError, match=msg):
+            PointIndex(Q, **kw)
+    bad = Q.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(ValueError, match=r"Q holds NaN or Inf \(1 of 100 points, first at index 7\)"):
+        PointIndex(bad)
+    with pytest.raises(ValueError, match=r"P holds NaN or Inf \(1 of 100 points, first at index 7\)"):
+        PointIndex(Q).query(bad)
+    with pytest.raises(ValueError, match=r"P must be an \(n, 3\) point array, got shape \(5, 2\)"):
+        PointIndex(Q).query(np.zeros((5, 2)))
+
+
+def test_nn_spacing_ignores_duplicates():
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [3, 0, 0]])
+    assert nn_spacing(X) == pytest.approx((1 + 1 + 2) / 3)
+    assert nn_spacing(np.concatenate([X, X])) == pytest.approx((1 + 1 + 2) / 3)  # seams do not shrink it
+    assert nn_spacing(np.zeros((4, 3))) == float("inf")
+
+
+@pytest.mark.parametrize("module", ["meshmei.sampling", "meshmei.metrics", "meshmei.quality", "meshmei.mesh"])
+def test_docstring_examples_run(module):
+    res = doctest.testmod(importlib.import_module(module))
+    assert res.attempted > 0 and res.failed == 0
