@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 import torch
 
 from ..errors import MeshError
@@ -81,13 +82,11 @@ class DifferentialSolver:
     """
 
     def __init__(self, M):
-        from scipy.sparse.linalg import splu
-
         M = sp.csc_matrix(M, dtype=np.float64)
         if M.ndim != 2 or M.shape[0] != M.shape[1]:
             raise ValueError(f"M must be a square sparse matrix, got shape {M.shape}")
         self.M = M
-        self._lu = splu(M)
+        self._lu = spla.splu(M)
 
     @property
     def n(self) -> int:
