@@ -22,19 +22,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from meshmei.mesh import save_mesh  # noqa: E402
+from meshmei.quality import count_self_intersections  # noqa: E402
 from meshmei.shapes import INITIAL_KINDS, initial_mesh, target_mesh  # noqa: E402
-
-
-def self_intersections(V, F):
-    """Number of intersecting face pairs (libigl, exact predicates), or None when unavailable."""
-    try:
-        import igl.predicates
-    except ImportError:
-        return None
-    if not hasattr(igl.predicates, "find_self_intersections"):
-        return None
-    _, IF, _ = igl.predicates.find_self_intersections(np.ascontiguousarray(V), np.ascontiguousarray(F))
-    return int(len(IF))
 
 
 def mesh_stats(V, F, seconds):
@@ -62,7 +51,7 @@ def mesh_stats(V, F, seconds):
         "surface_area": float(igl.doublearea(V, F).sum() / 2),
         "bbox_min": V.min(axis=0).tolist(),
         "bbox_max": V.max(axis=0).tolist(),
-        "self_intersecting_pairs": self_intersections(V, F),
+        "self_intersecting_pairs": count_self_intersections(V, F),
         "build_seconds": seconds,
     }
 

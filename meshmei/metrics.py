@@ -22,12 +22,16 @@ from .quality import count_degenerate_faces, count_self_intersections
 from .sampling import sample_points
 
 __all__ = [
+    "EVAL_SAMPLES",
     "SurfaceMetrics",
     "surface_metrics",
     "face_components",
     "error_by_part",
     "hidden_surface",
 ]
+
+# The project's reported metrics sample each surface this many times (area-uniform).
+EVAL_SAMPLES = 100_000
 
 
 def _normals_np(V, F):
@@ -97,7 +101,7 @@ def _sample_np(V, F, n, seed):
     return P.numpy(), N.numpy()
 
 
-def surface_metrics(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0, fscore_threshold: float = 0.01,
+def surface_metrics(V, F, Vt, Ft, *, n_samples: int = EVAL_SAMPLES, seed: int = 0, fscore_threshold: float = 0.01,
                     health: bool = True) -> SurfaceMetrics:
     """Chamfer-L2, F-score, normal consistency, Hausdorff and health of ``(V, F)`` against ``(Vt, Ft)``.
 
@@ -188,7 +192,7 @@ def face_components(F, n_vertices: int) -> np.ndarray:
     return label.ravel()
 
 
-def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> list[dict]:
+def error_by_part(V, F, Vt, Ft, *, n_samples: int = EVAL_SAMPLES, seed: int = 0) -> list[dict]:
     """Where the Chamfer error of ``(V, F)`` sits on a target made of several pieces.
 
     The target's faces are split into connected components (pieces sharing no vertex: the teapot's body,
@@ -228,7 +232,7 @@ def error_by_part(V, F, Vt, Ft, *, n_samples: int = 100_000, seed: int = 0) -> l
     return sorted(out, key=lambda r: -r["area_share"])
 
 
-def hidden_surface(V, F, *, n_samples: int = 100_000, seed: int = 0, offset: float = 1e-4) -> dict:
+def hidden_surface(V, F, *, n_samples: int = EVAL_SAMPLES, seed: int = 0, offset: float = 1e-4) -> dict:
     """The part of a surface buried inside its own solid, which no surface around the solid can touch.
 
     A sample is *hidden* when the generalised winding number (``igl.fast_winding_number``) exceeds 0.5

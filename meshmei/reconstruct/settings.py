@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..errors import ReconstructionError
-from ..metrics import SurfaceMetrics
+from ..metrics import EVAL_SAMPLES, SurfaceMetrics
 from ..optim import OPTIMIZERS
 
 __all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "ReconstructionSettings", "ReconstructionResult"]
@@ -144,7 +144,7 @@ class ReconstructionSettings:
     seed: int = 0
     eval_every: int | None = None
     eval_times: tuple = ()
-    eval_samples: int = 100_000
+    eval_samples: int = EVAL_SAMPLES
 
     def resolved(self) -> "ReconstructionSettings":
         """A copy with the per-method defaults filled in and every value checked.
