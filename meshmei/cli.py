@@ -83,6 +83,9 @@ def _run_mei(args) -> int:
         line += f"; pixel MEI {pm.activation:.4f}"
         res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
     save_run(res, out, overwrite=args.overwrite)
+    h = res.health()
+    line += (f"; {h['self_intersections']} self-intersecting pairs, {h['flipped_faces']} flipped faces, "
+             f"min triangle quality {h['min_quality']:.3f}")
     print(line)
     print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png "
           f"({res.wall_time:.1f} s, {1000 * res.seconds_per_step:.0f} ms per step)")
@@ -139,7 +142,8 @@ def _run_reconstruct(args) -> int:
     f = res.final
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
           f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
-          f"target's; wrote {out}")
+          f"target's; {f.self_intersections} self-intersecting pairs, {f.degenerate_faces} degenerate faces; "
+          f"wrote {out}")
     return 0
 
 

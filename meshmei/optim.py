@@ -197,18 +197,35 @@ def _guard(value: float, step: int, optimizer, error: type[Exception], where: st
         raise error(f"the loss became {value} at step {step}{where}; lower the learning rate (lr={lr:g})")
 
 
+@torch.no_grad()
+def _backtrack(params, before, accept, max_halvings: int) -> float:
+    """Shrink the step just taken until ``accept()`` holds; the scale kept (0: the step is undone)."""
+    after = [p.detach().clone() for p in params]
+    scale = 1.0
+    for _ in range(max_halvings + 1):
+        if accept():
+            return scale
+        scale *= 0.5
+        for p, b, a in zip(params, before, after):
+            p.copy_(b + scale * (a - b))
+    for p, b in zip(params, before):
+        p.copy_(b)
+    return 0.0
+
+
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
              schedule: Schedule = Schedule(), keep: str = "last", trace: Trace | None = None,
              stop_at: float = 1.0, progress: Progress | None = None, callbacks=(),
-             evaluate_last: bool = False, error: type[Exception] = FloatingPointError,
-             where: str = "") -> Outcome:
+             evaluate_last: bool = False, accept: Callable[[], bool] | None = None, max_halvings: int = 6,
+             error: type[Exception] = FloatingPointError, where: str = "") -> Outcome:
     """Minimise ``objective`` with ``optimizer`` until ``budget`` (or ``stop_at`` of it) is used.
 
     Each step: set every group's ``lr`` to its ``lr0`` (its ``lr`` at the first call) times the schedule's
     factor (also stored as the group's ``factor``, for step rules that scale more than the step, as the
     pixel MEI's blur); ``loss, record = objective(point)``; check the loss is finite; keep a copy of the
-    parameters if it is the lowest loss so far (``keep="best"``); backward; ``optimizer.step()``; append a
-    history record; update ``progress``; call each ``callback(record)`` (their time is not counted).
+    parameters if it is the lowest loss so far (``keep="best"``); backward; ``optimizer.step()``; with
+    ``accept``, halve the step until ``accept()`` holds, or undo it; append a history record; update
+    ``progress``; call each ``callback(record)`` (their time is not counted).
 
     Parameters
     ----------
@@ -231,6 +248,13 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         Stop when this share of the budget is used (a stage of a longer run).
     progress : Progress, optional
     callbacks : sequence of callables
+    accept : callable, optional
+        ``accept() -> bool`` on the parameters after a step (e.g. :meth:`meshmei.validity.StepGuard.accept`
+        on the vertices they give). A refused step is halved, ``p = p_before + s (p_after - p_before)`` with
+        ``s = 1/2, 1/4, ...``, up to ``max_halvings`` times, and undone (``s = 0``) if none is accepted; the
+        record's ``step_scale`` says which ``s`` was taken. The optimiser's own state (Adam's moments) keeps
+        the full step's update.
+    max_halvings : int
     error : exception class
         Raised when the loss is NaN or Inf.
     where : str
@@ -259,7 +283,10 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         if keep == "best" and value < best[0]:
             best = (value, trace.step, [p.detach().clone() for p in params])
         loss.backward()
+        before = None if accept is None else [p.detach().clone() for p in params]
         optimizer.step()
+        if accept is not None:
+            record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings))
         trace.step += 1
         trace.seconds += time.perf_counter() - t0
         rec = {"step": trace.step, "time": trace.seconds, "loss": value,

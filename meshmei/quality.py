@@ -26,6 +26,8 @@ __all__ = [
     "count_degenerate_faces",
     "count_flipped_faces",
     "count_self_intersections",
+    "edge_use",
+    "health_report",
 ]
 
 
@@ -166,3 +168,23 @@ def mesh_quality(V: torch.Tensor, F: torch.Tensor, *, self_intersections: bool =
     if self_intersections:
         out["self_intersections"] = count_self_intersections(V, F)
     return out
+
+
+def edge_use(F) -> tuple[int, int]:
+    """``(boundary_edges, nonmanifold_edges)``: undirected edges used by one face, and by more than two."""
+    F = torch.as_tensor(F)
+    E = torch.sort(torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), dim=1).values  # (3m, 2)
+    _, counts = torch.unique(E, dim=0, return_counts=True)
+    return int((counts == 1).sum()), int((counts > 2).sum())
+
+
+def health_report(V, F, V0=None, *, self_intersections: bool = True) -> dict:
+    """Everything meshmei reports beside a result: self-intersecting pairs, flipped faces (given a rest
+    pose ``V0``), degenerate faces, minimum and mean triangle quality, boundary and non-manifold edges, and
+    whether the mesh is watertight (closed and edge-manifold)."""
+    report = mesh_quality(V, F, self_intersections=self_intersections)
+    h = mesh_health(V, F, V0, self_intersections=False)
+    boundary, nonmanifold = edge_use(F)
+    report.update(flipped_faces=h.flipped_faces, degenerate_faces=h.degenerate_faces, boundary_edges=boundary,
+                  nonmanifold_edges=nonmanifold, watertight=boundary == 0 and nonmanifold == 0)
+    return report

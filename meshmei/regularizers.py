@@ -49,6 +49,8 @@ __all__ = [
     "best_fit_rotations",
     "REGULARIZERS",
     "REGULARIZER_LABELS",
+    "RESOLUTION_POWERS",
+    "scale_weights",
 ]
 
 
@@ -248,3 +250,20 @@ REGULARIZER_LABELS = {
     "arap": "arap (direction)",
     "arap_sorkine": "arap (Sorkine-Alexa)",
 }
+
+# name in REGULARIZERS -> p such that the loss of a given smooth shape falls like n^-p on an even mesh of n
+# vertices (edge length h ~ n^-1/2): squared umbrella vectors and squared area deviations ~ h^4 (p = 2),
+# squared edge-length deviations and squared orthogonal edge components ~ h^2 (p = 1). The two variants
+# are not scaled (p = 0): the cotangent loss is weighted by Voronoi mass and the Sorkine-Alexa energy sums
+# over every edge, so neither has the simple power law of the paper's four.
+RESOLUTION_POWERS = {"laplacian": 2, "edge": 1, "area": 2, "arap": 1, "laplacian_cot": 0, "arap_sorkine": 0}
+
+
+def scale_weights(weights: dict, n_vertices: int, ref_vertices: int | None) -> dict:
+    """Weights stated for a mesh of ``ref_vertices`` vertices, moved to ``n_vertices``: each multiplied by
+    ``(n_vertices / ref_vertices) ** RESOLUTION_POWERS[name]``, so that the same settings ask for the same
+    smoothness at every resolution. ``ref_vertices=None`` returns the weights unchanged."""
+    if ref_vertices is None:
+        return dict(weights)
+    ratio = n_vertices / ref_vertices
+    return {k: w * ratio ** RESOLUTION_POWERS[k] for k, w in weights.items()}

@@ -164,6 +164,10 @@ def test_bad_input_raises_mei_error():
         MEISettings(seeds=())
     with pytest.raises(MEIError, match="keep"):
         MEISettings(keep="first")
+    with pytest.raises(MEIError, match="min_quality must lie in"):
+        MEISettings(min_quality=1.5)
+    with pytest.raises(MEIError, match="reg_ref_vertices must be a positive integer"):
+        MEISettings(reg_ref_vertices=0)
     with pytest.raises(MEIError, match="RenderSettings"):
         MEISettings(render={"colour": 1})
     with pytest.raises(MEIError, match="unknown MEISettings"):

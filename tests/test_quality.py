@@ -78,3 +78,18 @@ def test_triangle_measures_are_scale_free_in_their_ratio():
     torch.testing.assert_close(l2, torch.tensor([3.0], dtype=torch.float64))
     dbl7, l27 = triangle_measures(7 * V, F)
     torch.testing.assert_close(dbl7 / l27, dbl / l2)
+
+
+def test_health_report_counts_boundary_and_nonmanifold_edges_and_reports_watertight():
+    from meshmei.quality import edge_use, health_report
+    from meshmei.shapes import initial_mesh
+
+    V, F = initial_mesh("sphere", n_vertices=100)
+    r = health_report(V, F, V)
+    assert r["watertight"] and r["boundary_edges"] == 0 and r["nonmanifold_edges"] == 0
+    assert r["self_intersections"] == 0 and r["flipped_faces"] == 0 and 0 < r["min_quality"] <= r["mean_quality"] <= 1
+    Vs, Fs = initial_mesh("sheet", n_vertices=100)
+    assert not health_report(Vs, Fs)["watertight"] and health_report(Vs, Fs)["flipped_faces"] is None
+    # a fin: three triangles on one edge make it non-manifold; the other edges are boundary edges
+    fin = torch.tensor([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
+    assert edge_use(fin) == (6, 1)

@@ -15,9 +15,11 @@ from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
 from ..optim import Budget, Progress, Schedule, Trace, minimize
-from ..regularizers import REGULARIZERS
+from ..regularizers import REGULARIZERS, scale_weights
 from ..render import axis_angle_to_matrix, render
 from ..shapes import INITIAL_KINDS, initial_mesh
+from ..operators import face_normals
+from ..validity import StepGuard, margin_penalty
 from .settings import MEIResult, MEISettings, make_deformer
 
 __all__ = ["optimize_mei", "initial", "check_neuron"]
@@ -85,8 +87,11 @@ class _Scene:
         return render(V, F, camera=settings.camera(), light=self.light, settings=settings.render_settings(), **kw)
 
 
-def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings):
-    active = {k: w for k, w in settings.weights.items() if w > 0}
+def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings, n_weights: int):
+    weights = scale_weights(settings.weights, n_weights, settings.reg_ref_vertices)
+    active = {k: w for k, w in weights.items() if w > 0}
+    normals0 = face_normals(scene.rbf.V0, F).detach()
+    w_margin = settings.margin_weight if settings.valid_steps else 0.0
 
     def objective(point):
         V = scene.rbf()
@@ -96,18 +101,23 @@ def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings):
             r = REGULARIZERS[k](V, scene.rbf.V0, F)
             record[k] = float(r.detach())
             loss = loss + w * r
+        if w_margin > 0:
+            m = margin_penalty(V, normals0, F, min_quality=settings.min_quality)
+            record["margin"] = float(m.detach())
+            loss = loss + w_margin * m
         return loss, record
 
     return objective
 
 
-def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress) -> dict:
+def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights) -> dict:
     scene = _Scene(V0, settings, seed)
     trace = Trace()
-    out = minimize(_objective(encoder, neuron, F, scene, settings), torch.optim.Adam(scene.groups),
+    accept = None if guard is None else guard.acceptor(scene.rbf)
+    out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), torch.optim.Adam(scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
-                   keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, error=MEIError,
-                   where=f" of seed {seed}")
+                   keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, accept=accept,
+                   error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():
         V = scene.rbf().detach()
         image = scene.image(V, F, settings, pose=True).detach()
@@ -156,6 +166,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     settings = MEISettings.with_overrides(settings, overrides)
     neuron = check_neuron(encoder, neuron)
     V0, F, init_name = initial(init, settings)
+    n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]  # the count weights scale to
     bar = Progress(settings.steps * len(settings.seeds), f"3D-MEI neuron {neuron}", enabled=progress,
                    postfix=lambda rec: {"act": f"{rec['response']:.4f}"})
     runs = {}
@@ -163,7 +174,8 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     try:
         with frozen_encoder(encoder):
             for seed in settings.seeds:
-                runs[seed] = _run_seed(encoder, neuron, V0, F, settings, seed, bar)
+                guard = StepGuard(V0, F, settings.validity_rules()) if settings.valid_steps else None
+                runs[seed] = _run_seed(encoder, neuron, V0, F, settings, seed, bar, guard, n_weights)
     finally:
         bar.close()
     wall = time.perf_counter() - t0

@@ -14,7 +14,7 @@ from ..encoders import Encoder, encoder_from_spec
 from ..errors import MEIError
 from ..mesh import save_mesh
 from ..plots import mei_figures
-from ..quality import mesh_quality
+from ..quality import health_report
 from .settings import MEIResult, MEISettings, rebuild_deformer
 
 __all__ = ["RUN_FORMAT", "save_run", "load_run"]
@@ -46,7 +46,7 @@ def _summary(result: MEIResult) -> dict:
         "n_faces": int(result.F.shape[0]),
         "wall_time_s": result.wall_time,
         "seconds_per_step": result.seconds_per_step,
-        "quality": mesh_quality(result.V, result.F, self_intersections=result.V.shape[0] <= 20000),
+        "quality": health_report(result.V, result.F, result.V0, self_intersections=result.V.shape[0] <= 20000),
         "history": result.history,
         "loss_history": result.loss_history,
         "reg_history": result.reg_history,

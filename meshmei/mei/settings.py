@@ -11,9 +11,11 @@ import torch
 from ..deform import RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
+from ..quality import health_report
 from ..regularizers import REGULARIZERS
 from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
+from ..validity import ValidityRules
 
 __all__ = ["MEISettings", "MEIResult", "make_deformer", "rebuild_deformer"]
 
@@ -51,6 +53,22 @@ class MEISettings:
         RBF truncation radius in scales (see :class:`~meshmei.deform.RBFDeformer`).
     weights : dict
         Regularizer weights by name (see :data:`REGULARIZERS`); zero weights are not evaluated.
+    reg_ref_vertices : int or None
+        When set (e.g. 400, the default mesh, for which the default weights were chosen), ``weights`` are
+        stated for a mesh of this many vertices and scaled to the run's (its ``n_vertices`` for a built-in
+        start, its vertex count for a given mesh) by :func:`meshmei.regularizers.scale_weights`: the
+        Laplacian and area weights by ``(n / ref)^2``, edge and direction ARAP by ``n / ref``. None (the
+        default for now, issue 16): the weights as given.
+    valid_steps : bool
+        (Off by default until issue 16's targets are met; docs/benchmarks.md, *Valid steps*.) Accept only
+        steps whose mesh is valid (:class:`~meshmei.validity.ValidityRules`: no new
+        self-intersections, no face flipped against the rest mesh, no triangle below ``min_quality``); a
+        refused step is halved until it passes (:func:`meshmei.optim.minimize`).
+    min_quality : float
+        The triangle-quality bound of ``valid_steps``.
+    margin_weight : float
+        Weight of :func:`~meshmei.validity.margin_penalty` with ``valid_steps``: it steers the run away from
+        the bounds before the guard must refuse a step.
     keep : str
         ``"best"``: return the iterate with the lowest loss seen; ``"last"``: the final iterate.
     optimize_light, optimize_pose : bool
@@ -82,6 +100,10 @@ class MEISettings:
     centers: int | None = None
     r_cut: float = 4.0
     weights: dict = field(default_factory=_default_weights)
+    reg_ref_vertices: int | None = None
+    valid_steps: bool = False
+    min_quality: float = 0.01
+    margin_weight: float = 10.0
     keep: str = "best"
     optimize_light: bool = False
     optimize_pose: bool = False
@@ -116,6 +138,11 @@ class MEISettings:
                 raise MEIError(f"unknown regularizer {k!r}; expected one of {sorted(REGULARIZERS)}")
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
                 raise MEIError(f"weight of {k!r} must be a finite non-negative number, got {w!r}")
+        ref = self.reg_ref_vertices
+        if ref is not None and (isinstance(ref, bool) or int(ref) != ref or ref < 1):
+            raise MEIError(f"reg_ref_vertices must be a positive integer or None, got {ref!r}")
+        if not 0 <= self.min_quality < 1:
+            raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
         if self.keep not in ("best", "last"):
             raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
         if self.dtype not in ("float32", "float64"):
@@ -133,6 +160,10 @@ class MEISettings:
     def render_settings(self) -> RenderSettings:
         """The :class:`~meshmei.render.RenderSettings` of the run (``render``, at ``image_size``)."""
         return self.render
+
+    def validity_rules(self) -> ValidityRules:
+        """The rules of ``valid_steps``: no new self-intersections, no face flipped against the rest mesh."""
+        return ValidityRules(turn_from="rest", min_quality=self.min_quality)
 
     def camera(self) -> Camera:
         return Camera(eye=(0.0, 0.0, float(self.camera_distance)), fov_degrees=float(self.fov_degrees))
@@ -262,6 +293,11 @@ class MEIResult:
         kw = self.scene()
         kw.update(overrides)
         return render(self.V, self.F, **kw)
+
+    def health(self) -> dict:
+        """The mesh's health (:func:`meshmei.quality.health_report`: self-intersections, faces flipped
+        against :attr:`V0`, triangle quality, watertightness)."""
+        return health_report(self.V, self.F, self.V0)
 
     def deformer(self) -> RBFDeformer:
         """Rebuild the winning RBF deformer; ``deformer()()`` equals :attr:`V`."""

@@ -18,10 +18,11 @@ from ..deform import PARAMETERISATIONS
 from ..errors import MeshError
 from ..metrics import surface_metrics
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..quality import mesh_health
-from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss
+from ..quality import count_self_intersections
+from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss, scale_weights
 from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
+from ..validity import StepGuard
 from .settings import ReconstructionResult, ReconstructionSettings
 from .sources import source_mesh, target_surface
 
@@ -86,15 +87,10 @@ class _Evaluation:
         return due
 
     def final(self, V, F):
-        """The returned mesh's metrics, with its self-intersections; reuses an evaluation of the last step."""
+        """The returned mesh's metrics, with its health; an evaluation of the last step is reused."""
         if self.last_step != self.trace.step or not self.records:
             return self(V, F, health=True)
-        t0 = time.perf_counter()
-        si = mesh_health(V, F).self_intersections
-        dt = time.perf_counter() - t0
-        self.seconds += dt
-        self.records[-1].update(self_intersections=si, eval_seconds=self.records[-1]["eval_seconds"] + dt)
-        return replace(self.last, self_intersections=si)
+        return self.last
 
 
 def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int | None, n_source: int) -> tuple:
@@ -107,8 +103,8 @@ def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int 
         n_k = s.stages[-1] if s.stages else n_source
     else:
         n_k = max(s.stages[k], s.stages[min(1, len(s.stages) - 1)])
-    ratio = n_k / s.reg_ref_vertices
-    return sk.w_laplacian * ratio**2, sk.w_edge * ratio, sk.w_arap * ratio
+    w = scale_weights({"laplacian": sk.w_laplacian, "edge": sk.w_edge, "arap": sk.w_arap}, n_k, s.reg_ref_vertices)
+    return w["laplacian"], w["edge"], w["arap"]
 
 
 def _parameterisation(sk: ReconstructionSettings, V0, F):
@@ -217,6 +213,28 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
                                 final=final, wall_time=trace.seconds, eval_time=evaluation.seconds, info=info)
 
 
+def _guard_info(guard) -> dict:
+    if guard is None:
+        return {}
+    return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds}
+
+
+def _remesh_clean(V, F, n: int, clean: bool):
+    """Remesh to ``n`` vertices; with ``clean``, retry (other iteration counts) when the remesh adds
+    intersecting pairs, and keep the mesh as it is when no try is clean. Returns ``(V, F, record)``."""
+    V2, F2 = remesh(V, F, n)
+    if not clean:
+        return V2, F2, {}
+    before = count_self_intersections(V, F)
+    for iterations in (None, 10, 3):
+        if iterations is not None:
+            V2, F2 = remesh(V, F, n, iterations=iterations)
+        added = count_self_intersections(V2, F2) - before
+        if added <= 0:
+            return V2, F2, {"remesh_iterations": iterations or 5}
+    return V, F, {"remesh_iterations": None, "remesh_refused_pairs": added}
+
+
 def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):
     stages = s.stages or (None,)
     bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
@@ -224,11 +242,13 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
     n_source = V.shape[0]
     for k, n_stage in enumerate(stages):
         t0 = time.perf_counter()
+        remeshed = {}
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
-            V, F = remesh(V, F, n_stage)
+            V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps)
         sk = per_stage[k] if per_stage else s
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         param = _parameterisation(sk, V.detach(), F)
+        guard = StepGuard(V, F, s.validity_rules()) if s.valid_steps else None
         trace.seconds += time.perf_counter() - t0
         latest = [None]
 
@@ -237,17 +257,17 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 callback(rec["step"], latest[0].detach(), rec["loss"])
             if evaluation.due(rec["step"]):
                 with torch.no_grad():
-                    evaluation(param.vertices().detach(), F)
+                    evaluation(param.vertices().detach(), F, health=True)
 
         outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
-                           callbacks=[after_step])
+                           callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices))
         with torch.no_grad():
             V = param.vertices().detach()
         info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method,
                                "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
-                               **param.info()})
+                               **_guard_info(guard), **remeshed, **param.info()})
         if outcome.budget_spent:
             break
     return V, F

@@ -11,6 +11,7 @@ import torch
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
 from ..optim import OPTIMIZERS
+from ..validity import ValidityRules
 
 __all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "ReconstructionSettings", "ReconstructionResult"]
 
@@ -114,6 +115,14 @@ class ReconstructionSettings:
         Evaluate :func:`surface_metrics` every this many steps (and always at the end).
     eval_times : tuple of float
         Also evaluate at the first step at or past each of these optimisation times (seconds).
+    valid_steps : bool
+        (Off by default until issue 16's targets are met.) Accept only steps whose mesh is valid (:class:`~meshmei.validity.ValidityRules` with
+        ``turn_from="step"``: no new self-intersections, no face turned over in one step, no triangle
+        below ``min_quality``); a refused step is halved until it passes. Remeshing between stages is
+        checked too: a remesh that adds intersecting pairs is retried, and the stage keeps the mesh it
+        has when no retry is clean.
+    min_quality : float
+        The triangle-quality bound of ``valid_steps``.
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
@@ -145,6 +154,8 @@ class ReconstructionSettings:
     eval_every: int | None = None
     eval_times: tuple = ()
     eval_samples: int = EVAL_SAMPLES
+    valid_steps: bool = False
+    min_quality: float = 0.01
 
     def resolved(self) -> "ReconstructionSettings":
         """A copy with the per-method defaults filled in and every value checked.
@@ -165,6 +176,10 @@ class ReconstructionSettings:
             s = replace(s, stage_overrides=_check_overrides(s.stage_overrides, s.stages))
             self.stage_settings()  # every stage's own values are checked too
         return replace(s, eval_times=tuple(float(t) for t in s.eval_times))
+
+    def validity_rules(self) -> ValidityRules:
+        """The rules of ``valid_steps``: no new self-intersections, no face turned over in one step."""
+        return ValidityRules(turn_from="step", min_quality=self.min_quality)
 
     def stage_settings(self) -> list:
         """The resolved settings of each stage (one entry when there are no ``stage_overrides``): for
@@ -200,6 +215,8 @@ def _check_values(s: ReconstructionSettings) -> None:
         raise ReconstructionError(f"optimizer must be 'adam' or 'uniform', got {s.optimizer!r}")
     if not 0 < s.lr_decay <= 1:
         raise ReconstructionError(f"lr_decay must lie in (0, 1], got {s.lr_decay!r}")
+    if not 0 <= s.min_quality < 1:
+        raise ReconstructionError(f"min_quality must lie in [0, 1), got {s.min_quality!r}")
     if s.eval_every is not None and not s.eval_every >= 1:
         raise ReconstructionError(f"eval_every must be a positive integer or None, got {s.eval_every!r}")
 

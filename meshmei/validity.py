@@ -1,0 +1,169 @@
+"""Valid steps: the rules a mesh must meet before an optimisation step that produced it is accepted.
+
+A mesh is valid when it has no more self-intersecting face pairs than the run started with (exact
+predicates, :func:`~meshmei.quality.count_self_intersections`), no face turned by more than
+``max_turn_degrees`` against its reference orientation (the rest mesh, or the last accepted mesh), and no
+triangle whose quality fell below a bound. :class:`StepGuard` holds the reference and the counts;
+:func:`meshmei.optim.minimize` calls its :meth:`StepGuard.accept` after every step and halves the step
+until it passes (or rejects the step).
+
+What is guaranteed is discrete: every accepted iterate meets the rules. Between two accepted iterates a
+face is not tracked; a step that carries a face through another and out of it again in one move would not
+be seen. Steps are short against the features they could cross (a step moves a vertex by about the
+learning rate, 1e-3 to 5e-2 of the unit-diagonal object, against edge lengths of 1e-2 and more), and the
+turn bound rejects the inverted faces such a pass would leave behind.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+
+from .errors import MeshError
+from .mesh import check_mesh
+from .operators import face_normals
+from .quality import count_self_intersections, triangle_quality
+
+__all__ = ["ValidityRules", "StepGuard", "margin_penalty"]
+
+
+@dataclass(frozen=True)
+class ValidityRules:
+    """What an accepted mesh must meet.
+
+    Attributes
+    ----------
+    self_intersections : bool
+        No more intersecting face pairs than the start had (zero for the built-in starts).
+    max_turn_degrees : float
+        Largest angle by which a face's normal may turn from its reference (in ``(0, 180]``; 180 turns the
+        check off). 90 rejects every inverted (flipped) face.
+    turn_from : {"rest", "step"}
+        The reference: the rest mesh (no face may ever be flipped against its start, as a 3D-MEI's sheet
+        or sphere) or the last accepted mesh (no face may turn over in one step; a reconstruction's faces
+        may turn far from the sphere they started on, but only smoothly).
+    min_quality : float
+        Smallest triangle quality (``4 sqrt(3) A / sum l^2``, 1 for equilateral) an accepted mesh may have;
+        a start that already has worse triangles lowers the bound to half its own minimum.
+    max_halvings : int
+        How often a rejected step is halved before it is given up (the parameters then stay where they
+        were for this step).
+    """
+
+    self_intersections: bool = True
+    max_turn_degrees: float = 90.0
+    turn_from: str = "rest"
+    min_quality: float = 0.02
+    max_halvings: int = 6
+
+    def __post_init__(self):
+        if not 0 < self.max_turn_degrees <= 180:
+            raise ValueError(f"max_turn_degrees must lie in (0, 180], got {self.max_turn_degrees!r}")
+        if self.turn_from not in ("rest", "step"):
+            raise ValueError(f"turn_from must be 'rest' or 'step', got {self.turn_from!r}")
+        if not 0 <= self.min_quality < 1:
+            raise ValueError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
+        if isinstance(self.max_halvings, bool) or int(self.max_halvings) != self.max_halvings or self.max_halvings < 0:
+            raise ValueError(f"max_halvings must be a non-negative integer, got {self.max_halvings!r}")
+
+
+class StepGuard:
+    """Checks candidate meshes against :class:`ValidityRules`, from a valid start.
+
+    Parameters
+    ----------
+    V0 : (n, 3) float tensor
+        The start (and, with ``turn_from="rest"``, the reference orientation).
+    F : (m, 3) int64 tensor
+    rules : ValidityRules
+
+    Attributes
+    ----------
+    allowed_pairs : int
+        Intersecting pairs of the start, the most an accepted mesh may have.
+    quality_floor : float
+        The triangle-quality bound in force.
+    checks, failures : int
+        Candidates checked, and those that failed.
+    reasons : dict of str -> int
+        Failures by the rule they broke (``"quality"``, ``"turn"``, ``"intersection"``, ``"non-finite"``).
+    seconds : float
+        Time spent checking.
+    """
+
+    def __init__(self, V0: torch.Tensor, F: torch.Tensor, rules: ValidityRules = ValidityRules()):
+        V0, F = check_mesh(V0, F)
+        self.F, self.rules = F, rules
+        ref = V0.detach().double()
+        self.normals = face_normals(ref, F)  # (m, 3) reference orientation
+        self.cos_bound = math.cos(math.radians(rules.max_turn_degrees))
+        self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
+        self.quality_floor = min(rules.min_quality, 0.5 * float(triangle_quality(ref, F).min()))
+        self.checks, self.failures, self.seconds = 0, 0, 0.0
+        self.reasons = {"non-finite": 0, "quality": 0, "turn": 0, "intersection": 0}
+
+    def why_not(self, V: torch.Tensor) -> str | None:
+        """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first)."""
+        if V.ndim != 2 or V.shape[1] != 3:
+            raise MeshError(f"candidate vertices must have shape (n, 3), got {tuple(V.shape)}")
+        Vd = V.detach().double()
+        if not bool(torch.isfinite(Vd).all()):
+            return "non-finite vertices"
+        q = float(triangle_quality(Vd, self.F).min())
+        if q < self.quality_floor:
+            return f"triangle quality {q:.3g} below {self.quality_floor:.3g}"
+        n = face_normals(Vd, self.F)
+        turned = (n * self.normals).sum(-1) < self.cos_bound - 1e-12
+        turned &= (n.abs().sum(-1) > 0) & (self.normals.abs().sum(-1) > 0)  # a zero-area face has no direction
+        if self.rules.max_turn_degrees < 180 and bool(turned.any()):
+            return f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees"
+        if self.rules.self_intersections:
+            pairs = count_self_intersections(Vd, self.F)
+            if pairs > self.allowed_pairs:
+                return f"{pairs} self-intersecting face pairs (start: {self.allowed_pairs})"
+        return None
+
+    def accept(self, V: torch.Tensor) -> bool:
+        """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``."""
+        t0 = time.perf_counter()
+        why = self.why_not(V)
+        ok = why is None
+        self.checks += 1
+        self.failures += not ok
+        if not ok:
+            key = next(k for k, word in (("non-finite", "non-finite"), ("quality", "quality"), ("turn", "turned"),
+                                         ("intersection", "self-intersecting")) if word in why)
+            self.reasons[key] += 1
+        if ok and self.rules.turn_from == "step":
+            self.normals = face_normals(V.detach().double(), self.F)
+        self.seconds += time.perf_counter() - t0
+        return ok
+
+    def acceptor(self, vertices):
+        """A callable for :func:`meshmei.optim.minimize`'s ``accept``: ``vertices()`` (no gradient), checked."""
+
+        def accept() -> bool:
+            with torch.no_grad():
+                return self.accept(vertices())
+
+        return accept
+
+
+def margin_penalty(V: torch.Tensor, normals0: torch.Tensor, F: torch.Tensor, *, max_turn_degrees: float = 90.0,
+                   min_quality: float = 0.02, margin: float = 2.0) -> torch.Tensor:
+    """A smooth penalty that rises as faces near the guard's turn and quality bounds, zero well inside them.
+
+    ``mean_f relu(c_m - cos t_f)^2 + mean_f relu(q_m - q_f)^2`` where ``t_f`` is the angle between face
+    ``f``'s normal and its reference ``normals0`` and ``q_f`` its quality; ``c_m = cos(max_turn / margin)``
+    and ``q_m = margin * min_quality``. Added to an objective with a weight, it turns the optimisation away
+    before :class:`StepGuard` has to refuse a step, so the run slides along the bounds instead of stalling
+    at them.
+    """
+    n = face_normals(V, F)
+    cos = (n * normals0.to(n.dtype)).sum(-1)
+    c_m = math.cos(math.radians(max_turn_degrees) / margin)
+    q = triangle_quality(V, F)
+    return torch.relu(c_m - cos).square().mean() + torch.relu(margin * min_quality - q).square().mean()

@@ -1,0 +1,134 @@
+"""Valid steps: the guard's rules, the loop's halving, and hard cases where every accepted iterate is clean."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from meshmei.deform import RBFParameterisation
+from meshmei.encoders import GaborSimpleCell
+from meshmei.errors import MeshError
+from meshmei.mei import optimize_mei
+from meshmei.optim import Budget, Trace, minimize
+from meshmei.quality import count_flipped_faces, count_self_intersections, triangle_quality
+from meshmei.reconstruct import reconstruct
+from meshmei.shapes import initial_mesh
+from meshmei.validity import StepGuard, ValidityRules
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return initial_mesh("sphere", n_vertices=200, dtype=torch.float64)
+
+
+def test_a_clean_start_is_accepted_and_each_rule_refuses_its_defect(ball):
+    V, F = ball
+    guard = StepGuard(V, F)
+    assert guard.allowed_pairs == 0 and guard.accept(V)
+    pushed = V.clone()
+    pushed[0] = -1.5 * V[0]  # one vertex driven through the far side of the sphere
+    assert count_self_intersections(pushed, F) > 0
+    assert "self-intersecting" in guard.why_not(pushed) or "turned" in guard.why_not(pushed)
+    assert not guard.accept(pushed)
+    flat = V.clone()
+    f = F[0]
+    flat[f[0]] = 0.5 * (flat[f[1]] + flat[f[2]])  # a collapsed triangle
+    assert "quality" in guard.why_not(flat)
+    assert guard.why_not(V * torch.tensor([1.0, 1.0, -1.0], dtype=V.dtype)) is not None  # every face turned over
+    assert guard.checks == 2 and guard.failures == 1
+
+
+def test_turn_from_step_allows_slow_turning_but_not_inversion(ball):
+    V, F = ball
+    guard = StepGuard(V, F, ValidityRules(turn_from="step", self_intersections=False))
+    c, s = torch.cos(torch.tensor(0.5, dtype=V.dtype)), torch.sin(torch.tensor(0.5, dtype=V.dtype))
+    R = torch.stack([torch.stack([c, -s, c * 0]), torch.stack([s, c, c * 0]), torch.tensor([0.0, 0, 1], dtype=V.dtype)])
+    X = V
+    for _ in range(8):  # eight turns of 0.5 rad: 4 rad in all, each step well under 90 degrees
+        X = X @ R.T
+        assert guard.accept(X)
+    assert StepGuard(V, F).why_not(X) is not None  # against the rest mesh, many faces have turned over
+
+
+def test_rules_and_candidates_are_checked():
+    with pytest.raises(ValueError, match="max_turn_degrees must lie in"):
+        ValidityRules(max_turn_degrees=0)
+    with pytest.raises(ValueError, match="turn_from must be"):
+        ValidityRules(turn_from="start")
+    with pytest.raises(ValueError, match="min_quality must lie in"):
+        ValidityRules(min_quality=1.0)
+    with pytest.raises(ValueError, match="max_halvings"):
+        ValidityRules(max_halvings=-1)
+    V, F = initial_mesh("sphere", n_vertices=100)
+    with pytest.raises(MeshError, match=r"shape \(n, 3\)"):
+        StepGuard(V, F).why_not(V[:, :2])
+
+
+def test_minimize_halves_a_refused_step_and_undoes_one_never_accepted():
+    x = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    objective = lambda point: (((x - 1.0) ** 2).sum(), {})  # noqa: E731
+    trace = Trace()
+    # x may never exceed 0.3: the first step (SGD, lr 0.5: to x = 1) is halved twice, to 0.25
+    minimize(objective, torch.optim.SGD([x], lr=0.5), Budget(steps=1), trace=trace, accept=lambda: float(x) <= 0.3)
+    assert trace.history[0]["step_scale"] == 0.25 and float(x.detach()) == pytest.approx(0.25)
+    y = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    trace = Trace()
+    minimize(lambda p: (((y - 1.0) ** 2).sum(), {}), torch.optim.SGD([y], lr=0.5), Budget(steps=3), trace=trace,
+             accept=lambda: False, max_halvings=2)
+    assert [r["step_scale"] for r in trace.history] == [0.0] * 3 and float(y.detach()) == 0.0
+
+
+def _clean(V, F, V0):
+    return count_self_intersections(V, F) == 0 and count_flipped_faces(V, V0, F) == 0
+
+
+def test_a_sheet_pulled_through_itself_stays_clean_in_every_accepted_iterate():
+    # half of a sheet is pulled through the other half (a target only a self-intersecting mesh can
+    # reach), at a learning rate ten times the MEI default: the guard must stop it at contact
+    V0, F = initial_mesh("sheet", n_vertices=150, dtype=torch.float64)
+    param = RBFParameterisation(V0, lr=3e-2, sigma_factor=2.0)
+    target = V0.clone()
+    right = V0[:, 0] > 0
+    target[right, 0] = -V0[right, 0]  # fold the right half onto the left ...
+    target[right, 2] = -0.05  # ... and through it
+    seen = []
+    guard = StepGuard(V0, F)
+    minimize(lambda p: (((param.vertices() - target) ** 2).sum(), {}), torch.optim.Adam(param.groups),
+             Budget(steps=60), accept=guard.acceptor(param.vertices),
+             callbacks=[lambda rec: seen.append(param.vertices().detach().clone())])
+    assert guard.failures > 0  # the target did push the mesh into itself
+    assert all(_clean(V, F, V0) for V in seen)
+    assert float(triangle_quality(seen[-1], F).min()) >= guard.quality_floor
+
+
+def test_mei_at_ten_times_the_learning_rate_gives_a_clean_object():
+    cell = GaborSimpleCell()
+    res = optimize_mei(cell, 0, "sheet", steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
+                       valid_steps=True)
+    assert _clean(res.V, res.F, res.V0)
+    off = optimize_mei(cell, 0, "sheet", steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
+                       valid_steps=False)
+    assert res.activation > 0 and off.activation > 0
+
+
+def test_reconstruction_at_ten_times_the_learning_rate_is_clean_in_every_iterate():
+    src = initial_mesh("sphere", n_vertices=300)
+    seen = []
+    res = reconstruct(src, "bunny", "rbf", steps=40, lr=6e-2, n_samples=1000, target_pool=5000, eval_samples=2000,
+                      callback=lambda step, V, loss: seen.append(V), valid_steps=True)
+    assert len(seen) == 40 and all(count_self_intersections(V, res.F) == 0 for V in seen)
+    assert res.final.self_intersections == 0
+    assert res.info["stages"][0]["checks"] >= 40
+
+
+def test_a_diverging_learning_rate_is_refused_or_named():
+    src = initial_mesh("sphere", n_vertices=300)
+    small = dict(steps=3, lr=1e30, n_samples=500, target_pool=2000, eval_samples=500, valid_steps=True)
+    # free vertices thrown 1e30 apart: every step breaks the rules and is undone
+    res = reconstruct(src, "bunny", "vertex", **small)
+    assert [h["step_scale"] for h in res.history] == [0.0, 0.0, 0.0]
+    torch.testing.assert_close(res.V, src[0], rtol=0, atol=1e-6)
+    assert res.info["stages"][0]["refused"] == res.info["stages"][0]["checks"]
+    # large steps move the mesh as a whole (a valid shape, far away): the run stops with a clear error
+    with pytest.raises(FloatingPointError, match=r"mesh became unusable after step \d+ .*lower the learning rate"):
+        reconstruct(src, "bunny", "largesteps", **small)
