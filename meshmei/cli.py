@@ -49,6 +49,8 @@ def _add_mei(sub) -> None:
     p.add_argument("--optimize-light", action="store_true")
     p.add_argument("--optimize-pose", action="store_true")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
+    p.add_argument("--valid-steps", action="store_true",
+                   help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_run_mei)
@@ -72,7 +74,8 @@ def _run_mei(args) -> int:
     encoder = make_encoder(args.encoder)
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=args.image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
-                           optimize_light=args.optimize_light, optimize_pose=args.optimize_pose)
+                           optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
+                           valid_steps=args.valid_steps)
     res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
     line = f"3D-MEI neuron {res.neuron} ({args.encoder}, {args.init}): response {res.activation:.4f}"
@@ -123,6 +126,9 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--eval-every", type=int, default=d.eval_every)
     p.add_argument("--eval-samples", type=int, default=d.eval_samples)
     p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--valid-steps", action="store_true",
+                   help="accept only steps whose mesh has no new self-intersection, no face turned over in one "
+                        "step and no collapsed triangle; remeshes that add intersections are retried")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_reconstruct)
 
@@ -137,7 +143,7 @@ def _run_reconstruct(args) -> int:
     res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
                       n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
                       eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
-                      progress=not args.no_progress)
+                      valid_steps=args.valid_steps, progress=not args.no_progress)
     out = save_reconstruction(res, args.out, init=str(args.init), target=str(args.target))
     f = res.final
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
