@@ -216,7 +216,8 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
 def _guard_info(guard) -> dict:
     if guard is None:
         return {}
-    return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds}
+    return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds,
+            "refused_by": dict(guard.reasons)}
 
 
 def _remesh_clean(V, F, n: int, clean: bool):
