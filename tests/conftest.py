@@ -107,3 +107,12 @@ def teapot64():
 
     V, F = target_mesh("teapot", dtype=torch.float64)
     return V, F
+
+
+def demo_or_skip():
+    """The shipped demo model's path and the model; skips the test when the model file is not built."""
+    from meshmei.encoders import DEMO_MODEL_PATH, load_demo_model
+
+    if not DEMO_MODEL_PATH.is_file():
+        pytest.skip("demo model not built (python data_gen/make_demo_model.py)")
+    return DEMO_MODEL_PATH, load_demo_model()

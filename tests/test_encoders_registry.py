@@ -9,17 +9,17 @@ import pytest
 import torch
 
 from meshmei.encoders import (
-    DEMO_MODEL_PATH,
     CoreReadoutModel,
     GaborComplexCell,
     GaborSimpleCell,
     encoder_from_spec,
     encoder_spec,
     is_demo_model,
-    load_demo_model,
     make_encoder,
 )
 from meshmei.errors import MEIError
+
+from conftest import demo_or_skip
 
 
 @pytest.mark.parametrize("kind, cls", [("gabor-simple", GaborSimpleCell), ("gabor-complex", GaborComplexCell)])
@@ -52,14 +52,8 @@ def test_unknown_encoder_name_raises_mei_error():
 
 # ---------------------------------------------------------------------------------------------- demo model
 
-def _demo_or_skip():
-    if not DEMO_MODEL_PATH.is_file():
-        pytest.skip("demo model not built (python data_gen/make_demo_model.py)")
-    return DEMO_MODEL_PATH, load_demo_model()
-
-
 def test_demo_model_ships_small_with_its_correlations():
-    path, model = _demo_or_skip()
+    path, model = demo_or_skip()
     info = json.loads(path.with_suffix(".json").read_text())
     assert path.stat().st_size < 400_000
     assert model.n_neurons == info["n_neurons"] == len(info["test_correlation_with_ground_truth"])
@@ -74,7 +68,7 @@ def make_encoder_demo_kind(model):
 
 
 def test_demo_model_is_rebuilt_by_name():
-    _, model = _demo_or_skip()
+    _, model = demo_or_skip()
     assert is_demo_model(model) and is_demo_model(make_encoder("demo"))
     back = encoder_from_spec(encoder_spec(model))
     assert is_demo_model(back)

@@ -12,6 +12,8 @@ from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
 from meshmei.mei import MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
 
+from conftest import demo_or_skip
+
 TINY = dict(image_size=32, n_vertices=80, steps=4, seeds=(0,))
 
 
@@ -192,18 +194,10 @@ def test_cli_writes_a_run(tmp_path, capsys):
 
 # ---------------------------------------------------------------------------------------------- demo model
 
-def _demo_or_skip():
-    from meshmei.encoders import DEMO_MODEL_PATH, load_demo_model
-
-    if not DEMO_MODEL_PATH.is_file():
-        pytest.skip("demo model not built (python data_gen/make_demo_model.py)")
-    return DEMO_MODEL_PATH, load_demo_model()
-
-
 def test_demo_neuron_3d_mei_beats_random_meshes_and_pixel_mei_is_higher_still():
     from meshmei.mei import random_mesh_responses
 
-    _, model = _demo_or_skip()
+    _, model = demo_or_skip()
     rand = random_mesh_responses(model, 0, "sphere", 1000)
     res = optimize_mei(model, 0, "sphere", steps=60, seeds=(0,))
     assert res.activation >= float(rand.max()), (res.activation, float(rand.max()))
