@@ -24,10 +24,27 @@ import torch
 
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import face_normals
-from .quality import count_self_intersections, triangle_quality
+from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners
+from .quality import count_self_intersections
 
-__all__ = ["ValidityRules", "StepGuard", "margin_penalty"]
+__all__ = ["ValidityRules", "StepGuard", "margin_penalty", "face_frame"]
+
+
+def face_frame(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit face normals ``(m, 3)`` and triangle qualities ``(m,)`` from one pass over the corners.
+
+    The normals are those of :func:`~meshmei.operators.face_normals` (zero for a collapsed face), the
+    qualities those of :func:`~meshmei.quality.triangle_quality`; ``V`` and ``F`` are not checked. The guard
+    and the margin penalty need both every step, so they share the corners and cross products.
+    """
+    T = corners(V, F)  # (m, 3, 3)
+    c = cross_from_corners(T)  # (m, 3), twice the area long
+    l2 = sq_edge_sum_from_corners(T)
+    dbl = safe_norm(c)
+    den = torch.maximum(dbl, resolve_eps(None, V.dtype) * l2)
+    ok = den > 0
+    n = torch.where(ok[:, None], c / torch.where(ok, den, torch.ones_like(den))[:, None], torch.zeros_like(c))
+    return n, 2.0 * math.sqrt(3.0) * dbl / l2.clamp_min(torch.finfo(dbl.dtype).tiny)
 
 
 @dataclass(frozen=True)
@@ -98,10 +115,10 @@ class StepGuard:
         V0, F = check_mesh(V0, F)
         self.F, self.rules = F, rules
         ref = V0.detach().double()
-        self.normals = face_normals(ref, F)  # (m, 3) reference orientation
+        self.normals, q = face_frame(ref, F)  # (m, 3) reference orientation
         self.cos_bound = math.cos(math.radians(rules.max_turn_degrees))
         self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
-        self.quality_floor = min(rules.min_quality, 0.5 * float(triangle_quality(ref, F).min()))
+        self.quality_floor = min(rules.min_quality, 0.5 * float(q.min()))
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "quality": 0, "turn": 0, "intersection": 0}
 
@@ -112,10 +129,11 @@ class StepGuard:
         Vd = V.detach().double()
         if not bool(torch.isfinite(Vd).all()):
             return "non-finite vertices"
-        q = float(triangle_quality(Vd, self.F).min())
+        n, quality = face_frame(Vd, self.F)
+        q = float(quality.min())
         if q < self.quality_floor:
             return f"triangle quality {q:.3g} below {self.quality_floor:.3g}"
-        n = face_normals(Vd, self.F)
+        self._candidate_normals = n
         turned = (n * self.normals).sum(-1) < self.cos_bound - 1e-12
         turned &= (n.abs().sum(-1) > 0) & (self.normals.abs().sum(-1) > 0)  # a zero-area face has no direction
         if self.rules.max_turn_degrees < 180 and bool(turned.any()):
@@ -138,7 +156,7 @@ class StepGuard:
                                          ("intersection", "self-intersecting")) if word in why)
             self.reasons[key] += 1
         if ok and self.rules.turn_from == "step":
-            self.normals = face_normals(V.detach().double(), self.F)
+            self.normals = self._candidate_normals  # those of V, computed by why_not
         self.seconds += time.perf_counter() - t0
         return ok
 
@@ -162,8 +180,7 @@ def margin_penalty(V: torch.Tensor, normals0: torch.Tensor, F: torch.Tensor, *, 
     before :class:`StepGuard` has to refuse a step, so the run slides along the bounds instead of stalling
     at them.
     """
-    n = face_normals(V, F)
+    n, q = face_frame(V, F)
     cos = (n * normals0.to(n.dtype)).sum(-1)
     c_m = math.cos(math.radians(max_turn_degrees) / margin)
-    q = triangle_quality(V, F)
     return torch.relu(c_m - cos).square().mean() + torch.relu(margin * min_quality - q).square().mean()

@@ -132,3 +132,16 @@ def test_a_diverging_learning_rate_is_refused_or_named():
     # large steps move the mesh as a whole (a valid shape, far away): the run stops with a clear error
     with pytest.raises(FloatingPointError, match=r"mesh became unusable after step \d+ .*lower the learning rate"):
         reconstruct(src, "bunny", "largesteps", **small)
+
+
+def test_face_frame_gives_the_operators_normals_and_the_qualitys_values(ball):
+    from meshmei.operators import face_normals
+    from meshmei.validity import face_frame
+
+    V, F = ball
+    W = V + 0.05 * torch.sin(7 * V)  # an uneven mesh
+    W[F[0, 0]] = W[F[0, 1]]  # and one collapsed face
+    n, q = face_frame(W, F)
+    torch.testing.assert_close(n, face_normals(W, F), rtol=0, atol=1e-12)
+    torch.testing.assert_close(q, triangle_quality(W, F), rtol=0, atol=1e-12)
+    assert float(q[0]) == 0.0 and float(n[0].abs().sum()) == 0.0
