@@ -122,43 +122,44 @@ class StepGuard:
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "quality": 0, "turn": 0, "intersection": 0}
 
-    def why_not(self, V: torch.Tensor) -> str | None:
-        """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first)."""
+    def _verdict(self, V: torch.Tensor) -> tuple:
+        """``(rule, message, normals)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
+        them all), what is wrong, and ``V``'s face normals when they were computed (cheapest checks first)."""
         if V.ndim != 2 or V.shape[1] != 3:
             raise MeshError(f"candidate vertices must have shape (n, 3), got {tuple(V.shape)}")
         Vd = V.detach().double()
         if not bool(torch.isfinite(Vd).all()):
-            return "non-finite vertices"
+            return "non-finite", "non-finite vertices", None
         n, quality = face_frame(Vd, self.F)
         q = float(quality.min())
         if q < self.quality_floor:
-            return f"triangle quality {q:.3g} below {self.quality_floor:.3g}"
-        self._candidate_normals = n
+            return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", n
         turned = (n * self.normals).sum(-1) < self.cos_bound - 1e-12
         turned &= (n.abs().sum(-1) > 0) & (self.normals.abs().sum(-1) > 0)  # a zero-area face has no direction
         if self.rules.max_turn_degrees < 180 and bool(turned.any()):
-            return f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees"
+            return "turn", f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees", n
         if self.rules.self_intersections:
             pairs = count_self_intersections(Vd, self.F)
             if pairs > self.allowed_pairs:
-                return f"{pairs} self-intersecting face pairs (start: {self.allowed_pairs})"
-        return None
+                return "intersection", f"{pairs} self-intersecting face pairs (start: {self.allowed_pairs})", n
+        return None, None, n
+
+    def why_not(self, V: torch.Tensor) -> str | None:
+        """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first)."""
+        return self._verdict(V)[1]
 
     def accept(self, V: torch.Tensor) -> bool:
         """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``."""
         t0 = time.perf_counter()
-        why = self.why_not(V)
-        ok = why is None
+        rule, _, normals = self._verdict(V)
         self.checks += 1
-        self.failures += not ok
-        if not ok:
-            key = next(k for k, word in (("non-finite", "non-finite"), ("quality", "quality"), ("turn", "turned"),
-                                         ("intersection", "self-intersecting")) if word in why)
-            self.reasons[key] += 1
-        if ok and self.rules.turn_from == "step":
-            self.normals = self._candidate_normals  # those of V, computed by why_not
+        if rule is not None:
+            self.failures += 1
+            self.reasons[rule] += 1
+        elif self.rules.turn_from == "step":
+            self.normals = normals
         self.seconds += time.perf_counter() - t0
-        return ok
+        return rule is None
 
     def acceptor(self, vertices):
         """A callable for :func:`meshmei.optim.minimize`'s ``accept``: ``vertices()`` (no gradient), checked."""

@@ -117,6 +117,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), torch.optim.Adam(scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, accept=accept,
+                   max_halvings=0 if guard is None else guard.rules.max_halvings,
                    error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():
         V = scene.rbf().detach()

@@ -263,7 +263,8 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
-                           callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices))
+                           callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices),
+                           max_halvings=0 if guard is None else guard.rules.max_halvings)
         with torch.no_grad():
             V = param.vertices().detach()
         info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method,
