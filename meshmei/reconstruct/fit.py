@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from ..contact import ContactBarrier
 from ..deform import PARAMETERISATIONS
 from ..errors import MeshError
 from ..metrics import surface_metrics
@@ -117,7 +118,7 @@ def _parameterisation(sk: ReconstructionSettings, V0, F):
     return kind(V0, lr=sk.lr)
 
 
-def _objective(param, F, sk, weights, chamfer, k, latest):
+def _objective(param, F, sk, weights, chamfer, k, latest, contact):
     w_lap, w_edge, w_arap = weights
 
     def objective(point):
@@ -132,7 +133,11 @@ def _objective(param, F, sk, weights, chamfer, k, latest):
             loss = loss + wr * w_edge * edge_loss(Vc, F)
         if w_arap > 0:  # the rest pose is the shape at the start of the stage
             loss = loss + wr * w_arap * arap_direction_loss(Vc, param.V0, F)
-        return loss, {"stage": k, "chamfer": float(cd.detach())}
+        record = {"stage": k, "chamfer": float(cd.detach())}
+        if contact is not None:
+            loss = loss + sk.w_contact * contact(Vc)
+            record["contact_pairs"] = contact.active
+        return loss, record
 
     return objective
 
@@ -220,6 +225,12 @@ def _guard_info(guard) -> dict:
             "refused_by": dict(guard.reasons)}
 
 
+def _contact_info(contact) -> dict:
+    if contact is None:
+        return {}
+    return {"contact_distance": contact.distance, "contact_rebuilds": contact.rebuilds}
+
+
 def _remesh_clean(V, F, n: int, clean: bool):
     """Remesh to ``n`` vertices; with ``clean``, retry (other iteration counts) when the remesh adds
     intersecting pairs, and keep the mesh as it is when no try is clean. Returns ``(V, F, record)``."""
@@ -250,6 +261,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         param = _parameterisation(sk, V.detach(), F)
         guard = StepGuard(V, F, s.validity_rules()) if s.valid_steps else None
+        contact = ContactBarrier.for_mesh(V, F, s.contact_distance) if s.w_contact > 0 else None
         trace.seconds += time.perf_counter() - t0
         latest = [None]
 
@@ -260,7 +272,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 with torch.no_grad():
                     evaluation(param.vertices().detach(), F, health=True)
 
-        outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest),
+        outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices),
@@ -269,7 +281,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
             V = param.vertices().detach()
         info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method,
                                "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
-                               **_guard_info(guard), **remeshed, **param.info()})
+                               **_guard_info(guard), **_contact_info(contact), **remeshed, **param.info()})
         if outcome.budget_spent:
             break
     return V, F

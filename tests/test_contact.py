@@ -1,0 +1,111 @@
+"""The contact barrier: exact point-triangle distances, no energy on a clean mesh, a repelling gradient at a
+near-contact, and candidates that are never stale."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meshmei.contact import ContactBarrier, mean_edge_length, point_triangle_sqdist
+from meshmei.shapes import initial_mesh
+
+
+def _brute_sqdist(P, A, B, C, n=400):
+    """Squared distances to a dense barycentric grid of each triangle (an upper bound on the exact one)."""
+    i, j = torch.meshgrid(torch.arange(n + 1), torch.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    u, v = i[keep].to(P.dtype) / n, j[keep].to(P.dtype) / n
+    Q = A[:, None] + u[None, :, None] * (B - A)[:, None] + v[None, :, None] * (C - A)[:, None]
+    return ((Q - P[:, None]) ** 2).sum(-1).min(1).values
+
+
+def test_point_triangle_distance_is_the_closest_point_of_the_triangle():
+    g = torch.Generator().manual_seed(0)
+    P, A, B, C = (torch.randn(300, 3, generator=g, dtype=torch.float64) for _ in range(4))
+    exact = point_triangle_sqdist(P, A, B, C)
+    grid = _brute_sqdist(P, A, B, C)
+    # the grid's points lie on the triangle, so it never beats the exact distance, and its spacing
+    # (at most the longest edge / 400) bounds how far above it can be
+    assert bool((grid >= exact - 1e-12).all())
+    spacing = torch.stack([(B - A).norm(dim=1), (C - B).norm(dim=1), (A - C).norm(dim=1)]).max(0).values / 400
+    assert bool((grid.sqrt() - exact.sqrt() <= spacing).all())
+
+
+def test_point_triangle_distance_of_known_cases():
+    A, B, C = (torch.tensor([[0.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([[0.0, 1.0, 0.0]]))
+    cases = {(0.25, 0.25, 2.0): 4.0,  # above the interior: the height
+             (-1.0, 0.5, 0.0): 1.0,  # beside edge CA, in the plane
+             (2.0, 2.0, 0.0): 4.5,  # off the hypotenuse, nearest to its middle (0.5, 0.5, 0)
+             (-1.0, -1.0, 1.0): 3.0}  # nearest to corner A
+    for (x, y, z), d2 in cases.items():
+        got = float(point_triangle_sqdist(torch.tensor([[x, y, z]]), A, B, C)[0])
+        assert got == pytest.approx(d2, rel=1e-6), (x, y, z)
+    # a degenerate (collinear) triangle is its segments
+    got = point_triangle_sqdist(torch.tensor([[0.5, 1.0, 0.0]]), A, B, torch.tensor([[2.0, 0.0, 0.0]]))
+    assert float(got[0]) == pytest.approx(1.0)
+
+
+def test_a_clean_well_shaped_mesh_has_no_contact_energy():
+    for kind in ("sphere", "torus", "sheet"):
+        V, F = initial_mesh(kind, n_vertices=600, dtype=torch.float64)
+        barrier = ContactBarrier.for_mesh(V, F)
+        assert barrier.distance == pytest.approx(mean_edge_length(V, F) / 3)
+        V = V.clone().requires_grad_()
+        e = barrier(V)
+        e.backward()
+        assert float(e.detach()) == 0.0 and barrier.active == 0
+        assert float(V.grad.abs().max()) == 0.0
+
+
+def _two_sheets(gap):
+    V, F = initial_mesh("sheet", n_vertices=200, dtype=torch.float64)
+    top = V.clone()
+    top[:, 2] += gap
+    return torch.cat([V, top]), torch.cat([F, F + V.shape[0]])
+
+
+def test_the_barrier_rises_without_bound_and_pushes_close_surfaces_apart():
+    V, F = _two_sheets(1.0)
+    h = mean_edge_length(V, F)
+    barrier = ContactBarrier(F, distance=h / 3)
+    energies = []
+    for gap in (0.5 * h, h / 6, h / 60, h / 6000):
+        Vg, _ = _two_sheets(gap)
+        Vg.requires_grad_()
+        e = barrier(Vg)
+        e.backward()
+        energies.append(float(e.detach()))
+        n = Vg.shape[0] // 2
+        if gap < h / 3:
+            assert barrier.active > 0
+            # descent moves the lower sheet down and the upper one up, nothing sideways
+            assert bool((Vg.grad[:n, 2] >= 0).all()) and bool((Vg.grad[n:, 2] <= 0).all())
+            assert float(Vg.grad[:, :2].abs().max()) <= 1e-9 * float(Vg.grad[:, 2].abs().max())
+    assert energies[0] == 0.0
+    assert energies[1] < energies[2] < energies[3] and math.isfinite(energies[3])
+
+
+def test_cached_candidates_give_the_energy_a_fresh_search_gives():
+    V, F = _two_sheets(0.0)
+    h = mean_edge_length(V, F)
+    g = torch.Generator().manual_seed(1)
+    cached = ContactBarrier(F, distance=h / 3)
+    for step in range(12):  # the sheets close in by small random steps
+        V = V.clone()
+        n = V.shape[0] // 2
+        V[n:, 2] = 0.4 * h * (1 - step / 12) + 0.02 * h * torch.rand(n, generator=g, dtype=V.dtype)
+        V[:, :2] += 0.005 * h * torch.randn(V.shape[0], 2, generator=g, dtype=V.dtype)
+        fresh = ContactBarrier(F, distance=h / 3)
+        assert float(cached(V)) == pytest.approx(float(fresh(V)), rel=1e-12, abs=0)
+        assert cached.active == fresh.active
+    assert 1 < cached.rebuilds < 12  # it did reuse candidates, and did search again
+
+
+def test_bad_distances_are_refused():
+    V, F = initial_mesh("sphere", n_vertices=100)
+    with pytest.raises(ValueError, match="distance must be positive"):
+        ContactBarrier(F, 0.0)
+    with pytest.raises(ValueError, match="margin must be positive"):
+        ContactBarrier(F, 0.1, margin=-1.0)
