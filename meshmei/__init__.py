@@ -30,7 +30,7 @@ from .deform import RBFDeformer
 from .metrics import SurfaceMetrics, surface_metrics
 from .sampling import chamfer_distance, sample_points
 from .reconstruct import ReconstructionResult, ReconstructionSettings, reconstruct
-from .encoders import GaborComplexCell, GaborSimpleCell, CoreReadoutModel, load_demo_model
+from .encoders import GaborComplexCell, GaborSimpleCell, CoreReadoutModel, ModelEncoder, encoder_from_model, load_demo_model, load_model
 from .mei import MEIResult, MEISettings, load_run, optimize_mei, pixel_mei, save_run
 from .tuning import light_sweep, pose_sweep
 
@@ -86,6 +86,9 @@ __all__ = [
     "GaborComplexCell",
     "CoreReadoutModel",
     "load_demo_model",
+    "ModelEncoder",
+    "encoder_from_model",
+    "load_model",
     "pixel_mei",
     "MEISettings",
     "MEIResult",

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from .encoders import make_encoder
+from .encoders import load_model, make_encoder
 from .errors import MEIError
 from .mei import MEISettings, optimize_mei, pixel_mei, save_run
 from .regularizer_table import tabulate_regularizers
@@ -35,13 +35,26 @@ ENCODERS = ("gabor-simple", "gabor-complex", "demo")
 def _add_mei(sub) -> None:
     d = MEISettings()
     p = sub.add_parser("mei", help="optimise a 3D-MEI for one neuron and write mesh, renders and summary")
-    p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS)
+    p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS, help="a built-in encoder (default gabor-simple)")
+    p.add_argument("--model", default=None, metavar="SPEC",
+                   help="your own model instead of --encoder: path/to/model.py:factory (the factory returns "
+                        "meshmei.encoder_from_model(...) or a dict of its arguments) or a TorchScript file "
+                        "(give --mean and --std)")
+    p.add_argument("--mean", type=float, default=None, help="training mean, in the model's pixel units (--model)")
+    p.add_argument("--std", type=float, default=None, help="training std, in the model's pixel units (--model)")
+    p.add_argument("--norm", type=float, default=None, help="L2 norm of the preprocessed image (--model; default 25)")
+    p.add_argument("--channels", type=int, default=None, help="input channels of the model (--model; default 1)")
+    p.add_argument("--pixel-range", default=None, metavar="LO,HI",
+                   help="the model's pixel units for the renderer's 0..1, e.g. 0,255 (--model; default 0,1)")
+    p.add_argument("--clip", action="store_true", default=None, help="clip pixels to --pixel-range (--model)")
+    p.add_argument("--data-key", default=None, help="passed to the model as data_key=... (multi-session readouts)")
     p.add_argument("--neuron", type=int, default=0)
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--out", required=True, help="run directory to write (must not exist unless --overwrite)")
     p.add_argument("--steps", type=int, default=d.steps)
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
-    p.add_argument("--image-size", type=int, default=d.image_size)
+    p.add_argument("--image-size", type=int, default=None,
+                   help=f"render size in pixels (default {d.image_size}, or the model's own size with --model)")
     p.add_argument("--n-vertices", type=int, default=d.n_vertices)
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--weight", action="append", default=[], metavar="NAME=W",
@@ -49,8 +62,9 @@ def _add_mei(sub) -> None:
     p.add_argument("--optimize-light", action="store_true")
     p.add_argument("--optimize-pose", action="store_true")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
-    p.add_argument("--valid-steps", action="store_true",
-                   help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle")
+    p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
+                   help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
+                        f"(default {'on' if d.valid_steps else 'off'})")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_run_mei)
@@ -67,22 +81,46 @@ def _weights(items: list) -> dict:
     return weights
 
 
+def _pixel_range(text):
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise MEIError(f"--pixel-range expects LO,HI, e.g. 0,255; got {text!r}") from None
+    return (lo, hi)
+
+
+def _cli_encoder(args):
+    """The encoder of ``meshmei mei``: ``--model`` (a lab's model, loaded and checked) or ``--encoder``."""
+    if args.model is None:
+        given = [f"--{k.replace('_', '-')}" for k in ("mean", "std", "norm", "channels", "pixel_range", "clip", "data_key")
+                 if getattr(args, k) is not None]
+        if given:
+            raise MEIError(f"{', '.join(given)} apply to --model only")
+        return make_encoder(args.encoder)
+    options = dict(mean=args.mean, std=args.std, norm=args.norm, channels=args.channels, clip=args.clip,
+                   pixel_range=None if args.pixel_range is None else _pixel_range(args.pixel_range))
+    if args.data_key is not None:
+        options["forward_kwargs"] = {"data_key": args.data_key}
+    return load_model(args.model, **options)
+
+
 def _run_mei(args) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise MEIError(f"{out} exists; pass --overwrite to replace it")
-    encoder = make_encoder(args.encoder)
-    settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=args.image_size,
+    encoder = _cli_encoder(args)
+    image_size = args.image_size or getattr(encoder, "image_size", (MEISettings.image_size,))[0]
+    settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
                            valid_steps=args.valid_steps)
     res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
-    line = f"3D-MEI neuron {res.neuron} ({args.encoder}, {args.init}): response {res.activation:.4f}"
+    line = f"3D-MEI neuron {res.neuron} ({args.model or args.encoder}, {args.init}): response {res.activation:.4f}"
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:
-        pm = pixel_mei(encoder, args.neuron, image_size=args.image_size)
+        pm = pixel_mei(encoder, args.neuron, image_size=image_size)
         line += f"; pixel MEI {pm.activation:.4f}"
         res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
     save_run(res, out, overwrite=args.overwrite)
@@ -126,9 +164,13 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--eval-every", type=int, default=d.eval_every)
     p.add_argument("--eval-samples", type=int, default=d.eval_samples)
     p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--valid-steps", action="store_true",
+    p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no new self-intersection, no face turned over in one "
-                        "step and no collapsed triangle; remeshes that add intersections are retried")
+                        "step and no collapsed triangle; remeshes that add intersections are retried (default "
+                        f"{'on' if d.valid_steps else 'off'}; --no-valid-steps turns it off)")
+    p.add_argument("--contact-weight", type=float, default=d.w_contact,
+                   help="weight of the contact barrier that keeps the surface from touching itself (0: off; "
+                        f"default {d.w_contact:g})")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_reconstruct)
 
@@ -143,7 +185,7 @@ def _run_reconstruct(args) -> int:
     res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
                       n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
                       eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
-                      valid_steps=args.valid_steps, progress=not args.no_progress)
+                      valid_steps=args.valid_steps, w_contact=args.contact_weight, progress=not args.no_progress)
     out = save_reconstruction(res, args.out, init=str(args.init), target=str(args.target))
     f = res.final
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "

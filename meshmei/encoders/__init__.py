@@ -13,6 +13,9 @@ matters. Three kinds of neuron:
 - :class:`CoreReadoutModel` (:mod:`.core_readout`): a convolutional core followed by a per-neuron Gaussian
   readout and an ``ELU + 1`` output (Lurz et al. 2020), the model class used for macaque V4.
 
+- :class:`ModelEncoder` (:mod:`.adapter`): a lab's own trained model (any module or callable, an ensemble,
+  a TorchScript file or a Python factory), made with :func:`encoder_from_model` or :func:`load_model`.
+
 :mod:`.registry` builds the built-in encoders by name and describes any encoder as JSON.
 
 Image coordinates, used by the Gabor parameters and the readout positions: ``x`` runs from -1 at the left
@@ -20,6 +23,7 @@ edge to +1 at the right edge, ``y`` from -1 at the top to +1 at the bottom (``gr
 both over the full image, so a parameter set means the same at any resolution.
 """
 
+from .adapter import ModelEncoder, PixelPreprocess, encoder_from_model, load_model
 from .base import DEFAULT_NORM, Encoder, EncoderError, Preprocess, eval_mode, frozen_encoder
 from .core_readout import (
     DEMO_MODEL_PATH,
@@ -51,4 +55,8 @@ __all__ = [
     "make_encoder",
     "encoder_spec",
     "encoder_from_spec",
+    "ModelEncoder",
+    "PixelPreprocess",
+    "encoder_from_model",
+    "load_model",
 ]

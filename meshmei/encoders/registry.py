@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from ..errors import MEIError
+from ..errors import EncoderError, MEIError
+from .adapter import ModelEncoder, load_model
 from .base import Encoder
 from .core_readout import is_demo_model, load_demo_model
 from .gabor import GaborComplexCell, GaborSimpleCell
@@ -20,6 +21,12 @@ def encoder_spec(encoder: Encoder) -> dict:
         spec["params"] = {k: v.tolist() for k, v in encoder.params.items()}
     elif is_demo_model(encoder):
         spec["kind"] = "demo"
+    elif isinstance(encoder, ModelEncoder):
+        spec.update(kind="model", source=encoder.source, image_size=list(encoder.image_size),
+                    channels=encoder.channels, pixel_range=list(encoder.preprocess.pixel_range),
+                    clip=encoder.preprocess.clip, renorm=encoder.preprocess.renorm,
+                    forward_kwargs={k: v for k, v in encoder.forward_kwargs.items()
+                                    if isinstance(v, (str, int, float, bool, type(None)))})
     else:
         spec["kind"] = "custom"
     return spec
@@ -38,12 +45,15 @@ def make_encoder(kind: str, **params) -> Encoder:
 
 
 def encoder_from_spec(spec: dict) -> Encoder:
-    """Rebuild an encoder from its :func:`encoder_spec`; only the built-in kinds can be rebuilt.
+    """Rebuild an encoder from its :func:`encoder_spec`: the built-in kinds, and a lab's model that was
+    loaded from a file (:func:`~meshmei.encoders.load_model`: ``--model`` on the command line), which is
+    loaded again from the same file with the same options and checked against the recorded neuron count.
 
     Raises
     ------
     MEIError
-        The spec describes a custom encoder (pass the encoder itself to :func:`meshmei.mei.load_run`).
+        The spec describes an encoder built in Python (pass the encoder itself to
+        :func:`meshmei.mei.load_run`), or the model file is gone or no longer matches.
     """
     kind = spec.get("kind")
     if kind in ("gabor-simple", "gabor-complex"):
@@ -51,4 +61,13 @@ def encoder_from_spec(spec: dict) -> Encoder:
                             eps=spec["eps"])
     if kind == "demo":
         return make_encoder("demo")
+    if kind == "model" and spec.get("source"):
+        src = spec["source"]
+        try:
+            enc = load_model(src["path"] + (f":{src['factory']}" if src.get("factory") else ""), **src["options"])
+        except EncoderError as err:
+            raise MEIError(f"cannot load the run's model again: {err}") from None
+        if enc.n_neurons != spec["n_neurons"]:
+            raise MEIError(f"the model at {src['path']} now has {enc.n_neurons} neurons; the run's had {spec['n_neurons']}")
+        return enc
     raise MEIError(f"cannot rebuild a {spec.get('class')} encoder from a run directory; pass encoder=... to load_run")

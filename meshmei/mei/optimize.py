@@ -8,6 +8,7 @@ random initial offset, so runs differ) and the one with the lowest final loss is
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import torch
 
@@ -22,7 +23,7 @@ from ..operators import face_normals
 from ..validity import StepGuard, margin_penalty
 from .settings import MEIResult, MEISettings, make_deformer
 
-__all__ = ["optimize_mei", "initial", "check_neuron"]
+__all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder"]
 
 
 def check_neuron(encoder, neuron) -> int:
@@ -36,6 +37,20 @@ def check_neuron(encoder, neuron) -> int:
     if idx.numel() != 1 or neuron is None:
         raise MEIError(f"neuron must be a single index, got {neuron!r}")
     return int(idx[0])
+
+
+def settings_for_encoder(settings: MEISettings, encoder) -> MEISettings:
+    """The settings a run uses with ``encoder``: a lab's model (:class:`~meshmei.encoders.ModelEncoder`) with
+    a square input is rendered at its own size; one on another device than the renderer is refused here,
+    before the first step."""
+    size = getattr(encoder, "image_size", None)
+    device = getattr(encoder, "device", None)
+    if device is not None and torch.device(device).type != "cpu":
+        raise MEIError(f"the model is on {device}; meshmei renders on the CPU in this version: move the model "
+                       f"to the CPU (model.cpu()) before wrapping it")
+    if size is not None and size[0] == size[1] and settings.image_size != size[0]:
+        settings = replace(settings, image_size=int(size[0]))
+    return settings
 
 
 def initial(init, settings: MEISettings):
@@ -166,6 +181,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     """
     settings = MEISettings.with_overrides(settings, overrides)
     neuron = check_neuron(encoder, neuron)
+    settings = settings_for_encoder(settings, encoder)
     V0, F, init_name = initial(init, settings)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]  # the count weights scale to
     bar = Progress(settings.steps * len(settings.seeds), f"3D-MEI neuron {neuron}", enabled=progress,

@@ -122,7 +122,7 @@ def _check_args(encoder, neuron, image_size, steps, seeds):
     return H, W, int(steps), seeds
 
 
-def pixel_mei(encoder: Encoder, neuron: int, *, image_size=64, steps: int = 200, step_size: float = 0.2,
+def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 200, step_size: float = 0.2,
               blur_sigma: float = 2.0, seeds=(0, 1, 2), init_std: float = 1.0, dtype=torch.float32,
               device=None, progress: bool = False) -> PixelMEIResult:
     """Maximise one neuron's response over preprocessed images of fixed norm (the pixel-MEI baseline).
@@ -136,7 +136,8 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=64, steps: int = 200,
     ----------
     encoder : Encoder
     neuron : int
-    image_size : int or (H, W)
+    image_size : int or (H, W), optional
+        Default: the model's own size for a :class:`~meshmei.encoders.ModelEncoder`, else 64.
     steps : int
         Steps per seed (>= 1).
     step_size : float
@@ -155,6 +156,8 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=64, steps: int = 200,
     -------
     PixelMEIResult
     """
+    if image_size is None:
+        image_size = getattr(encoder, "image_size", 64)
     H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds)
     norm = encoder.preprocess.norm
     best, per_seed = None, {}

@@ -1,0 +1,300 @@
+"""A lab's own model as an encoder: models built the way the ecosystem builds them (neuralpredictors readouts,
+multi-session data keys, ensembles, a 3-channel ResNet-style core, TorchScript, a Python factory), the
+pixel-unit rule, eval mode, and clear errors before the first step."""
+
+from __future__ import annotations
+
+import json
+import math
+import textwrap
+
+import pytest
+import torch
+
+from meshmei.cli import main
+from meshmei.encoders import ModelEncoder, encoder_from_model, encoder_spec, frozen_encoder, load_model
+from meshmei.errors import EncoderError, MEIError
+from meshmei.mei import load_run, optimize_mei, pixel_mei
+from meshmei.tuning import pose_sweep
+
+readouts = pytest.importorskip("neuralpredictors.layers.readouts")
+pytestmark = pytest.mark.filterwarnings("ignore:Readout is NOT initialized with mean activity")
+
+SMALL = dict(steps=3, seeds=(0,), n_vertices=100)
+
+
+class Bottleneck(torch.nn.Module):
+    """ResNet's bottleneck block (1x1, 3x3, 1x1 with a projected shortcut), as torchvision builds it."""
+
+    def __init__(self, cin, width, cout, stride):
+        super().__init__()
+        self.body = torch.nn.Sequential(
+            torch.nn.Conv2d(cin, width, 1, bias=False), torch.nn.BatchNorm2d(width), torch.nn.ReLU(),
+            torch.nn.Conv2d(width, width, 3, stride, 1, bias=False), torch.nn.BatchNorm2d(width), torch.nn.ReLU(),
+            torch.nn.Conv2d(width, cout, 1, bias=False), torch.nn.BatchNorm2d(cout))
+        self.short = torch.nn.Sequential(torch.nn.Conv2d(cin, cout, 1, stride, bias=False), torch.nn.BatchNorm2d(cout))
+
+    def forward(self, x):
+        return torch.relu(self.body(x) + self.short(x))
+
+
+class ResNetV4(torch.nn.Module):
+    """A small ResNet-style core on 3-channel 100 x 100 images with a Gaussian readout (an nnvision-like V4
+    model), ELU + 1 output."""
+
+    def __init__(self, n_neurons=6, width=8):
+        super().__init__()
+        self.core = torch.nn.Sequential(
+            torch.nn.Conv2d(3, width, 7, 2, 3, bias=False), torch.nn.BatchNorm2d(width), torch.nn.ReLU(),
+            torch.nn.MaxPool2d(3, 2, 1), Bottleneck(width, width, 4 * width, 1), Bottleneck(4 * width, width, 4 * width, 2))
+        self.readout = readouts.FullGaussian2d((4 * width, 13, 13), n_neurons, bias=True)
+        self.seen = []  # (training flag, input shape, whether all channels were equal) per call
+
+    def forward(self, x):
+        self.seen.append((self.training, tuple(x.shape), bool((x[:, :1] == x).all())))
+        return torch.nn.functional.elu(self.readout(self.core(x))) + 1
+
+
+class MultiSession(torch.nn.Module):
+    """One core, one Gaussian readout per recording session, picked by ``data_key`` (neuralpredictors style)."""
+
+    class Readouts(readouts.MultiReadoutBase):
+        _base_readout = readouts.FullGaussian2d
+
+    def __init__(self):
+        super().__init__()
+        self.core = torch.nn.Sequential(torch.nn.Conv2d(1, 8, 5, 2, 2), torch.nn.ELU(), torch.nn.Conv2d(8, 8, 3, 2, 1))
+        self.readout = self.Readouts({"s1": (8, 25, 25), "all_sessions": (8, 25, 25)},
+                                     {"s1": 4, "all_sessions": 9}, bias=True)
+
+    def forward(self, x, data_key=None):
+        return torch.nn.functional.elu(self.readout(self.core(x), data_key=data_key)) + 1
+
+
+def _seeded(cls, seed, *args):
+    torch.manual_seed(seed)
+    return cls(*args)
+
+
+def test_a_multi_session_model_answers_for_the_session_its_data_key_names():
+    model = _seeded(MultiSession, 0)
+    enc = encoder_from_model(model, mean=124.5, std=70.3, pixel_range=(0, 255), forward_kwargs={"data_key": "all_sessions"})
+    assert enc.n_neurons == 9  # the probe found the session's count
+    x = torch.rand(2, 1, 100, 100)
+    z = (255 * x - 124.5) / 70.3
+    z = 25 * z / z.flatten(1).norm(dim=1).view(-1, 1, 1, 1)
+    model.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(enc(x, [2, 7]), model(z, data_key="all_sessions")[:, [2, 7]])
+    s1 = encoder_from_model(model, mean=124.5, std=70.3, pixel_range=(0, 255), forward_kwargs={"data_key": "s1"})
+    assert s1.n_neurons == 4
+    res = optimize_mei(enc, 8, "sheet", **SMALL)
+    assert res.image.shape == (1, 1, 100, 100) and math.isfinite(res.activation)
+
+
+def test_an_ensemble_is_the_mean_of_its_members():
+    members = [_seeded(MultiSession, s) for s in (1, 2, 3)]
+    enc = encoder_from_model(members, mean=0.5, std=0.2, forward_kwargs={"data_key": "s1"})
+    x = torch.rand(3, 1, 100, 100)
+    z = enc.preprocess(x)
+    for m in members:
+        m.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(enc(x), torch.stack([m(z, data_key="s1") for m in members]).mean(0))
+
+
+def test_a_three_channel_resnet_core_at_100_px_runs_in_eval_mode_and_is_restored():
+    model = _seeded(ResNetV4, 0)
+    model.train()
+    enc = encoder_from_model(model, mean=124.5, std=70.3, channels=3, image_size=100, pixel_range=(0, 255))
+    model.seen.clear()
+    res = optimize_mei(enc, 3, "sphere", **SMALL)
+    assert res.image.shape == (1, 1, 100, 100)  # rendered at the model's size, not the default 64
+    assert model.seen and all(not training for training, _, _ in model.seen)  # eval mode throughout
+    assert all(shape[1:] == (3, 100, 100) and same for _, shape, same in model.seen)  # gray repeated into 3
+    assert model.training and all(p.requires_grad for p in model.parameters())  # restored afterwards
+    assert all(p.grad is None for p in model.parameters())  # and its parameters got no gradient
+    pm = pixel_mei(enc, 3, steps=3, seeds=(0,))
+    assert pm.image.shape == (1, 1, 100, 100) and math.isfinite(pm.activation)
+
+
+def test_the_pixel_rule_maps_the_renderers_range_onto_the_models():
+    enc = encoder_from_model(lambda x: x.flatten(1)[:, :4], mean=100.0, std=50.0, pixel_range=(0, 255), clip=True,
+                             norm=None, image_size=8)
+    x = torch.tensor([0.0, 0.5, 1.0, 1.4]).view(1, 1, 2, 2).expand(1, 1, 2, 2)
+    pre = enc.preprocess
+    torch.testing.assert_close(pre.standardise(x).flatten(), (torch.tensor([0.0, 127.5, 255.0, 255.0]) - 100) / 50)
+    inside = x[..., :1, :]  # intensities 0 and 0.5, which the clip leaves alone
+    torch.testing.assert_close(pre.to_image(pre(inside)), inside)
+    normed = encoder_from_model(lambda x: x.flatten(1)[:, :4], mean=100.0, std=50.0, pixel_range=(0, 255), image_size=8)
+    z = normed.preprocess(torch.rand(1, 1, 8, 8))
+    for contrast in (0.5, 1.0):
+        torch.testing.assert_close(normed.preprocess(normed.preprocess.to_image(z, contrast)), z)
+    # norm=None keeps the standardised image: the response is the model on (p - mean) / std itself
+    img = torch.full((1, 1, 8, 8), 0.5)
+    torch.testing.assert_close(enc(img), torch.full((1, 4), (127.5 - 100) / 50))
+    # another render size is resized to the model's (anti-aliased); a constant image stays constant
+    torch.testing.assert_close(enc(torch.full((1, 1, 32, 32), 0.5)), enc(img))
+
+
+def test_outputs_are_picked_from_tuples_and_dicts():
+    core = _seeded(MultiSession, 4)
+
+    def as_tuple(x):
+        return ("features", core(x, data_key="s1"))
+
+    def as_dict(x):
+        return {"responses": core(x, data_key="s1")}
+
+    a = encoder_from_model(as_tuple, mean=0.5, std=0.2, output=1)
+    b = encoder_from_model(as_dict, mean=0.5, std=0.2, output="responses")
+    c = encoder_from_model(as_dict, mean=0.5, std=0.2, output=lambda out: out["responses"] * 2)
+    x = torch.rand(2, 1, 100, 100)
+    core.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(a(x), b(x))
+        torch.testing.assert_close(c(x), 2 * b(x))
+    with pytest.raises(EncoderError, match="returned a tuple, not a tensor of responses"):
+        encoder_from_model(as_tuple, mean=0.5, std=0.2)
+    with pytest.raises(EncoderError, match="output='rates' cannot pick the response from a dict"):
+        encoder_from_model(as_dict, mean=0.5, std=0.2, output="rates")
+
+
+@pytest.mark.parametrize("model, message", [
+    (lambda x: x.mean((2, 3)).unsqueeze(-1), r"shape \(B, N\); for a batch of 2 it returned \(2, 1, 1\)"),
+    (lambda x: torch.full((1, 3), 1.0), r"returned \(1, 3\)"),
+    (lambda x: torch.full((x.shape[0], 3), math.nan), "non-finite responses"),
+    (lambda x: 1 / 0, "ZeroDivisionError"),
+    (lambda x: torch.ones(x.shape[0], 2, dtype=torch.long), "float responses"),
+])
+def test_a_model_that_misbehaves_is_named_before_any_step(model, message):
+    with pytest.raises(EncoderError, match=message):
+        encoder_from_model(model, mean=0.5, std=0.2, image_size=16)
+
+
+def test_bad_options_neurons_and_devices_are_refused_before_the_first_step(monkeypatch):
+    ok = lambda x: x.flatten(1)[:, :3]  # noqa: E731
+    for kwargs, message in [(dict(channels=0), "channels must be positive and finite, got 0"),
+                            (dict(image_size=(16,)), "image_size must be an int or"),
+                            (dict(pixel_range=(1, 1)), "hi > lo"),
+                            (dict(std=0.0), "std must be positive and finite"),
+                            (dict(forward_kwargs=["data_key"]), "forward_kwargs must be a dict")]:
+        with pytest.raises(EncoderError, match=message):
+            encoder_from_model(ok, **{"mean": 0.5, "std": 0.2, "image_size": 16, **kwargs})
+    with pytest.raises(EncoderError, match="at least one model"):
+        encoder_from_model([], mean=0.5, std=0.2)
+    enc = encoder_from_model(ok, mean=0.5, std=0.2, image_size=16)
+    with pytest.raises(MEIError, match=r"neuron index out of range for 3 neurons: got \[3\]"):
+        optimize_mei(enc, 3, "sheet", **SMALL)
+    calls = []
+    monkeypatch.setattr(ModelEncoder, "device", property(lambda self: torch.device("cuda", 0)))
+    monkeypatch.setattr(ModelEncoder, "all_responses", lambda self, z: calls.append(1))
+    with pytest.raises(MEIError, match="the model is on cuda:0; meshmei renders on the CPU"):
+        optimize_mei(enc, 0, "sheet", **SMALL)
+    assert not calls
+
+
+def _write_factory(tmp_path, body):
+    path = tmp_path / "lab_model.py"
+    path.write_text(textwrap.dedent(body))
+    return path
+
+
+FACTORY = """
+    import torch
+
+    class Model(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            torch.manual_seed(0)
+            self.conv = torch.nn.Conv2d(3, 5, 9, stride=4)
+
+        def forward(self, x, data_key=None):
+            assert data_key == "all_sessions"
+            return torch.nn.functional.elu(self.conv(x).mean((2, 3))) + 1
+
+    def build():
+        return {"model": Model(), "mean": 124.5, "std": 70.3, "channels": 3, "image_size": 40,
+                "pixel_range": (0, 255)}
+
+    def broken():
+        raise RuntimeError("checkpoint not found")
+"""
+
+
+def test_the_cli_runs_a_python_factory_and_tune_reloads_it(tmp_path, capsys):
+    path = _write_factory(tmp_path, FACTORY)
+    out = tmp_path / "run"
+    rc = main(["mei", "--model", f"{path}:build", "--data-key", "all_sessions", "--neuron", "4", "--out", str(out),
+               "--steps", "3", "--seeds", "0", "--n-vertices", "100", "--quiet"])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["encoder"]["kind"] == "model" and summary["encoder"]["n_neurons"] == 5
+    assert summary["settings"]["image_size"] == 40  # the model's size
+    run = load_run(out, rebuild_encoder=True)
+    with torch.no_grad():
+        again = float(run.encoder_module(run.image, run.neuron)[0, 0])
+    assert again == pytest.approx(run.activation, rel=1e-5)
+    rc = main(["tune", "pose", "--mei", str(out), "--out", str(tmp_path / "tune"), "--elevation=-5:5:3",
+               "--azimuth=-5:5:3"])
+    assert rc == 0 and (tmp_path / "tune").is_dir()
+
+
+def test_the_cli_names_a_failing_factory_in_one_line(tmp_path, capsys):
+    path = _write_factory(tmp_path, FACTORY)
+    for spec, message in [(f"{path}:broken", "broken() failed: RuntimeError: checkpoint not found"),
+                          (f"{path}:missing", "has no callable 'missing'"),
+                          (str(tmp_path / "nope.ts"), "no model file at")]:
+        rc = main(["mei", "--model", spec, "--out", str(tmp_path / "x"), "--steps", "1", "--quiet"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and message in err and "\n" not in err and "Traceback" not in err
+    rc = main(["mei", "--model", f"{path}:build", "--neuron", "5", "--data-key", "all_sessions",
+               "--out", str(tmp_path / "y"), "--steps", "1", "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "neuron index out of range for 5 neurons" in err
+    rc = main(["mei", "--mean", "3", "--out", str(tmp_path / "z"), "--steps", "1", "--quiet"])
+    assert rc == 2 and "apply to --model only" in capsys.readouterr().err
+
+
+class ScriptableV4(torch.nn.Module):
+    """A 3-channel core with a point readout at learned positions (grid_sample), written so that
+    ``torch.jit.script`` compiles it with a free batch size, as labs export models for deployment."""
+
+    def __init__(self, n_neurons: int = 6):
+        super().__init__()
+        torch.manual_seed(2)
+        self.core = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 7, 4, 3), torch.nn.ELU(), torch.nn.Conv2d(8, 16, 3, 2, 1))
+        self.mu = torch.nn.Parameter(0.5 * torch.rand(n_neurons, 2) - 0.25)
+        self.features = torch.nn.Parameter(torch.randn(16, n_neurons) / 4)
+
+    def forward(self, x):
+        f = self.core(x)
+        grid = self.mu.unsqueeze(0).unsqueeze(2).expand(x.shape[0], -1, 1, 2)
+        y = torch.nn.functional.grid_sample(f, grid, align_corners=True)[..., 0]  # (B, C, N)
+        return torch.nn.functional.elu((y * self.features.unsqueeze(0)).sum(1)) + 1
+
+
+def test_a_torchscript_export_runs_from_the_cli_with_its_statistics(tmp_path, capsys):
+    path = tmp_path / "v4.ts"
+    torch.jit.script(ScriptableV4().eval()).save(str(path))
+    with pytest.raises(EncoderError, match="needs its training statistics: give mean, std"):
+        load_model(str(path))
+    out = tmp_path / "run"
+    rc = main(["mei", "--model", str(path), "--mean", "124.5", "--std", "70.3", "--channels", "3",
+               "--pixel-range", "0,255", "--neuron", "2", "--out", str(out), "--steps", "2", "--seeds", "0",
+               "--n-vertices", "100", "--image-size", "100", "--quiet"])
+    assert rc == 0
+    run = load_run(out, rebuild_encoder=True)
+    assert isinstance(run.encoder_module, ModelEncoder) and run.encoder_module.n_neurons == 6
+    spec = encoder_spec(run.encoder_module)
+    assert spec["source"]["options"]["mean"] == 124.5 and spec["channels"] == 3
+    with frozen_encoder(run.encoder_module), torch.no_grad():
+        assert float(run.encoder_module(run.image, 2)[0, 0]) == pytest.approx(run.activation, rel=1e-5)
+
+
+def test_a_model_run_sweeps_pose_like_a_built_in_cell():
+    model = _seeded(MultiSession, 5)
+    enc = encoder_from_model(model, mean=0.5, std=0.2, forward_kwargs={"data_key": "s1"}, image_size=48)
+    res = optimize_mei(enc, 1, "sheet", **SMALL)
+    sweep = pose_sweep(res, enc, elevation=[0.0], azimuth=[-5.0, 0.0, 5.0], roll=[0.0])
+    assert torch.isfinite(torch.as_tensor(sweep.responses)).all()
