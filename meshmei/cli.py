@@ -32,12 +32,10 @@ __all__ = ["main", "build_parser"]
 ENCODERS = ("gabor-simple", "gabor-complex", "demo")
 
 
-def _add_mei(sub) -> None:
-    d = MEISettings()
-    p = sub.add_parser("mei", help="optimise a 3D-MEI for one neuron and write mesh, renders and summary")
-    p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS, help="a built-in encoder (default gabor-simple)")
+def _add_model_options(p, instead: str) -> None:
+    """``--model`` and the adapter's options (:func:`meshmei.encoders.load_model`), shared by mei and demo."""
     p.add_argument("--model", default=None, metavar="SPEC",
-                   help="your own model instead of --encoder: path/to/model.py:factory (the factory returns "
+                   help=f"your own model instead of {instead}: path/to/model.py:factory (the factory returns "
                         "meshmei.encoder_from_model(...) or a dict of its arguments) or a TorchScript file "
                         "(give --mean and --std)")
     p.add_argument("--mean", type=float, default=None, help="training mean, in the model's pixel units (--model)")
@@ -48,6 +46,13 @@ def _add_mei(sub) -> None:
                    help="the model's pixel units for the renderer's 0..1, e.g. 0,255 (--model; default 0,1)")
     p.add_argument("--clip", action="store_true", default=None, help="clip pixels to --pixel-range (--model)")
     p.add_argument("--data-key", default=None, help="passed to the model as data_key=... (multi-session readouts)")
+
+
+def _add_mei(sub) -> None:
+    d = MEISettings()
+    p = sub.add_parser("mei", help="optimise a 3D-MEI for one neuron and write mesh, renders and summary")
+    p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS, help="a built-in encoder (default gabor-simple)")
+    _add_model_options(p, "--encoder")
     p.add_argument("--neuron", type=int, default=0)
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--out", required=True, help="run directory to write (must not exist unless --overwrite)")
@@ -89,14 +94,15 @@ def _pixel_range(text):
     return (lo, hi)
 
 
-def _cli_encoder(args):
-    """The encoder of ``meshmei mei``: ``--model`` (a lab's model, loaded and checked) or ``--encoder``."""
+def _cli_encoder(args, default=None):
+    """The encoder of ``meshmei mei`` or ``demo``: ``--model`` (a lab's model, loaded and checked), else
+    ``--encoder`` (mei) or ``default`` (demo: None, the shipped demo model)."""
     if args.model is None:
         given = [f"--{k.replace('_', '-')}" for k in ("mean", "std", "norm", "channels", "pixel_range", "clip", "data_key")
                  if getattr(args, k) is not None]
         if given:
             raise MEIError(f"{', '.join(given)} apply to --model only")
-        return make_encoder(args.encoder)
+        return make_encoder(args.encoder) if hasattr(args, "encoder") else default
     options = dict(mean=args.mean, std=args.std, norm=args.norm, channels=args.channels, clip=args.clip,
                    pixel_range=None if args.pixel_range is None else _pixel_range(args.pixel_range))
     if args.data_key is not None:
@@ -205,12 +211,13 @@ def _add_regularizers(sub) -> None:
 def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="the main job: 3D-MEI of a demo neuron, its pose and light tuning, plots")
     p.add_argument("--out", default="meshmei-demo", help="output directory (default: ./meshmei-demo)")
-    p.add_argument("--neuron", type=int, default=None, help="default: the best-predicted demo neuron")
+    p.add_argument("--neuron", type=int, default=None, help="default: the best-predicted demo neuron (0 with --model)")
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     p.add_argument("--overwrite", action="store_true")
-    p.set_defaults(func=lambda a: run_story(a.out, neuron=a.neuron, init=a.init, preset=QUICK if a.quick else FULL,
-                                            overwrite=a.overwrite) and 0)
+    _add_model_options(p, "the demo model")
+    p.set_defaults(func=lambda a: run_story(a.out, encoder=_cli_encoder(a), neuron=a.neuron, init=a.init,
+                                            preset=QUICK if a.quick else FULL, overwrite=a.overwrite) and 0)
 
 
 def _add_tune(sub) -> None:

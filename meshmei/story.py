@@ -101,7 +101,8 @@ def _optimise(encoder, neuron, init, p, log):
     res = optimize_mei(encoder, neuron, init=init, settings=st, progress=True)
     log(f"      response {res.activation:.4f} in {res.wall_time:.1f} s")
     log("[2/5] pixel MEI in the same image space")
-    pix = pixel_mei(encoder, neuron, image_size=p["image_size"], steps=p["pixel_steps"], seeds=tuple(p["seeds"]))
+    size = getattr(encoder, "image_size", None) or p["image_size"]  # a lab's model: its own size, as the 3D-MEI
+    pix = pixel_mei(encoder, neuron, image_size=size, steps=p["pixel_steps"], seeds=tuple(p["seeds"]))
     log(f"      response {pix.activation:.4f}")
     res = replace(res, extra={**res.extra, "pixel_mei_activation": float(pix.activation)})
     return res, pix

@@ -239,3 +239,26 @@ def test_default_scale_ignores_duplicated_vertices():
     assert torch.isfinite(out).all() and not torch.equal(out, double.V0)
     # all vertices at one point: the one-kernel rule (box diagonal, else 1)
     assert torch.equal(RBFDeformer(torch.zeros(4, 3, dtype=torch.float64)).sigma, torch.ones(4, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("learn_scales", [True, False])
+def test_the_dense_path_of_a_small_mesh_is_the_sparse_map(monkeypatch, learn_scales):
+    # a 3D-MEI's mesh (a few hundred vertices, wide kernels) keeps nearly every pair: the deformer then uses
+    # one dense masked matrix; it must give the sparse list's displacement and gradients
+    import meshmei.deform.rbf as rbf_module
+
+    V0 = icosphere(2)[0].to(torch.float64)
+    dense = RBFDeformer(V0, sigma_factor=3.0, learn_scales=learn_scales)
+    monkeypatch.setattr(rbf_module, "DENSE_MAX_ENTRIES", 0)
+    sparse = RBFDeformer(V0, sigma_factor=3.0, learn_scales=learn_scales)
+    assert dense._dense_d2 is not None and sparse._dense_d2 is None
+    for rbf in (dense, sparse):
+        _random_params(rbf, seed=3, spread=0.1 if learn_scales else 0.0)
+    Vd, Vs = dense(), sparse()
+    torch.testing.assert_close(Vd, Vs, rtol=0, atol=1e-12)
+    w = torch.randn(Vd.shape, dtype=Vd.dtype, generator=torch.Generator().manual_seed(4))
+    (w * Vd).sum().backward()
+    (w * Vs).sum().backward()
+    torch.testing.assert_close(dense.offsets.grad, sparse.offsets.grad, rtol=0, atol=1e-12)
+    if learn_scales:
+        torch.testing.assert_close(dense.log_sigma.grad, sparse.log_sigma.grad, rtol=1e-10, atol=1e-12)

@@ -298,3 +298,16 @@ def test_a_model_run_sweeps_pose_like_a_built_in_cell():
     res = optimize_mei(enc, 1, "sheet", **SMALL)
     sweep = pose_sweep(res, enc, elevation=[0.0], azimuth=[-5.0, 0.0, 5.0], roll=[0.0])
     assert torch.isfinite(torch.as_tensor(sweep.responses)).all()
+
+
+def test_the_main_job_runs_on_a_labs_model(tmp_path):
+    path = _write_factory(tmp_path, FACTORY)
+    out = tmp_path / "demo"
+    rc = main(["demo", "--quick", "--model", f"{path}:build", "--data-key", "all_sessions", "--neuron", "2",
+               "--out", str(out)])
+    assert rc == 0
+    story = json.loads((out / "story.json").read_text())
+    assert story["neuron"] == 2
+    summary = json.loads((out / "mei" / "summary.json").read_text())
+    assert summary["encoder"]["kind"] == "model" and summary["settings"]["image_size"] == 40
+    assert (out / "summary.png").is_file()

@@ -138,6 +138,13 @@ def _center_index(V0, centers) -> torch.Tensor:
     return cidx.long()
 
 
+# The pair list becomes a dense (n, K) matrix when it holds at least this share of all pairs and the
+# matrix has at most this many entries (4 MB in float32): memory stays bounded and meshes that must scale
+# keep the sparse list, whose cost grows with the pairs kept.
+DENSE_MIN_FILL = 0.25
+DENSE_MAX_ENTRIES = 1 << 20
+
+
 class RBFDeformer(torch.nn.Module):
     """Learnable Gaussian RBF deformation of fixed rest positions (the paper's deformation model).
 
@@ -219,7 +226,7 @@ class RBFDeformer(torch.nn.Module):
             self.log_sigma = torch.nn.Parameter(log_sigma)
         else:
             self.register_buffer("log_sigma", log_sigma)
-        for name in ("_rows", "_cols", "_d2", "_radius"):
+        for name in ("_rows", "_cols", "_d2", "_radius", "_dense_d2", "_dense_mask"):
             self.register_buffer(name, None, persistent=False)
         self.n_rebuilds = -1
         self._build(torch.exp(log_sigma))
@@ -266,6 +273,17 @@ class RBFDeformer(torch.nn.Module):
         self._cols = torch.from_numpy(cols).to(dev)
         self._d2 = torch.from_numpy(d2).to(device=dev, dtype=dt)  # (P,) fixed squared kernel distances
         self._radius = torch.from_numpy(radius).to(device=dev, dtype=dt)  # (K,) radius each kernel's list covers
+        self._dense_d2 = self._dense_mask = None
+        n, K = self.V0.shape[0], len(radius)
+        if n * K <= DENSE_MAX_ENTRIES and len(rows) >= DENSE_MIN_FILL * n * K:
+            # nearly every pair is kept (a small mesh with wide kernels, as a 3D-MEI's): one dense (n, K)
+            # matrix of squared distances, zero off the list, and its 0/1 mask, so W @ offsets runs as a
+            # BLAS product instead of gathers and scatters (3x faster at 400 vertices), with the same pairs
+            D2 = torch.zeros(n, K, dtype=dt, device=dev)
+            D2[self._rows, self._cols] = self._d2
+            mask = torch.zeros(n, K, dtype=dt, device=dev)
+            mask[self._rows, self._cols] = 1.0
+            self._dense_d2, self._dense_mask = D2, mask
         self.n_rebuilds += 1
 
     def _ensure_covered(self) -> None:
@@ -313,6 +331,11 @@ class RBFDeformer(torch.nn.Module):
     def displacement(self) -> torch.Tensor:
         """``sum_k delta_k w_k(V0)``, ``(n, 3)``."""
         self._ensure_covered()
+        if self._dense_d2 is not None:
+            D2, mask = self._dense_d2, self._dense_mask
+            inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)
+            W = torch.exp(-D2 * inv.unsqueeze(0)) * mask  # (n, K), zero off the pair list
+            return (W.to(self.offsets.dtype) @ self.offsets).to(self.V0.dtype)
         if not self.log_sigma.requires_grad:  # fixed scales: a constant sparse matrix
             W, Wt = self._fixed_matrices()
             return _FixedMap.apply(self.offsets, W, Wt).to(self.V0.dtype)
