@@ -68,6 +68,11 @@ class ValidityRules:
     max_halvings : int
         How often a rejected step is halved before it is given up (the parameters then stay where they
         were for this step).
+    max_step : float or None
+        Farthest any vertex may move from the last accepted mesh in one step (None: no bound). A bound at
+        half a contact barrier's reach means no two surface points close by more than that reach in one
+        step, so the barrier sees every approach; refusing a long step by this rule costs no intersection
+        test.
     """
 
     self_intersections: bool = True
@@ -75,6 +80,7 @@ class ValidityRules:
     turn_from: str = "rest"
     min_quality: float = 0.02
     max_halvings: int = 6
+    max_step: float | None = None
 
     def __post_init__(self):
         if not 0 < self.max_turn_degrees <= 180:
@@ -85,6 +91,8 @@ class ValidityRules:
             raise ValueError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
         if isinstance(self.max_halvings, bool) or int(self.max_halvings) != self.max_halvings or self.max_halvings < 0:
             raise ValueError(f"max_halvings must be a non-negative integer, got {self.max_halvings!r}")
+        if self.max_step is not None and not (self.max_step > 0 and math.isfinite(self.max_step)):
+            raise ValueError(f"max_step must be positive and finite, or None; got {self.max_step!r}")
 
 
 class StepGuard:
@@ -106,7 +114,8 @@ class StepGuard:
     checks, failures : int
         Candidates checked, and those that failed.
     reasons : dict of str -> int
-        Failures by the rule they broke (``"quality"``, ``"turn"``, ``"intersection"``, ``"non-finite"``).
+        Failures by the rule they broke (``"step"``, ``"quality"``, ``"turn"``, ``"intersection"``,
+        ``"non-finite"``).
     seconds : float
         Time spent checking.
     """
@@ -120,7 +129,8 @@ class StepGuard:
         self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
         self.quality_floor = min(rules.min_quality, 0.5 * float(q.min()))
         self.checks, self.failures, self.seconds = 0, 0, 0.0
-        self.reasons = {"non-finite": 0, "quality": 0, "turn": 0, "intersection": 0}
+        self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
+        self.accepted = ref  # the last accepted vertices, for max_step
 
     def _verdict(self, V: torch.Tensor) -> tuple:
         """``(rule, message, normals)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
@@ -130,6 +140,10 @@ class StepGuard:
         Vd = V.detach().double()
         if not bool(torch.isfinite(Vd).all()):
             return "non-finite", "non-finite vertices", None
+        if self.rules.max_step is not None and Vd.shape == self.accepted.shape:
+            moved = float((Vd - self.accepted).norm(dim=1).max())
+            if moved > self.rules.max_step:
+                return "step", f"a vertex moved {moved:.3g}, more than {self.rules.max_step:.3g}, in one step", None
         n, quality = face_frame(Vd, self.F)
         q = float(quality.min())
         if q < self.quality_floor:
@@ -156,8 +170,10 @@ class StepGuard:
         if rule is not None:
             self.failures += 1
             self.reasons[rule] += 1
-        elif self.rules.turn_from == "step":
-            self.normals = normals
+        else:
+            self.accepted = V.detach().double()
+            if self.rules.turn_from == "step":
+                self.normals = normals
         self.seconds += time.perf_counter() - t0
         return rule is None
 

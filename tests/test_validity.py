@@ -129,9 +129,14 @@ def test_a_diverging_learning_rate_is_refused_or_named():
     assert [h["step_scale"] for h in res.history] == [0.0, 0.0, 0.0]
     torch.testing.assert_close(res.V, src[0], rtol=0, atol=1e-6)
     assert res.info["stages"][0]["refused"] == res.info["stages"][0]["checks"]
-    # large steps move the mesh as a whole (a valid shape, far away): the run stops with a clear error
+    # large steps move the mesh as a whole (a valid shape, far away): the step bound (half the contact
+    # barrier's reach) refuses that without an intersection test ...
+    res = reconstruct(src, "bunny", "largesteps", **small)
+    assert [h["step_scale"] for h in res.history] == [0.0, 0.0, 0.0]
+    assert res.info["stages"][0]["refused_by"]["step"] == res.info["stages"][0]["checks"]
+    # ... and without the guard the run stops with a clear error
     with pytest.raises(FloatingPointError, match=r"mesh became unusable after step \d+ .*lower the learning rate"):
-        reconstruct(src, "bunny", "largesteps", **small)
+        reconstruct(src, "bunny", "largesteps", **dict(small, valid_steps=False))
 
 
 def test_face_frame_gives_the_operators_normals_and_the_qualitys_values(ball):
@@ -145,3 +150,25 @@ def test_face_frame_gives_the_operators_normals_and_the_qualitys_values(ball):
     torch.testing.assert_close(n, face_normals(W, F), rtol=0, atol=1e-12)
     torch.testing.assert_close(q, triangle_quality(W, F), rtol=0, atol=1e-12)
     assert float(q[0]) == 0.0 and float(n[0].abs().sum()) == 0.0
+
+
+def test_a_step_longer_than_max_step_is_refused_before_any_intersection_test(ball, monkeypatch):
+    import meshmei.validity as validity
+
+    V, F = ball
+    guard = StepGuard(V, F, ValidityRules(max_step=0.01))
+    tests = []
+    real = validity.count_self_intersections
+    monkeypatch.setattr(validity, "count_self_intersections", lambda *a: tests.append(1) or real(*a))
+    far = V.clone()
+    far[3] += torch.tensor([0.0, 0.0, 0.011], dtype=V.dtype)
+    assert not guard.accept(far) and guard.reasons["step"] == 1 and not tests
+    near = V.clone()
+    near[3] += torch.tensor([0.0, 0.0, 0.009], dtype=V.dtype)
+    assert guard.accept(near) and len(tests) == 1
+    # the bound is from the last accepted mesh: 0.009 further is fine from there, not from the start
+    nearer = near.clone()
+    nearer[3] += torch.tensor([0.0, 0.0, 0.009], dtype=V.dtype)
+    assert guard.accept(nearer)
+    with pytest.raises(ValueError, match="max_step must be positive"):
+        ValidityRules(max_step=0.0)

@@ -260,8 +260,9 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         sk = per_stage[k] if per_stage else s
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         param = _parameterisation(sk, V.detach(), F)
-        guard = StepGuard(V, F, s.validity_rules()) if s.valid_steps else None
         contact = ContactBarrier.for_mesh(V, F, s.contact_distance) if s.w_contact > 0 else None
+        max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
+        guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
         trace.seconds += time.perf_counter() - t0
         latest = [None]
 

@@ -189,9 +189,10 @@ class ReconstructionSettings:
             self.stage_settings()  # every stage's own values are checked too
         return replace(s, eval_times=tuple(float(t) for t in s.eval_times))
 
-    def validity_rules(self) -> ValidityRules:
-        """The rules of ``valid_steps``: no new self-intersections, no face turned over in one step."""
-        return ValidityRules(turn_from="step", min_quality=self.min_quality)
+    def validity_rules(self, max_step: float | None = None) -> ValidityRules:
+        """The rules of ``valid_steps``: no new self-intersections, no face turned over in one step, and
+        with the contact barrier no vertex moved farther than half its reach in one step (``max_step``)."""
+        return ValidityRules(turn_from="step", min_quality=self.min_quality, max_step=max_step)
 
     def stage_settings(self) -> list:
         """The resolved settings of each stage (one entry when there are no ``stage_overrides``): for
