@@ -153,7 +153,7 @@ def _add_reconstruct(sub) -> None:
                         "it has one (a teapot's handle; meshmei.reconstruct.openings.torus_through_opening), else "
                         "centred; 'torus-centred' is always centred; 'torus-through-opening' fails without an "
                         "opening")
-    p.add_argument("--target", required=True, help="bunny, teapot, or a mesh file (normalised to unit diagonal)")
+    p.add_argument("--target", required=True, help="bunny, teapot, dumbbell, fin, cup (thin parts), or a mesh file (normalised to unit diagonal)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--method", choices=METHODS, default=d.method)
     p.add_argument("--n-vertices", type=int, default=DEFAULT_N_VERTICES, help="vertices of a generated --init mesh")

@@ -179,7 +179,7 @@ def test_sheet_square_boundary_and_up_normals(default_meshes):
 # --- targets -----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["bunny", "teapot"])
+@pytest.mark.parametrize("name", ["bunny", "teapot", "dumbbell", "fin", "cup"])
 def test_target_normalised(name):
     V, F = target_mesh(name, dtype=torch.float64)
     lo, hi = V.min(0).values, V.max(0).values
@@ -187,6 +187,27 @@ def test_target_normalised(name):
     assert float((hi - lo).norm()) == pytest.approx(1.0, abs=1e-6)
     assert F.dtype == torch.int64
     assert target_mesh(name)[0].dtype == torch.float32
+
+
+@pytest.mark.parametrize("name, thickness", [("dumbbell", 0.10), ("fin", 0.06), ("cup", 0.05)])
+def test_thin_targets_are_clean_closed_outward_and_thin(name, thickness):
+    from meshmei.quality import count_self_intersections
+
+    V, F = target_mesh(name, dtype=torch.float64)
+    Vn, Fn = V.numpy(), F.numpy()
+    assert count_self_intersections(V, F) == 0
+    boundary = igl.boundary_facets(Fn)
+    assert len(boundary[0] if isinstance(boundary, tuple) else boundary) == 0  # closed
+    a, b, c = Vn[Fn[:, 0]], Vn[Fn[:, 1]], Vn[Fn[:, 2]]
+    assert np.einsum("ij,ij->i", a, np.cross(b, c)).sum() > 0  # outward: positive enclosed volume
+    # the thin part is thin: as built, before scaling to unit diagonal, its thickness was given; after the
+    # scaling some surface point has the opposite surface within that thickness (times the scale) below it
+    raw = target_mesh.__globals__["_implicit"](name)[0]
+    scale = 1.0 / float(np.linalg.norm(raw.max(0) - raw.min(0)))
+    normals = igl.per_vertex_normals(Vn, Fn)
+    hits = [igl.ray_mesh_intersect(Vn[i] - 1e-6 * normals[i], -normals[i], Vn, Fn) for i in range(0, len(Vn), 7)]
+    depth = min(min(h[1] for h in hit if h[1] > 1e-5) for hit in hits if hit and any(h[1] > 1e-5 for h in hit))
+    assert depth <= 1.2 * thickness * scale
 
 
 def test_bunny_matches_pymeshlab_file():

@@ -1,7 +1,9 @@
-"""Reconstruction targets, the Stanford bunny and the Utah teapot (from its Bezier patches), at unit diagonal."""
+"""Reconstruction targets at unit diagonal: the Stanford bunny, the Utah teapot (from its Bezier patches), and
+three targets with thin parts (implicit surfaces meshed by pymeshlab)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
@@ -16,9 +18,21 @@ from scipy.spatial import cKDTree
 from .._checks import check_positive
 from ..errors import MeshError
 
-__all__ = ["target_mesh", "bunny_path", "normalize_unit_diagonal", "TARGET_NAMES", "TEAPOT_FILE"]
+__all__ = ["target_mesh", "bunny_path", "normalize_unit_diagonal", "TARGET_NAMES", "TEAPOT_FILE", "THIN_TARGETS"]
 
-TARGET_NAMES = ("bunny", "teapot")
+# Targets with thin parts (issue 16): implicit surfaces (muparser expressions, negative inside) meshed by
+# pymeshlab's marching cubes at voxel 0.015 on [-1, 1]^3, then remeshed isotropically (edges 1 % of the
+# diagonal). None of them was used to choose any setting.
+THIN_TARGETS = {
+    # two balls (radius 0.35) joined by a rod of radius 0.05
+    "dumbbell": "min(min(sqrt((x-0.6)^2+y^2+z^2)-0.35, sqrt((x+0.6)^2+y^2+z^2)-0.35), "
+                "max(sqrt(y^2+z^2)-0.05, abs(x)-0.7))",
+    # a ball (radius 0.45) with a disc 0.06 thick and 1.7 across through its equator
+    "fin": "min(sqrt(x^2+y^2+z^2)-0.45, max(abs(z)-0.03, sqrt(x^2+y^2)-0.85))",
+    # a cup: a cylinder with a wall and a bottom 0.05 thick, open at the top
+    "cup": "max(max(sqrt(x^2+y^2)-0.5, abs(z)-0.5), -max(sqrt(x^2+y^2)-0.45, -(z+0.45)))",
+}
+TARGET_NAMES = ("bunny", "teapot") + tuple(THIN_TARGETS)
 
 _DATA = Path(__file__).resolve().parent.parent / "data"
 TEAPOT_FILE = _DATA / "utah_teapot_bezier.json"
@@ -178,6 +192,27 @@ def _teapot(resolution):
     return V, F
 
 
+@functools.lru_cache(maxsize=None)
+def _implicit(name):
+    """A :data:`THIN_TARGETS` surface: watertight, outward, no self-intersection (checked in the tests)."""
+    import pymeshlab  # deferred, as for the bunny
+
+    ms = pymeshlab.MeshSet()
+    ms.create_implicit_surface(voxelsize=0.015, minx=-1, miny=-1, minz=-1, maxx=1, maxy=1, maxz=1,
+                               expr=THIN_TARGETS[name])
+    ms.meshing_isotropic_explicit_remeshing(iterations=5, targetlen=pymeshlab.PercentageValue(1.0))
+    m = ms.current_mesh()
+    V, F = np.asarray(m.vertex_matrix(), dtype=np.float64), np.asarray(m.face_matrix(), dtype=np.int64)
+    if _signed_volume(V, F) < 0:
+        F = F[:, ::-1].copy()
+    return V, F
+
+
+def _signed_volume(V, F):
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
 def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
     """A reconstruction target, centred on its bounding-box centre and scaled to unit bounding-box diagonal.
 
@@ -189,11 +224,14 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
       duplicates are dropped, unused vertices removed, and faces oriented outward. z is up, as in the
       data. The teapot is open (gaps at the lid, spout tip, and where the handle and spout meet the body)
       and self-intersecting where the handle and spout pass into the body.
+    - ``"dumbbell"``, ``"fin"``, ``"cup"`` (:data:`THIN_TARGETS`): watertight surfaces with thin parts (a rod
+      of radius 0.05 between two balls; a disc 0.06 thick through a ball; a cup with walls 0.05 thick), from
+      implicit expressions meshed by pymeshlab, z up.
 
     Parameters
     ----------
     name : str
-        ``"bunny"`` or ``"teapot"``.
+        One of :data:`TARGET_NAMES`.
     resolution : int
         Samples per patch side for the teapot (ignored for the bunny).
     dtype : torch float dtype of the vertices
@@ -228,6 +266,8 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
         V, F = _bunny()
         if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
             raise MeshError(f"{bunny_path()} should hold a triangle mesh, got faces of shape {F.shape}")
+    elif name in THIN_TARGETS:
+        V, F = (x.copy() for x in _implicit(name))
     else:
         V, F = _teapot(int(resolution))
     V = normalize_unit_diagonal(torch.from_numpy(V))
