@@ -172,3 +172,17 @@ def test_a_step_longer_than_max_step_is_refused_before_any_intersection_test(bal
     assert guard.accept(nearer)
     with pytest.raises(ValueError, match="max_step must be positive"):
         ValidityRules(max_step=0.0)
+
+
+def test_a_guarded_stage_finer_than_the_reference_takes_a_step_scaled_with_its_edge_length():
+    src = initial_mesh("sphere", n_vertices=200)
+    small = dict(steps=4, stages=(100, 400), lr=1e-2, reg_ref_vertices=100, n_samples=300, target_pool=2000,
+                 eval_samples=500)
+    on = reconstruct(src, "bunny", "rbf", valid_steps=True, **small)
+    off = reconstruct(src, "bunny", "rbf", valid_steps=False, **small)
+    assert on.info["stages"][1]["n_vertices"] > 300
+    for res, scaled in ((on, True), (off, False)):
+        for stage in res.info["stages"]:
+            n = stage["n_vertices"]
+            expect = 1e-2 * (100 / n) ** 0.5 if scaled and n > 100 else 1e-2  # at or below 100: as given
+            assert stage["lr"] == pytest.approx(expect, rel=1e-12)

@@ -122,7 +122,9 @@ class ReconstructionSettings:
         checked too: a remesh that adds intersecting pairs is retried, and the stage keeps the mesh it
         has when no retry is clean. With the contact barrier (``w_contact``) the guard rarely has to
         refuse a step; without the barrier it stalls the fit at the first near-contact
-        (docs/reconstruction.md, *Valid steps*).
+        (docs/reconstruction.md, *Valid steps*). With the guard, a stage finer than ``reg_ref_vertices``
+        takes the learning rate ``lr * sqrt(reg_ref_vertices / n)``, so that a step stays the same share
+        of an edge (recorded per stage as ``lr`` in ``info["stages"]``).
     min_quality : float
         The triangle-quality bound of ``valid_steps``.
     w_contact : float
