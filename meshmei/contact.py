@@ -9,11 +9,11 @@ adds incremental potential contact's log barrier (Li et al. 2020)
 which is zero with zero slope at ``d_hat`` and grows without bound as ``d`` goes to zero. The energy is the
 sum over pairs divided by the vertex count. A fold (two faces turned onto each other) and a self-contact
 (two parts of the surface pressed together) both bring a vertex close to a face it is not part of; on a
-well-shaped mesh the nearest such face lies about 0.87 edge lengths away, so ``distance`` at a third of the
-mean edge length leaves smooth parts alone.
+well-shaped mesh the nearest such face lies about 0.87 edge lengths away, so ``distance`` at a quarter or
+a third of the mean edge length leaves smooth parts alone (reconstruction uses a quarter).
 
-Cost. The candidate pairs come from a KD-tree over face centroids, built again only when some vertex has
-moved more than ``margin`` since the last build (candidates are kept out to ``distance + 2 margin``, so no
+Cost. The candidate pairs come from KD-trees over the vertices and the face centroids, searched again only
+when some vertex has moved more than ``margin`` since the last search (candidates are kept out to ``distance + 2 margin``, so no
 pair can come within ``distance`` unseen); a step costs the point-triangle distances of the candidates,
 O(n) with a small constant, and a rebuild O(n log n).
 """
@@ -76,7 +76,7 @@ class ContactBarrier:
     ----------
     F : (m, 3) int64 tensor
     distance : float
-        ``d_hat``: pairs closer than this add energy (e.g. a third of the mean edge length).
+        ``d_hat``: pairs closer than this add energy (e.g. a quarter of the mean edge length).
     margin : float, optional
         How far a vertex may move before the candidates are found again (default ``distance / 2``: the
         candidates then reach ``2 distance``, which on a well-shaped mesh still leaves out the faces one

@@ -130,7 +130,7 @@ class StepGuard:
         self.quality_floor = min(rules.min_quality, 0.5 * float(q.min()))
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
-        self.accepted = ref  # the last accepted vertices, for max_step
+        self.accepted = ref if rules.max_step is not None else None  # the last accepted vertices, for max_step
 
     def _verdict(self, V: torch.Tensor) -> tuple:
         """``(rule, message, normals)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
@@ -140,7 +140,7 @@ class StepGuard:
         Vd = V.detach().double()
         if not bool(torch.isfinite(Vd).all()):
             return "non-finite", "non-finite vertices", None
-        if self.rules.max_step is not None and Vd.shape == self.accepted.shape:
+        if self.accepted is not None and Vd.shape == self.accepted.shape:
             moved = float((Vd - self.accepted).norm(dim=1).max())
             if moved > self.rules.max_step:
                 return "step", f"a vertex moved {moved:.3g}, more than {self.rules.max_step:.3g}, in one step", None
@@ -171,7 +171,8 @@ class StepGuard:
             self.failures += 1
             self.reasons[rule] += 1
         else:
-            self.accepted = V.detach().double()
+            if self.accepted is not None:
+                self.accepted = V.detach().double()
             if self.rules.turn_from == "step":
                 self.normals = normals
         self.seconds += time.perf_counter() - t0

@@ -23,7 +23,7 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, timings, write_section
 from meshmei.encoders import encoder_from_model, frozen_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.mei.optimize import initial
@@ -97,16 +97,6 @@ def _median(xs):
     return xs[len(xs) // 2]
 
 
-def _time(fn, repeats):
-    fn()
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return _median(out)
-
-
 def measure(steps: int = 30, repeats: int = 20) -> dict:
     torch.manual_seed(0)
     model = V4Model().eval()
@@ -144,11 +134,11 @@ def measure(steps: int = 30, repeats: int = 20) -> dict:
     with frozen_encoder(enc):
         for name, fn in (("model forward + backward", model_only), ("RBF deformation", deform),
                          ("render 100 px", draw), ("regularizers", regularize), ("preprocessing", preprocess)):
-            parts[name] = _time(fn, repeats)
+            parts[name] = timings(fn, repeat=repeats)[0]
     steps_ms = []
     for _ in range(3):
         with frozen_encoder(enc):
-            m = _time(model_only, repeats)
+            m = timings(model_only, repeat=repeats)[0]
         res = optimize_mei(enc, 7, "sheet", settings)
         t = res.time_history
         step = _median([b - a for a, b in zip(t[:-1], t[1:])][3:])

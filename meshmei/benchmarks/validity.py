@@ -24,6 +24,7 @@ import time
 import torch
 
 from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.quality import health_report
@@ -58,7 +59,7 @@ def reconstruction_cost(n_vertices: int, steps: int = 40) -> list:
     """Median ms per reconstruction step (rbf, one stage), with nothing, the guard alone, and the guard and
     the contact barrier (the default), alternating; ratios to nothing."""
     src = initial_mesh("sphere", n_vertices=n_vertices)
-    modes = {"off": dict(valid_steps=False, w_contact=0.0), "guard": dict(valid_steps=True, w_contact=0.0),
+    modes = {"off": UNGUARDED, "guard": dict(valid_steps=True, w_contact=0.0),
              "default": dict(valid_steps=True)}
     times = {m: [] for m in modes}
     for _ in range(2):
@@ -73,8 +74,15 @@ def reconstruction_cost(n_vertices: int, steps: int = 40) -> list:
 
 # Default CLI runs of the reconstruction: meshmei's defaults, the same without guard and barrier, large steps.
 RECONSTRUCTION_MODES = {"rbf (defaults: guard + barrier)": ("rbf", {}),
-                        "rbf, no guard, no barrier": ("rbf", dict(valid_steps=False, w_contact=0.0)),
-                        "largesteps (as published)": ("largesteps", dict(valid_steps=False, w_contact=0.0))}
+                        "rbf, no guard, no barrier": ("rbf", UNGUARDED),
+                        "largesteps (as published)": ("largesteps", UNGUARDED)}
+
+
+def _default_run(V, F, target, method: str, seed: int, **kwargs):
+    """``meshmei reconstruct``'s default run of ``method`` (``--stages auto``) from ``(V, F)``."""
+    stages, fractions, overrides = default_schedule(method, V.shape[0])
+    return reconstruct((V, F), target, method, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
+                       seed=seed, **kwargs)
 
 
 def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=(("bunny", "sphere"), ("teapot", "torus"))) -> list:
@@ -84,11 +92,9 @@ def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=((
         target = target_surface(problem)
         for label, (method, kw) in RECONSTRUCTION_MODES.items():
             V, F, _ = resolve_source(init, n_vertices, torch.float32, target)
-            stages, fractions, overrides = default_schedule(method, V.shape[0])
             cds, sis, walls, refused = [], [], [], []
             for seed in seeds:
-                res = reconstruct((V, F), target, method, stages=stages, stage_fractions=fractions,
-                                  stage_overrides=overrides, seed=seed, **kw)
+                res = _default_run(V, F, target, method, seed, **kw)
                 cds.append(res.final.chamfer_l2)
                 sis.append(res.final.self_intersections)
                 walls.append(res.wall_time)
@@ -138,12 +144,10 @@ def thin_outcomes(names=("dumbbell", "fin", "cup"), seed: int = 0) -> list:
         V, F, _ = resolve_source("sphere", 2500, torch.float32, target)
         out = {}
         for label, method, kw in (("rbf (defaults: guard + barrier)", "rbf", {}),
-                                  ("rbf, no guard, no barrier", "rbf", dict(valid_steps=False, w_contact=0.0)),
-                                  ("largesteps, same time", "largesteps", dict(valid_steps=False, w_contact=0.0))):
-            stages, fractions, overrides = default_schedule(method, V.shape[0])
+                                  ("rbf, no guard, no barrier", "rbf", UNGUARDED),
+                                  ("largesteps, same time", "largesteps", UNGUARDED)):
             budget = dict(time_budget=out["rbf (defaults: guard + barrier)"].wall_time) if method == "largesteps" else {}
-            res = reconstruct((V, F), target, method, stages=stages, stage_fractions=fractions,
-                              stage_overrides=overrides, seed=seed, **kw, **budget)
+            res = _default_run(V, F, target, method, seed, **kw, **budget)
             out[label] = res
             refused = sum(st.get("refused", 0) for st in res.info["stages"])
             rows.append([name, label, f"{res.final.chamfer_l2:.2e}", res.final.self_intersections,
