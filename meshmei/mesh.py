@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,11 @@ def _as_tensor(x, name):
         except (ValueError, TypeError) as err:
             raise MeshError(f"{name} must be a rectangular array, got a ragged {type(x).__name__}: {err}") from None
     raise MeshError(f"{name} must be a torch tensor or numpy array, got {type(x).__name__}")
+
+
+# face tensors that passed the index checks, with their in-place version counter: a hit is the very
+# tensor, unmodified, and skips two reductions per call in optimisation loops
+_CHECKED_FACES: "OrderedDict[tuple, tuple[torch.Tensor, int]]" = OrderedDict()
 
 
 def check_mesh(V, F, *, batched: bool | None = False):
@@ -81,11 +87,17 @@ def check_mesh(V, F, *, batched: bool | None = False):
         raise MeshError(f"mesh is empty: F has no faces, shape {tuple(F.shape)}")
     if batched and V.shape[0] == 0:
         raise MeshError(f"batch is empty: V has shape {tuple(V.shape)}")
-    fmin, fmax = int(F.min()), int(F.max())
-    if fmin < 0:
-        raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
-    if fmax >= n:
-        raise MeshError(f"F holds vertex index {fmax}, out of range for {n} vertices")
+    key = (id(F), n)
+    known = _CHECKED_FACES.get(key)
+    if known is None or known[0] is not F or known[1] != F._version:  # a loop's F is checked once
+        fmin, fmax = int(F.min()), int(F.max())
+        if fmin < 0:
+            raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
+        if fmax >= n:
+            raise MeshError(f"F holds vertex index {fmax}, out of range for {n} vertices")
+        _CHECKED_FACES[key] = (F, F._version)
+        while len(_CHECKED_FACES) > 16:
+            _CHECKED_FACES.popitem(last=False)
     bad = ~torch.isfinite(V)
     if bool(bad.any()):
         rows = bad.any(-1)

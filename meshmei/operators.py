@@ -45,6 +45,8 @@ __all__ = [
     "cross_from_corners",
     "doublearea_from_corners",
     "sq_edge_sum_from_corners",
+    "face_normals_from_corners",
+    "vertex_normals_from_corners",
     "cot_laplacian_from_cot",
     "massmatrix_from_terms",
     "uniform_laplacian_from_topology",
@@ -191,9 +193,12 @@ def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -
     shrunk towards zero (exactly zero for a fully degenerate face) instead of NaN.
     """
     V, F = check_mesh(V, F, batched=None)
-    T = corners(V, F)
-    c = cross_from_corners(T)
-    return _normalize(c, resolve_eps(eps, V.dtype) * sq_edge_sum_from_corners(T))
+    return face_normals_from_corners(corners(V, F), eps=eps)
+
+
+def face_normals_from_corners(T: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
+    """:func:`face_normals` from the corner tensor ``T`` (..., m, 3, 3); no validation."""
+    return _normalize(cross_from_corners(T), resolve_eps(eps, T.dtype) * sq_edge_sum_from_corners(T))
 
 
 def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:
@@ -204,14 +209,17 @@ def vertex_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS)
     not NaN).
     """
     V, F = check_mesh(V, F, batched=None)
-    T = corners(V, F)
+    return vertex_normals_from_corners(corners(V, F), F, V.shape[-2], eps=eps)
+
+
+def vertex_normals_from_corners(T: torch.Tensor, F: torch.Tensor, n_vertices: int, *,
+                                eps: float | None = EPS) -> torch.Tensor:
+    """:func:`vertex_normals` from the corner tensor ``T`` (..., m, 3, 3) of ``F``; no validation."""
     c = cross_from_corners(T)  # (..., m, 3)
-    idx = F.reshape(-1)
-    c3 = c.unsqueeze(-2).expand(*c.shape[:-1], 3, 3).reshape(*c.shape[:-2], -1, 3)  # (..., 3m, 3)
-    acc = torch.zeros_like(V).index_add_(-2, idx, c3)
-    area = torch.zeros(V.shape[:-1], dtype=V.dtype, device=V.device)
-    area = area.index_add_(-1, idx, safe_norm(c).repeat_interleave(3, dim=-1))
-    return _normalize(acc, resolve_eps(eps, V.dtype) * area)
+    cw = torch.cat([c, safe_norm(c).unsqueeze(-1)], -1)  # cross product and double area, summed in one pass
+    cw3 = cw.unsqueeze(-2).expand(*cw.shape[:-1], 3, 4).reshape(*cw.shape[:-2], -1, 4)  # (..., 3m, 4)
+    acc = torch.zeros(*T.shape[:-3], n_vertices, 4, dtype=T.dtype, device=T.device).index_add_(-2, F.reshape(-1), cw3)
+    return _normalize(acc[..., :3], resolve_eps(eps, T.dtype) * acc[..., 3])
 
 
 def uniform_laplacian(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:

@@ -28,8 +28,10 @@ def tiny_run():
 @pytest.mark.parametrize("init", ["sheet", "sphere"])
 def test_3d_mei_reaches_090_of_the_bound(cls, init):
     cell = cls()
-    # single seeds land between 0.88 and 0.96 (see docs/mei.md); the method keeps the best of several
-    res = optimize_mei(cell, 0, init, steps=200, seeds=(0, 1))
+    # single seeds land between 0.85 and 0.96 (see docs/mei.md); the method keeps the best of its default
+    # seeds. At 200 steps and two seeds the complex cell's sheet sat at the threshold (0.907, then 0.888
+    # after a change that moved float32 rounding alone), so this runs the defaults users get.
+    res = optimize_mei(cell, 0, init)
     assert res.fraction_of_bound >= 0.9, res.seed_activations
     # the reported response is that of the returned mesh rendered in the returned scene
     torch.testing.assert_close(cell(res.render())[0, 0], torch.tensor(res.activation))

@@ -89,17 +89,18 @@ class _Scene:
         if settings.optimize_light:
             self.light.requires_grad_(True)
             self.groups.append({"params": [self.light], "lr": settings.lr_light})
+        self.camera, self.render_settings = settings.camera(), settings.render_settings()  # built once per seed
         self.pose = settings.optimize_pose
         if self.pose:
             self.rotation.requires_grad_(True)
             self.translation.requires_grad_(True)
             self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
 
-    def image(self, V, F, settings: MEISettings, *, pose: bool | None = None) -> torch.Tensor:
+    def image(self, V, F, *, pose: bool | None = None) -> torch.Tensor:
         kw = {}
         if self.pose if pose is None else pose:
             kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
-        return render(V, F, camera=settings.camera(), light=self.light, settings=settings.render_settings(), **kw)
+        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings, **kw)
 
 
 def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings, n_weights: int):
@@ -110,7 +111,7 @@ def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings, n_weigh
 
     def objective(point):
         V = scene.rbf()
-        f = encoder(scene.image(V, F, settings), neuron)[0, 0]
+        f = encoder(scene.image(V, F), neuron)[0, 0]
         loss, record = -f, {"response": float(f.detach())}
         for k, w in active.items():
             r = REGULARIZERS[k](V, scene.rbf.V0, F)
@@ -136,7 +137,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
                    error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():
         V = scene.rbf().detach()
-        image = scene.image(V, F, settings, pose=True).detach()
+        image = scene.image(V, F, pose=True).detach()
         act = float(encoder(image, neuron)[0, 0])
     h = trace.history
     state = {k: v.detach().clone() for k, v in scene.rbf.state_dict().items()}

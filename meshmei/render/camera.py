@@ -106,6 +106,10 @@ class Camera:
         R : (B, 3, 3) tensor
             Rows ``right``, ``up``, ``forward``; view coordinates are ``(p - eye) @ R.T``.
         """
+        fixed = not any(isinstance(getattr(self, k), torch.Tensor) for k in ("eye", "at", "up"))
+        key = (dtype, torch.device(device) if device is not None else torch.device("cpu"), eps)
+        if fixed and key in self.__dict__.get("_frames", {}):  # sequences cannot change: reuse their frame
+            return self._frames[key]
         eye = _vec3("eye", self.eye, dtype, device)
         at = _vec3("at", self.at, dtype, device)
         up = _vec3("up", self.up, dtype, device)
@@ -119,7 +123,10 @@ class Camera:
             raise RenderError("camera up is parallel to the viewing direction (at - eye); choose another up")
         right = unit(side, eps)
         upo = torch.linalg.cross(right, fwd, dim=-1)
-        return eye, torch.stack([right, upo, fwd], dim=-2)  # (B, 3), (B, 3, 3)
+        frame = eye, torch.stack([right, upo, fwd], dim=-2)  # (B, 3), (B, 3, 3)
+        if fixed:
+            self.__dict__.setdefault("_frames", {})[key] = frame
+        return frame
 
 
 def _batch_of(name, x):

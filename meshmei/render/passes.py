@@ -49,13 +49,16 @@ def _pairs(x0, x1, y0, y1, chunk):
         return
     cum = torch.cumsum(cnt, 0)
     total = int(cum[-1])
-    first = cum - cnt
+    per_item = torch.stack([cum - cnt, nx, y0, x0], 1)  # one gather per chunk instead of four
     for s in range(0, total, chunk):
         p = torch.arange(s, min(s + chunk, total), device=cnt.device)
-        item = torch.searchsorted(cum, p, right=True)
-        local = p - first[item]
-        w = nx[item]
-        yield item, y0[item] + local // w, x0[item] + local % w
+        if total <= chunk:
+            item = torch.repeat_interleave(torch.arange(cnt.shape[0], device=cnt.device), cnt, output_size=total)
+        else:
+            item = torch.searchsorted(cum, p, right=True)
+        first, w, row0, col0 = per_item.index_select(0, item).unbind(1)
+        local = p - first
+        yield item, row0 + local // w, col0 + local % w
 
 
 def _edge_fn(ax, ay, bx, by, px, py):
@@ -87,17 +90,21 @@ class PixelSamples:
         Batch member.
     f : (N,) int64 tensor
         Face.
-    l : (N, 3) float tensor
-        Screen-space barycentrics in the face's corners (differentiable).
+    l : (3, N) float tensor
+        Screen-space barycentrics in the face's corners (differentiable). Per-sample fields are stored
+        corner-major, ``(3, N)``: sums over corners then add rows, which is what keeps them cheap.
+    iz : (3, N) float tensor
+        Inverse view depth of the face's corners (differentiable).
     """
 
     pix: torch.Tensor
     b: torch.Tensor
     f: torch.Tensor
     l: torch.Tensor
+    iz: torch.Tensor
 
     def __getitem__(self, mask) -> "PixelSamples":
-        return PixelSamples(self.pix[mask], self.b[mask], self.f[mask], self.l[mask])
+        return PixelSamples(self.pix[mask], self.b[mask], self.f[mask], self.l[:, mask], self.iz[:, mask])
 
 
 @dataclass(frozen=True)
@@ -138,31 +145,27 @@ class RasterPasses:
     fringe: PixelSamples
     coverage: torch.Tensor
 
-    def perspective_correct(self, F: torch.Tensor, samples: PixelSamples):
+    def perspective_correct(self, samples: PixelSamples):
         """Perspective-correct barycentrics ``(N, 3)`` and view depth ``(N,)`` of ``samples``."""
-        iz = 1.0 / self.z[samples.b.unsqueeze(1), F[samples.f]]  # (N, 3)
-        q = samples.l * iz
-        s = q.sum(1, keepdim=True)
+        q = samples.l * samples.iz
+        s = q[0] + q[1] + q[2]
         s = torch.where(s > 0, s, torch.ones_like(s))
-        return q / s, 1.0 / s.squeeze(1)
+        return (q / s).t(), 1.0 / s
 
 
 # --------------------------------------------------------------------------------------------------
 # the passes, step by step
 
 class _Screen(NamedTuple):
-    """Projected faces (no grad): corner pixel coordinates, screen boxes, kept (batch, face) pairs."""
+    """Projected faces (no grad): the kept (batch member, face) pairs with their corners and screen boxes."""
 
-    fu: torch.Tensor  # (B, m, 3) corner u
-    fv: torch.Tensor  # (B, m, 3) corner v
-    umin: torch.Tensor  # (B, m) screen box
-    umax: torch.Tensor
-    vmin: torch.Tensor
-    vmax: torch.Tensor
     keep: torch.Tensor  # (B, m) bool: in depth range and near the image
+    front: torch.Tensor  # (B, m) bool
     kb: torch.Tensor  # (K,) batch member of each kept face
     kf: torch.Tensor  # (K,) kept face
-    front: torch.Tensor  # (B, m) bool
+    ku: torch.Tensor  # (K, 3) corner u
+    kv: torch.Tensor  # (K, 3) corner v
+    box: torch.Tensor  # (K, 4) umin, umax, vmin, vmax
 
 
 def _project(Vw, eye, R, cam: Camera, S):
@@ -179,53 +182,53 @@ def _project(Vw, eye, R, cam: Camera, S):
 
 def _cull(U, Vv, ok, F, S, margin) -> _Screen:
     """Keep the faces whose corners all lie in the depth range and whose box reaches the (grown) image."""
+    B, m = U.shape[0], F.shape[0]
     fu, fv = U[:, F], Vv[:, F]  # (B, m, 3)
-    keep = ok[:, F].all(-1)
     umin, umax = fu.amin(-1), fu.amax(-1)
     vmin, vmax = fv.amin(-1), fv.amax(-1)
-    keep &= (umax >= -margin) & (umin <= S + margin) & (vmax >= -margin) & (vmin <= S + margin)
-    kb, kf = keep.nonzero().unbind(1)
+    keep = ok[:, F].all(-1) & (umax >= -margin) & (umin <= S + margin) & (vmax >= -margin) & (vmin <= S + margin)
     area2 = _edge_fn(fu[..., 0], fv[..., 0], fu[..., 1], fv[..., 1], fu[..., 2], fv[..., 2])  # (B, m)
     front = area2 < 0  # outward (counter-clockwise) faces turn clockwise in (u, v) with v down
-    return _Screen(fu, fv, umin, umax, vmin, vmax, keep, kb, kf, front)
+    kept = keep.view(-1).nonzero().squeeze(1)  # kb * m + kf
+    rows = torch.cat([fu, fv, torch.stack([umin, umax, vmin, vmax], -1)], -1).view(B * m, 10).index_select(0, kept)
+    ku, kv, box = rows.split((3, 3, 4), 1)
+    return _Screen(keep, front, kept // m, kept % m, ku, kv, box)
 
 
 def _zbuffer(sc: _Screen, Z, F, B, S, chunk) -> torch.Tensor:
     """Pass 1: per pixel the smallest ``(depth bits << 32) | kept-face slot`` key, ``(B * S * S,)`` int64."""
-    kb, kf = sc.kb, sc.kf
+    kb, kf, ku, kv = sc.kb, sc.kf, sc.ku, sc.kv
     zkey = torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Z.device)
     if not kb.shape[0]:
         return zkey
-    dt = sc.fu.dtype
-    Fk = F[kf]  # (K, 3)
-    ku, kv = sc.fu[kb, kf], sc.fv[kb, kf]  # (K, 3)
-    kiz = 1.0 / Z[kb.unsqueeze(1), Fk]
+    dt = ku.dtype
+    Fk = F.index_select(0, kf)  # (K, 3)
+    kiz = 1.0 / torch.take(Z, (kb * Z.shape[1]).unsqueeze(1) + Fk)
     # canonical edge direction (lower vertex id first) so that a shared edge gives bitwise
     # opposite edge functions in its two faces: no cracks, no double-free pixels
-    i1, i2 = [1, 2, 0], [2, 0, 1]
-    va, vb = Fk[:, i1], Fk[:, i2]
-    flip = va > vb
-    ax = torch.where(flip, ku[:, i2], ku[:, i1])
-    ay = torch.where(flip, kv[:, i2], kv[:, i1])
+    flip = Fk.roll(-1, 1) > Fk.roll(1, 1)  # edge k runs from corner k + 1 to corner k + 2
+    u1, u2, v1, v2 = ku.roll(-1, 1), ku.roll(1, 1), kv.roll(-1, 1), kv.roll(1, 1)
+    ax, ay = torch.where(flip, u2, u1), torch.where(flip, v2, v1)
     sg = torch.where(flip, -1.0, 1.0).to(dt)
-    dx = sg * (torch.where(flip, ku[:, i1], ku[:, i2]) - ax)
-    dy = sg * (torch.where(flip, kv[:, i1], kv[:, i2]) - ay)
-    x0, x1 = _ranges(sc.umin[kb, kf], sc.umax[kb, kf], S)
-    y0, y1 = _ranges(sc.vmin[kb, kf], sc.vmax[kb, kf], S)
+    dx = sg * (torch.where(flip, u1, u2) - ax)
+    dy = sg * (torch.where(flip, v1, v2) - ay)
+    x0, x1 = _ranges(sc.box[:, 0], sc.box[:, 1], S)
+    y0, y1 = _ranges(sc.box[:, 2], sc.box[:, 3], S)
+    table = torch.cat([ax, ay, dx, dy, kiz], 1).t().contiguous()  # (15, K): one gather per chunk
+    pix0 = kb * (S * S)
     for it, ii, jj in _pairs(x0, x1, y0, y1, chunk):
-        px = (jj.to(dt) + 0.5).unsqueeze(1)
-        py = (ii.to(dt) + 0.5).unsqueeze(1)
-        w = dx[it] * (py - ay[it]) - dy[it] * (px - ax[it])  # (P, 3)
-        tot = w.sum(1)
-        inside = ((w >= 0).all(1) & (tot > 0)) | ((w <= 0).all(1) & (tot < 0))
-        if not bool(inside.any()):
-            continue
-        it, ii, jj, w, tot = it[inside], ii[inside], jj[inside], w[inside], tot[inside]
-        depth = tot / (w * kiz[it]).sum(1)
+        px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
+        t_ax, t_ay, t_dx, t_dy, t_iz = table.index_select(1, it).view(5, 3, -1).unbind(0)  # (3, P) each
+        w = t_dx * (py - t_ay) - t_dy * (px - t_ax)
+        w0, w1, w2 = w.unbind(0)
+        tot = w0 + w1 + w2
+        lo, hi = torch.minimum(torch.minimum(w0, w1), w2), torch.maximum(torch.maximum(w0, w1), w2)
+        inside = ((lo >= 0) & (tot > 0)) | ((hi <= 0) & (tot < 0))
+        wz = w * t_iz
+        depth = tot / (wz[0] + wz[1] + wz[2])
         bits = depth.float().clamp_min(0).view(torch.int32).long()
-        key = (bits << 32) | it
-        pix = (kb[it] * S + ii) * S + jj
-        zkey.scatter_reduce_(0, pix, key, "amin")
+        key = torch.where(inside, (bits << 32) | it, _NONE)  # pairs outside their face change nothing
+        zkey.scatter_reduce_(0, pix0.index_select(0, it) + ii * S + jj, key, "amin")
     return zkey
 
 
@@ -235,51 +238,53 @@ def _contour_segments(sc: _Screen, U, Vv, F, n_vertices):
     An edge is a contour segment when its two faces project to the same side of it, when it is a
     boundary edge, or when its neighbour was culled; of two half-edges, one owns the segment.
     """
-    kb, kf = sc.kb, sc.kf
-    Fk = F[kf]  # (K, 3)
-    ku, kv = sc.fu[kb, kf], sc.fv[kb, kf]  # (K, 3)
-    twin = mesh_topology(F, n_vertices).twins[kf]  # (K, 3)
+    kb, kf, ku, kv = sc.kb, sc.kf, sc.ku, sc.kv
+    B, n, m = U.shape[0], U.shape[1], F.shape[0]
+    Fk = F.index_select(0, kf)  # (K, 3)
+    twin = mesh_topology(F, n_vertices).twins.index_select(0, kf)  # (K, 3)
     tf = twin.clamp_min(0) // 3
     tk = twin.clamp_min(0) % 3
-    tkeep = (twin >= 0) & sc.keep[kb.unsqueeze(1), tf]
-    ea = Fk[:, [1, 2, 0]]
-    eb = Fk[:, [2, 0, 1]]
-    opp_g = F[tf, tk]  # (K, 3): the twin face's corner off the edge
-    bu = kb.unsqueeze(1)
-    Au, Av, Bu, Bv = U[bu, ea], Vv[bu, ea], U[bu, eb], Vv[bu, eb]
+    bm = (kb * m).unsqueeze(1)
+    tkeep = (twin >= 0) & torch.take(sc.keep, bm + tf)
+    ea, eb = Fk.roll(-1, 1), Fk.roll(1, 1)  # edge k runs from corner k + 1 to corner k + 2
+    opp = torch.take(F, tf * 3 + tk)  # (K, 3): the twin face's corner off the edge
     # side tests with the edge in canonical order, so both half-edges classify it identically
-    lo, hi = torch.minimum(ea, eb), torch.maximum(ea, eb)
-    Lu, Lv, Hu, Hv = U[bu, lo], Vv[bu, lo], U[bu, hi], Vv[bu, hi]
+    bn = (kb * n).unsqueeze(1)
+    uv = torch.stack([U, Vv], -1).view(B * n, 2)
+    pts = uv.index_select(0, torch.cat([bn + torch.minimum(ea, eb), bn + torch.maximum(ea, eb), bn + opp], 1).view(-1))
+    Lu, Lv, Hu, Hv, Ou, Ov = pts.view(-1, 3, 3, 2).permute(1, 3, 0, 2).reshape(6, -1, 3)
     side_f = _edge_fn(Lu, Lv, Hu, Hv, ku, kv)  # opposite corner k of this face
-    side_g = _edge_fn(Lu, Lv, Hu, Hv, U[bu, opp_g], Vv[bu, opp_g])
+    side_g = _edge_fn(Lu, Lv, Hu, Hv, Ou, Ov)
     contour = ~(tkeep & (side_f * side_g < 0))
-    fr, gfr = sc.front[kb, kf].unsqueeze(1), sc.front[bu, tf]
+    fr, gfr = torch.take(sc.front, kb * m + kf).unsqueeze(1), torch.take(sc.front, bm + tf)
     owner = ~tkeep | (fr & ~gfr) | ((fr == gfr) & (kf.unsqueeze(1) < tf))
     sel = (contour & owner).nonzero()  # (Q, 2): kept-face slot, edge k
     s_, k_ = sel.unbind(1)
-    return sel, (Au[s_, k_], Av[s_, k_], Bu[s_, k_], Bv[s_, k_])
+    flat = s_ * 3
+    ends = (torch.take(ku.roll(-1, 1), flat + k_), torch.take(kv.roll(-1, 1), flat + k_),
+            torch.take(ku.roll(1, 1), flat + k_), torch.take(kv.roll(1, 1), flat + k_))
+    return sel, ends
 
 
 def _segment_buffer(sc: _Screen, seg, ends, B, S, st: RenderSettings) -> torch.Tensor:
     """Pass 2: per pixel within the soft margin the smallest ``(distance bits << 32) | segment`` key."""
-    margin, eps, dt = st.soft_margin, st.eps, sc.fu.dtype
-    skey = torch.full((B * S * S,), _NONE, dtype=torch.int64, device=sc.fu.device)
+    margin, eps, dt = st.soft_margin, st.eps, sc.ku.dtype
+    skey = torch.full((B * S * S,), _NONE, dtype=torch.int64, device=sc.ku.device)
     if not seg.shape[0]:
         return skey
     s_ = seg[:, 0]
     sa_u, sa_v, sb_u, sb_v = ends
     x0, x1 = _ranges(torch.minimum(sa_u, sb_u) - margin, torch.maximum(sa_u, sb_u) + margin, S)
     y0, y1 = _ranges(torch.minimum(sa_v, sb_v) - margin, torch.maximum(sa_v, sb_v) + margin, S)
+    table = torch.stack([sa_u, sa_v, sb_u, sb_v], 1)  # (Q, 4): one gather per chunk
+    pix0 = sc.kb.index_select(0, s_) * (S * S)
     for it, ii, jj in _pairs(x0, x1, y0, y1, st.chunk_size):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
-        ex, ey, _ = _seg_dist(sa_u[it], sa_v[it], sb_u[it], sb_v[it], px, py, eps)
+        ax, ay, bx, by = table.index_select(0, it).unbind(1)
+        ex, ey, _ = _seg_dist(ax, ay, bx, by, px, py, eps)
         d = torch.sqrt(ex * ex + ey * ey)
-        near = d <= margin
-        if not bool(near.any()):
-            continue
-        key = (d[near].float().view(torch.int32).long() << 32) | it[near]
-        pix = (sc.kb[s_[it[near]]] * S + ii[near]) * S + jj[near]
-        skey.scatter_reduce_(0, pix, key, "amin")
+        key = torch.where(d <= margin, (d.float().view(torch.int32).long() << 32) | it, _NONE)
+        skey.scatter_reduce_(0, pix0.index_select(0, it) + ii * S + jj, key, "amin")
     return skey
 
 
@@ -287,49 +292,81 @@ def _soft_pixels(skey, hit, B, S, margin, dt) -> torch.Tensor:
     """Pixels that get a soft coverage value, ``(B * S * S,)`` bool: near a segment, and if covered, near
     an uncovered pixel (see docs: interior fold contours)."""
     soft = skey != _NONE
-    covered = hit.view(B, 1, S, S)
+    check = (soft & hit).nonzero().squeeze(1)  # covered soft pixels: is an uncovered pixel within reach?
+    if not check.numel():
+        return soft
     reach = math.ceil(margin + 1.5)
-    near_bg = nnf.max_pool2d((~covered).to(dt), 2 * reach + 1, stride=1, padding=reach) > 0
-    return soft & (~hit | near_bg.view(-1))
+    # box counts of uncovered pixels from an integral image; the box is clipped to the image
+    bare = (~hit).view(B, S, S).to(torch.int32).cumsum(1).cumsum(2)
+    table = nnf.pad(bare, (1, 0, 1, 0)).reshape(-1)  # (B, S + 1, S + 1): table[b, i, j] = sum over [0, i) x [0, j)
+    b, i, j = check // (S * S), (check // S) % S, check % S
+    i0, i1 = (i - reach).clamp_min(0), (i + reach + 1).clamp_max(S)
+    j0, j1 = (j - reach).clamp_min(0), (j + reach + 1).clamp_max(S)
+    base, W = b * (S + 1) ** 2, S + 1
+    count = (torch.take(table, base + i1 * W + j1) - torch.take(table, base + i0 * W + j1)
+             - torch.take(table, base + i1 * W + j0) + torch.take(table, base + i0 * W + j0))
+    near_bg = count > 0
+    return soft.index_put((check,), near_bg)
 
 
-def _inside_samples(hit, face_id, F, u, v, S, eps) -> PixelSamples:
-    """Covered pixels with the screen-space barycentrics of their centre in the visible face (autograd)."""
-    dt = u.dtype
-    pix = hit.nonzero().squeeze(1)
-    b = pix // (S * S)
-    f = face_id[pix]
-    pu = ((pix % S).to(dt) + 0.5).unsqueeze(1)
-    pv = (((pix // S) % S).to(dt) + 0.5).unsqueeze(1)
-    Fi = F[f]  # (N, 3)
-    cu, cv = u[b.unsqueeze(1), Fi], v[b.unsqueeze(1), Fi]  # (N, 3)
-    w = _edge_fn(cu[:, [1, 2, 0]], cv[:, [1, 2, 0]], cu[:, [2, 0, 1]], cv[:, [2, 0, 1]], pu, pv)
-    tot = w.sum(1, keepdim=True)
+_TABLE = (1, 1, 3, 3, 3, 3, 3, 3)  # rows of the face table, see _face_table
+
+
+def _face_table(u, v, z, F, eps) -> torch.Tensor:
+    """What the per-pixel recomputation needs of each (batch member, face), column ``b * m + f`` (autograd).
+
+    Rows: corner 0 ``(u0, v0)``; the corners relative to it ``du, dv`` (3 + 3); the screen-space
+    barycentrics as affine functions of the pixel centre relative to corner 0, ``l = a + bu * pu + bv * pv``
+    (3 + 3 + 3); the corners' inverse view depths (3). Relative coordinates keep float32 exact enough
+    on small faces far from the image origin.
+    """
+    B, m = u.shape[0], F.shape[0]
+    corner = torch.stack([u, v, 1.0 / z])[:, :, F].permute(0, 3, 1, 2).reshape(3, 3, B * m)  # (u v iz, corner, bm)
+    cu, cv, iz = corner.unbind(0)
+    u0, v0 = cu[:1], cv[:1]
+    du, dv = cu - u0, cv - v0
+    ua, va = du.roll(-1, 0), dv.roll(-1, 0)  # corner i + 1
+    eu, ev = du.roll(-2, 0) - ua, dv.roll(-2, 0) - va  # edge from corner i + 1 to corner i + 2
+    a = ev * ua - eu * va  # twice the signed area of (i + 1, i + 2, corner 0)
+    tot = a[0] + a[1] + a[2]
     tot = torch.where(tot.abs() > eps, tot, torch.full_like(tot, eps))
-    return PixelSamples(pix, b, f, w / tot)
+    return torch.cat([u0, v0, du, dv, a / tot, -ev / tot, eu / tot, iz], 0)  # (20, B * m)
 
 
-def _fringe_samples(soft, skey, seg, sc: _Screen, hit, F, u, v, S, st: RenderSettings):
+def _pixel_centres(pix, S, dt):
+    return (pix % S).to(dt) + 0.5, ((pix // S) % S).to(dt) + 0.5
+
+
+def _inside_samples(hit, face_id, table, m, S) -> PixelSamples:
+    """Covered pixels with the screen-space barycentrics of their centre in the visible face (autograd)."""
+    pix = hit.nonzero().squeeze(1)
+    b, f = pix // (S * S), face_id[pix]
+    u0, v0, _, _, a, bu, bv, iz = table.index_select(1, b * m + f).split(_TABLE, 0)
+    pu, pv = _pixel_centres(pix, S, table.dtype)
+    return PixelSamples(pix, b, f, a + bu * (pu - u0) + bv * (pv - v0), iz)
+
+
+def _fringe_samples(soft, skey, seg, sc: _Screen, hit, table, m, S, st: RenderSettings):
     """Soft pixels with the nearest point of their segment (autograd), and their coverage ``(Q,)``."""
-    dt, dev, eps = u.dtype, u.device, st.eps
+    dt, dev, eps = table.dtype, table.device, st.eps
     pix = soft.nonzero().squeeze(1)
     if not pix.numel():
-        empty = PixelSamples(pix, pix, pix, torch.zeros(0, 3, dtype=dt, device=dev))
-        return empty, torch.zeros(0, dtype=dt, device=dev)
-    sl = (skey[pix] & 0xFFFFFFFF)
-    s_, k_ = seg[sl].unbind(1)
+        empty = torch.zeros(3, 0, dtype=dt, device=dev)
+        return PixelSamples(pix, pix, pix, empty, empty), torch.zeros(0, dtype=dt, device=dev)
+    s_, k_ = seg[skey[pix] & 0xFFFFFFFF].unbind(1)
     b, f = sc.kb[s_], sc.kf[s_]
-    ia, ib = F[f, (k_ + 1) % 3], F[f, (k_ + 2) % 3]
-    px = (pix % S).to(dt) + 0.5
-    py = ((pix // S) % S).to(dt) + 0.5
-    ex, ey, t = _seg_dist(u[b, ia], v[b, ia], u[b, ib], v[b, ib], px, py, eps)
+    u0, v0, du, dv, _, _, _, iz = table.index_select(1, b * m + f).split(_TABLE, 0)
+    ends = torch.stack([(k_ + 1) % 3, (k_ + 2) % 3])  # (2, Q): the segment's corners in the face
+    au, bu = du.gather(0, ends)
+    av, bv = dv.gather(0, ends)
+    pu, pv = _pixel_centres(pix, S, dt)
+    ex, ey, t = _seg_dist(au, av, bu, bv, pu - u0[0], pv - v0[0], eps)
     d = torch.sqrt((ex * ex + ey * ey).clamp_min(eps * eps))
     sign = torch.where(hit[pix], 1.0, -1.0).to(dt)
     cov = torch.sigmoid(sign * d / st.sigma)
-    l = torch.zeros(pix.shape[0], 3, dtype=dt, device=dev)
-    ar = torch.arange(pix.shape[0], device=dev)
-    l = l.index_put((ar, (k_ + 1) % 3), 1 - t).index_put((ar, (k_ + 2) % 3), t)
-    return PixelSamples(pix, b, f, l), cov
+    corners = torch.arange(3, device=dev).unsqueeze(1)
+    l = (corners == ends[:1]).to(dt) * (1 - t) + (corners == ends[1:]).to(dt) * t
+    return PixelSamples(pix, b, f, l, iz), cov
 
 
 def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) -> RasterPasses:
@@ -367,8 +404,9 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
         else:
             seg, skey = None, torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Vw.device)
         soft = _soft_pixels(skey, hit, B, S, st.soft_margin, dt)
-    inside = _inside_samples(hit, face_id, F, u, v, S, st.eps)
-    fringe, cov_s = _fringe_samples(soft, skey, seg, sc, hit, F, u, v, S, st)
+    table = _face_table(u, v, z, F, st.eps)
+    inside = _inside_samples(hit, face_id, table, F.shape[0], S)
+    fringe, cov_s = _fringe_samples(soft, skey, seg, sc, hit, table, F.shape[0], S, st)
     cov = torch.zeros(B * S * S, dtype=dt, device=Vw.device).index_put((inside.pix,), torch.ones_like(inside.pix, dtype=dt))
     return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=sc.front, face_id=face_id.view(B, S, S), hit=hit, inside=inside,
                         fringe=fringe, coverage=cov.index_put((fringe.pix,), cov_s))

@@ -145,7 +145,7 @@ def rasterize(V, F, *, camera: Camera | None = None, rotation=None, translation=
     Vw, eye, R = inp.expanded(inp.batch_size)
     r = run_passes(Vw, F, eye, R, inp.camera, inp.settings, inp.n_vertices)
     B, S = r.B, r.S
-    bary_in, depth_in = r.perspective_correct(F, r.inside)
+    bary_in, depth_in = r.perspective_correct(r.inside)
     zero = 0.0 * (r.Vc.sum())  # keeps every output connected to the inputs, with zero gradient
     bary = torch.zeros(B * S * S, 3, dtype=V.dtype, device=V.device).index_put((r.inside.pix,), bary_in) + zero
     depth = torch.zeros(B * S * S, dtype=V.dtype, device=V.device).index_put((r.inside.pix,), depth_in) + zero

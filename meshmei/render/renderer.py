@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import torch
 
-from ..operators import face_normals, vertex_normals
+from ..operators import corners, face_normals_from_corners, gather, vertex_normals_from_corners
 from .camera import Camera
 from .passes import run_passes
 from .raster import Fragments, prepare_inputs
 from .settings import RenderError, RenderSettings
-from .shading import lambert
+from .shading import shade_samples
 from .transforms import as_points, check_batch
 
 __all__ = ["render", "Renderer"]
@@ -69,31 +69,28 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     Vw, eye, R = inp.expanded(B)
     L = L.expand(B, 3)
     r = run_passes(Vw, F, eye, R, inp.camera, st, inp.n_vertices)
-    S = r.S
+    S, m = r.S, F.shape[0]
+    T = corners(inp.posed, F)  # (Bv, m, 3, 3), on the un-expanded batch
     if st.shading == "smooth":
-        normals = vertex_normals(inp.posed, F, eps=1e-12)  # on the un-expanded batch
-        normals = normals.expand(B, *normals.shape[1:])
+        normals = gather(vertex_normals_from_corners(T, F, inp.n_vertices, eps=1e-12), F)
     else:
-        normals = face_normals(inp.posed, F).expand(B, F.shape[0], 3)
+        normals = face_normals_from_corners(T).unsqueeze(2).expand(-1, -1, 3, -1)
+    normals = normals.expand(B, m, 3, 3)
+    if st.two_sided:  # faces seen from behind are lit with their normal turned towards the camera
+        normals = normals * torch.where(r.front, 1.0, -1.0).to(V.dtype).view(B, m, 1, 1)
+    table = torch.cat([T.expand(B, m, 3, 3), normals], -1).permute(2, 3, 0, 1).reshape(18, B * m)  # (corner x 6, bm)
+    Lt = L.t()
 
     def shade(samples):
-        b, f = samples.b, samples.f
-        bary, depth = r.perspective_correct(F, samples)
-        Fi = F[f]
-        P = (bary.unsqueeze(-1) * Vw[b.unsqueeze(1), Fi]).sum(1)  # (N, 3) surface points
-        if st.shading == "smooth":
-            N = (bary.unsqueeze(-1) * normals[b.unsqueeze(1), Fi]).sum(1)
-        else:
-            N = normals[b, f]
-        if st.two_sided:
-            N = torch.where(r.front[b, f].unsqueeze(1), N, -N)
-        return lambert(P, N, L[b], ambient=st.ambient, intensity=st.light_intensity, albedo=st.albedo,
-                       eps=st.eps), bary, depth
+        N = samples.pix.shape[0]
+        Lb = Lt.expand(3, N) if B == 1 else Lt.index_select(1, samples.b)
+        return shade_samples(samples.l, samples.iz, table.index_select(1, samples.b * m + samples.f).view(3, 6, N),
+                             Lb, ambient=st.ambient, intensity=st.light_intensity, albedo=st.albedo, eps=st.eps)
 
     dt, dev = V.dtype, V.device
-    shade_in, bary_in, depth_in = shade(r.inside)
+    shade_in = shade(r.inside)
     outside = r.fringe[~r.hit[r.fringe.pix]]
-    shade_out, _, _ = shade(outside)
+    shade_out = shade(outside)
     sh = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.inside.pix,), shade_in)
     sh = sh.index_put((outside.pix,), shade_out)
     c = r.coverage
@@ -103,6 +100,7 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     if not return_fragments:
         return image
 
+    bary_in, depth_in = r.perspective_correct(r.inside)
     bary = torch.zeros(B * S * S, 3, dtype=dt, device=dev).index_put((r.inside.pix,), bary_in)
     depth = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.inside.pix,), depth_in)
     frags = Fragments(face_id=r.face_id, bary=bary.view(B, S, S, 3), depth=depth.view(B, S, S),
