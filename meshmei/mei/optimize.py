@@ -15,7 +15,7 @@ import torch
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
-from ..optim import Budget, Progress, Schedule, Trace, minimize
+from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS, scale_weights
 from ..render import axis_angle_to_matrix, render
 from ..shapes import INITIAL_KINDS, initial_mesh
@@ -130,7 +130,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     scene = _Scene(V0, settings, seed)
     trace = Trace()
     accept = None if guard is None else guard.acceptor(scene.rbf)
-    out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), torch.optim.Adam(scene.groups),
+    out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), make_optimizer("adam", scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, accept=accept,
                    max_halvings=0 if guard is None else guard.rules.max_halvings,

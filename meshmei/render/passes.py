@@ -95,6 +95,8 @@ class PixelSamples:
         corner-major, ``(3, N)``: sums over corners then add rows, which is what keeps them cheap.
     iz : (3, N) float tensor
         Inverse view depth of the face's corners (differentiable).
+    slot : (N,) int64 tensor
+        The face's column in the per-face tables of the faces the samples use (:attr:`RasterPasses.used`).
     """
 
     pix: torch.Tensor
@@ -102,9 +104,11 @@ class PixelSamples:
     f: torch.Tensor
     l: torch.Tensor
     iz: torch.Tensor
+    slot: torch.Tensor
 
     def __getitem__(self, mask) -> "PixelSamples":
-        return PixelSamples(self.pix[mask], self.b[mask], self.f[mask], self.l[:, mask], self.iz[:, mask])
+        return PixelSamples(self.pix[mask], self.b[mask], self.f[mask], self.l[:, mask], self.iz[:, mask],
+                            self.slot[mask])
 
 
 @dataclass(frozen=True)
@@ -132,6 +136,11 @@ class RasterPasses:
         with the nearest point of the nearest contour segment.
     coverage : (B * S * S,) float tensor
         Soft coverage (differentiable).
+    used : (U,) int64 tensor
+        The (batch member, face) pairs some sample lies on, as ``b * m + f``, in increasing order; per-face
+        tables are built for these alone, so their cost follows the visible faces, not the mesh.
+    corner_index : (3, U) int64 tensor
+        Their corners as rows ``b * n + vertex`` of the flattened ``(B * n, ...)`` per-vertex arrays.
     """
 
     B: int
@@ -144,6 +153,8 @@ class RasterPasses:
     inside: PixelSamples
     fringe: PixelSamples
     coverage: torch.Tensor
+    used: torch.Tensor
+    corner_index: torch.Tensor
 
     def perspective_correct(self, samples: PixelSamples):
         """Perspective-correct barycentrics ``(N, 3)`` and view depth ``(N,)`` of ``samples``."""
@@ -312,17 +323,17 @@ def _soft_pixels(skey, hit, B, S, margin, dt) -> torch.Tensor:
 _TABLE = (1, 1, 3, 3, 3, 3, 3, 3)  # rows of the face table, see _face_table
 
 
-def _face_table(u, v, z, F, eps) -> torch.Tensor:
-    """What the per-pixel recomputation needs of each (batch member, face), column ``b * m + f`` (autograd).
+def _face_table(u, v, z, corner_index, eps) -> torch.Tensor:
+    """What the per-pixel recomputation needs of each used face, one column per face (autograd).
 
     Rows: corner 0 ``(u0, v0)``; the corners relative to it ``du, dv`` (3 + 3); the screen-space
     barycentrics as affine functions of the pixel centre relative to corner 0, ``l = a + bu * pu + bv * pv``
     (3 + 3 + 3); the corners' inverse view depths (3). Relative coordinates keep float32 exact enough
     on small faces far from the image origin.
     """
-    B, m = u.shape[0], F.shape[0]
-    corner = torch.stack([u, v, 1.0 / z])[:, :, F].permute(0, 3, 1, 2).reshape(3, 3, B * m)  # (u v iz, corner, bm)
-    cu, cv, iz = corner.unbind(0)
+    U = corner_index.shape[1]
+    per_vertex = torch.stack([u, v, 1.0 / z]).reshape(3, -1)  # (u v iz, B * n)
+    cu, cv, iz = per_vertex.index_select(1, corner_index.reshape(-1)).view(3, 3, U)  # (corner, U) each
     u0, v0 = cu[:1], cv[:1]
     du, dv = cu - u0, cv - v0
     ua, va = du.roll(-1, 0), dv.roll(-1, 0)  # corner i + 1
@@ -330,32 +341,24 @@ def _face_table(u, v, z, F, eps) -> torch.Tensor:
     a = ev * ua - eu * va  # twice the signed area of (i + 1, i + 2, corner 0)
     tot = a[0] + a[1] + a[2]
     tot = torch.where(tot.abs() > eps, tot, torch.full_like(tot, eps))
-    return torch.cat([u0, v0, du, dv, a / tot, -ev / tot, eu / tot, iz], 0)  # (20, B * m)
+    return torch.cat([u0, v0, du, dv, a / tot, -ev / tot, eu / tot, iz], 0)  # (20, U)
 
 
 def _pixel_centres(pix, S, dt):
     return (pix % S).to(dt) + 0.5, ((pix // S) % S).to(dt) + 0.5
 
 
-def _inside_samples(hit, face_id, table, m, S) -> PixelSamples:
+def _inside_samples(pix, b, f, slot, table, S) -> PixelSamples:
     """Covered pixels with the screen-space barycentrics of their centre in the visible face (autograd)."""
-    pix = hit.nonzero().squeeze(1)
-    b, f = pix // (S * S), face_id[pix]
-    u0, v0, _, _, a, bu, bv, iz = table.index_select(1, b * m + f).split(_TABLE, 0)
+    u0, v0, _, _, a, bu, bv, iz = table.index_select(1, slot).split(_TABLE, 0)
     pu, pv = _pixel_centres(pix, S, table.dtype)
-    return PixelSamples(pix, b, f, a + bu * (pu - u0) + bv * (pv - v0), iz)
+    return PixelSamples(pix, b, f, a + bu * (pu - u0) + bv * (pv - v0), iz, slot)
 
 
-def _fringe_samples(soft, skey, seg, sc: _Screen, hit, table, m, S, st: RenderSettings):
+def _fringe_samples(pix, b, f, slot, k_, hit, table, S, st: RenderSettings):
     """Soft pixels with the nearest point of their segment (autograd), and their coverage ``(Q,)``."""
     dt, dev, eps = table.dtype, table.device, st.eps
-    pix = soft.nonzero().squeeze(1)
-    if not pix.numel():
-        empty = torch.zeros(3, 0, dtype=dt, device=dev)
-        return PixelSamples(pix, pix, pix, empty, empty), torch.zeros(0, dtype=dt, device=dev)
-    s_, k_ = seg[skey[pix] & 0xFFFFFFFF].unbind(1)
-    b, f = sc.kb[s_], sc.kf[s_]
-    u0, v0, du, dv, _, _, _, iz = table.index_select(1, b * m + f).split(_TABLE, 0)
+    u0, v0, du, dv, _, _, _, iz = table.index_select(1, slot).split(_TABLE, 0)
     ends = torch.stack([(k_ + 1) % 3, (k_ + 2) % 3])  # (2, Q): the segment's corners in the face
     au, bu = du.gather(0, ends)
     av, bv = dv.gather(0, ends)
@@ -366,7 +369,20 @@ def _fringe_samples(soft, skey, seg, sc: _Screen, hit, table, m, S, st: RenderSe
     cov = torch.sigmoid(sign * d / st.sigma)
     corners = torch.arange(3, device=dev).unsqueeze(1)
     l = (corners == ends[:1]).to(dt) * (1 - t) + (corners == ends[1:]).to(dt) * t
-    return PixelSamples(pix, b, f, l, iz), cov
+    return PixelSamples(pix, b, f, l, iz, slot), cov
+
+
+def _used_faces(in_b, in_f, fr_b, fr_f, F, B, n):
+    """The faces some sample lies on (``b * m + f``, sorted), each sample's slot among them, their corners."""
+    m = F.shape[0]
+    mark = torch.zeros(B * m, dtype=torch.bool, device=F.device)
+    g_in, g_fr = in_b * m + in_f, fr_b * m + fr_f
+    mark[g_in] = True
+    mark[g_fr] = True
+    used = mark.nonzero().squeeze(1)
+    slot_of = torch.cumsum(mark, 0) - 1
+    corner_index = ((used // m) * n).unsqueeze(0) + F.index_select(0, used % m).t()  # (3, U)
+    return used, corner_index, slot_of[g_in], slot_of[g_fr]
 
 
 def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) -> RasterPasses:
@@ -404,11 +420,21 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
         else:
             seg, skey = None, torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Vw.device)
         soft = _soft_pixels(skey, hit, B, S, st.soft_margin, dt)
-    table = _face_table(u, v, z, F, st.eps)
-    inside = _inside_samples(hit, face_id, table, F.shape[0], S)
-    fringe, cov_s = _fringe_samples(soft, skey, seg, sc, hit, table, F.shape[0], S, st)
+        in_pix = hit.nonzero().squeeze(1)
+        in_b, in_f = in_pix // (S * S), face_id[in_pix]
+        fr_pix = soft.nonzero().squeeze(1)
+        if fr_pix.numel():
+            s_, k_ = seg[skey[fr_pix] & 0xFFFFFFFF].unbind(1)
+            fr_b, fr_f = sc.kb[s_], sc.kf[s_]
+        else:
+            fr_b = fr_f = k_ = fr_pix
+        used, corner_index, in_slot, fr_slot = _used_faces(in_b, in_f, fr_b, fr_f, F, B, Vw.shape[1])
+    table = _face_table(u, v, z, corner_index, st.eps)
+    inside = _inside_samples(in_pix, in_b, in_f, in_slot, table, S)
+    fringe, cov_s = _fringe_samples(fr_pix, fr_b, fr_f, fr_slot, k_, hit, table, S, st)
     cov = torch.zeros(B * S * S, dtype=dt, device=Vw.device).index_put((inside.pix,), torch.ones_like(inside.pix, dtype=dt))
     return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=sc.front, face_id=face_id.view(B, S, S), hit=hit, inside=inside,
-                        fringe=fringe, coverage=cov.index_put((fringe.pix,), cov_s))
+                        fringe=fringe, coverage=cov.index_put((fringe.pix,), cov_s), used=used,
+                        corner_index=corner_index)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ..operators import corners, face_normals_from_corners, gather, vertex_normals_from_corners
+from ..operators import corners, face_normals, vertex_normals_from_corners
 from .camera import Camera
 from .passes import run_passes
 from .raster import Fragments, prepare_inputs
@@ -70,21 +70,23 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     L = L.expand(B, 3)
     r = run_passes(Vw, F, eye, R, inp.camera, st, inp.n_vertices)
     S, m = r.S, F.shape[0]
-    T = corners(inp.posed, F)  # (Bv, m, 3, 3), on the un-expanded batch
-    if st.shading == "smooth":
-        normals = gather(vertex_normals_from_corners(T, F, inp.n_vertices, eps=1e-12), F)
+    n = inp.n_vertices
+    if st.shading == "smooth":  # on the un-expanded batch, then the used faces' corners
+        normals = vertex_normals_from_corners(corners(inp.posed, F), F, n, eps=1e-12).expand(B, n, 3)
+        normals = normals.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3)
     else:
-        normals = face_normals_from_corners(T).unsqueeze(2).expand(-1, -1, 3, -1)
-    normals = normals.expand(B, m, 3, 3)
+        normals = face_normals(inp.posed, F).expand(B, m, 3).reshape(B * m, 3).index_select(0, r.used)
+        normals = normals.unsqueeze(0).expand(3, -1, 3)
     if st.two_sided:  # faces seen from behind are lit with their normal turned towards the camera
-        normals = normals * torch.where(r.front, 1.0, -1.0).to(V.dtype).view(B, m, 1, 1)
-    table = torch.cat([T.expand(B, m, 3, 3), normals], -1).permute(2, 3, 0, 1).reshape(18, B * m)  # (corner x 6, bm)
+        normals = normals * torch.where(r.front.view(-1)[r.used], 1.0, -1.0).to(V.dtype).view(1, -1, 1)
+    positions = Vw.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3)
+    table = torch.cat([positions, normals], 2).permute(0, 2, 1)  # (corner, 6, used face)
     Lt = L.t()
 
     def shade(samples):
         N = samples.pix.shape[0]
         Lb = Lt.expand(3, N) if B == 1 else Lt.index_select(1, samples.b)
-        return shade_samples(samples.l, samples.iz, table.index_select(1, samples.b * m + samples.f).view(3, 6, N),
+        return shade_samples(samples.l, samples.iz, table.index_select(2, samples.slot),
                              Lb, ambient=st.ambient, intensity=st.light_intensity, albedo=st.albedo, eps=st.eps)
 
     dt, dev = V.dtype, V.device
