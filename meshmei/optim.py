@@ -164,16 +164,16 @@ class Outcome:
 
     Attributes
     ----------
-    loss : float
+    loss : float, or list of floats for a batched objective
         The kept iterate's loss (the lowest seen with ``keep="best"``; the last step's otherwise).
-    step : int
+    step : int, or list of ints for a batched objective
         Steps done before the kept iterate (``trace.step`` when it is the final one).
     budget_spent : bool
         The whole budget is used (False when the call stopped at ``stop_at < 1``).
     """
 
-    loss: float
-    step: int
+    loss: float | list
+    step: int | list
     budget_spent: bool
 
 
@@ -195,10 +195,60 @@ def _parameters(optimizer):
     return [p for g in optimizer.param_groups for p in g["params"]]
 
 
-def _guard(value: float, step: int, optimizer, error: type[Exception], where: str) -> None:
-    if not math.isfinite(value):
-        lr = optimizer.param_groups[0]["lr0"]
-        raise error(f"the loss became {value} at step {step}{where}; lower the learning rate (lr={lr:g})")
+def _guard(values: torch.Tensor, step: int, optimizer, error: type[Exception], where: str) -> None:
+    if bool(torch.isfinite(values).all()):
+        return
+    lr = optimizer.param_groups[0]["lr0"]
+    if values.ndim == 0:
+        raise error(f"the loss became {float(values)} at step {step}{where}; lower the learning rate (lr={lr:g})")
+    bad = (~torch.isfinite(values)).nonzero().squeeze(1).tolist()
+    raise error(f"the loss became {float(values[bad[0]])} at step {step} for item(s) {bad} of the batch{where}; "
+                f"lower the learning rate (lr={lr:g}) or run those items alone")
+
+
+class _Best:
+    """Keep-best: the lowest loss seen and a copy of the parameters then. For a batched objective (a loss
+    vector), per item: every parameter's leading axis indexes the items."""
+
+    def __init__(self, params, step: int):
+        self.params, self.value, self.step, self.saved = params, math.inf, step, None
+
+    @torch.no_grad()
+    def offer(self, values: torch.Tensor, step: int) -> None:
+        if values.ndim == 0:
+            if float(values) < self.value:
+                self.value, self.step, self.saved = float(values), step, [p.detach().clone() for p in self.params]
+            return
+        if self.saved is None:
+            self.value = torch.full_like(values, math.inf)
+            self.step = torch.full(values.shape, step, dtype=torch.int64)
+            self.saved = [p.detach().clone() for p in self.params]
+        better = values < self.value
+        if bool(better.any()):
+            self.value = torch.where(better, values, self.value)
+            self.step = torch.where(better.cpu(), step, self.step)
+            for kept, p in zip(self.saved, self.params):
+                kept.copy_(torch.where(better.view(-1, *[1] * (p.ndim - 1)), p.detach(), kept))
+
+    @torch.no_grad()
+    def finish(self, last: torch.Tensor, step: int) -> tuple:
+        """Keep the final iterate where it is no worse than the best seen, else restore the best."""
+        if last.ndim == 0:
+            if self.saved is None or float(last) <= self.value:
+                return float(last), step
+            for p, kept in zip(self.params, self.saved):
+                p.copy_(kept)
+            return self.value, self.step
+        if self.saved is None:
+            return last.tolist(), [step] * last.shape[0]
+        take = last <= self.value
+        for p, kept in zip(self.params, self.saved):
+            p.copy_(torch.where(take.view(-1, *[1] * (p.ndim - 1)), p, kept))
+        return torch.where(take, last, self.value).tolist(), torch.where(take.cpu(), step, self.step).tolist()
+
+
+def _as_record(values: torch.Tensor):
+    return float(values) if values.ndim == 0 else values.tolist()
 
 
 @torch.no_grad()
@@ -230,6 +280,13 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     parameters if it is the lowest loss so far (``keep="best"``); backward; ``optimizer.step()``; with
     ``accept``, halve the step until ``accept()`` holds, or undo it; append a history record; update
     ``progress``; call each ``callback(record)`` (their time is not counted).
+
+    **Batched objectives.** The loss may be a ``(B,)`` vector of B independent items (a batch of 3D-MEIs):
+    every parameter then has the items on its leading axis and no parameter is shared between items. One
+    backward of the sum gives each item its own gradient; element-wise optimisers (Adam) then step each
+    item as if alone. Keep-best, the final comparison and the outcome are per item; the history records
+    the loss as a list. A non-finite loss of any item raises ``error`` naming the items. ``accept`` is
+    for scalar objectives only.
 
     Parameters
     ----------
@@ -274,7 +331,7 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     params = _parameters(optimizer)
     for g in optimizer.param_groups:
         g.setdefault("lr0", g["lr"])
-    best = (math.inf, trace.step, None)
+    best = _Best(params, trace.step)
     while (f := budget.fraction(trace.step, trace.seconds)) < stop_at:
         t0 = time.perf_counter()
         c = schedule.factor(budget.schedule_fraction(trace.step, trace.seconds, schedule.endpoint))
@@ -282,18 +339,21 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
             g["lr"], g["factor"] = g["lr0"] * c, c
         optimizer.zero_grad(set_to_none=True)
         loss, record = objective(StepPoint(trace.step, f, c))
-        value = float(loss.detach())
-        _guard(value, trace.step, optimizer, error, where)
-        if keep == "best" and value < best[0]:
-            best = (value, trace.step, [p.detach().clone() for p in params])
-        loss.backward()
+        values = loss.detach()
+        if values.ndim > 1 or (values.ndim == 1 and accept is not None):
+            raise ValueError(f"the objective must return a scalar or, without accept, a (B,) loss; got shape "
+                             f"{tuple(values.shape)}")
+        _guard(values, trace.step, optimizer, error, where)
+        if keep == "best":
+            best.offer(values, trace.step)
+        (loss if loss.ndim == 0 else loss.sum()).backward()  # items share no parameter: one backward for all
         before = None if accept is None else [p.detach().clone() for p in params]
         optimizer.step()
         if accept is not None:
             record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings))
         trace.step += 1
         trace.seconds += time.perf_counter() - t0
-        rec = {"step": trace.step, "time": trace.seconds, "loss": value,
+        rec = {"step": trace.step, "time": trace.seconds, "loss": _as_record(values),
                "lr": optimizer.param_groups[0]["lr"], **record}
         trace.history.append(rec)
         if progress is not None:
@@ -304,10 +364,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     if keep == "last" and not evaluate_last:
         return Outcome(trace.history[-1]["loss"] if trace.history else math.nan, trace.step, spent)
     with torch.no_grad():
-        last = float(objective(StepPoint(trace.step, 1.0, schedule.factor(1.0)))[0])
-    if keep == "last" or best[2] is None or last <= best[0]:
-        return Outcome(last, trace.step, spent)
-    with torch.no_grad():
-        for p, saved in zip(params, best[2]):
-            p.copy_(saved)
-    return Outcome(best[0], best[1], spent)
+        last = objective(StepPoint(trace.step, 1.0, schedule.factor(1.0)))[0].detach()
+    if keep == "last":
+        return Outcome(_as_record(last), trace.step if last.ndim == 0 else [trace.step] * last.shape[0], spent)
+    loss, step = best.finish(last, trace.step)
+    return Outcome(loss, step, spent)

@@ -116,3 +116,36 @@ def test_parameterisations_start_at_the_rest_shape_and_list_their_groups():
         n = sum(t.numel() for g in p.groups for t in g["params"])
         assert n >= V0.numel() and all(g["lr"] > 0 for g in p.groups)
     assert set(RBFParameterisation(V0, lr=0.1).info()) >= {"n_kernels", "truncation_error", "n_pairs_final"}
+
+
+def test_a_batched_objective_steps_each_item_as_if_alone():
+    """A (B,) loss over parameters with the items on their leading axis: per-item keep-best, outcome and
+    history, and the same iterates as B separate scalar runs (Adam is element-wise)."""
+    targets = torch.tensor([[1.0, -2.0], [0.5, 3.0], [-1.0, 0.0]], dtype=torch.float64)
+    noise = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+
+    def bumpy(x, t):  # a loss that rises late in the run for some items: keep-best must act per item
+        return ((x - t) ** 2).sum(-1) + noise * torch.cos(7 * x.sum(-1))
+
+    X = torch.zeros(3, 2, dtype=torch.float64, requires_grad=True)
+    out = minimize(lambda p: (bumpy(X, targets), {}), make_optimizer("adam", [{"params": [X], "lr": 0.3}]),
+                   Budget(steps=25), keep="best")
+    assert isinstance(out.loss, list) and len(out.loss) == 3 and len(out.step) == 3
+    for b in range(3):
+        x = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+        solo = minimize(lambda p: (((x - targets[b]) ** 2).sum() + noise[b] * torch.cos(7 * x.sum()), {}),
+                        make_optimizer("adam", [{"params": [x], "lr": 0.3}]), Budget(steps=25), keep="best")
+        torch.testing.assert_close(X.detach()[b], x.detach(), rtol=1e-12, atol=1e-12)
+        assert out.loss[b] == pytest.approx(solo.loss, rel=1e-12) and out.step[b] == solo.step
+    assert len(set(out.step)) > 1  # the items kept iterates of different steps: keep-best acted per item
+
+
+def test_a_batched_objective_names_the_items_whose_loss_is_not_finite():
+    X = torch.zeros(4, 2, requires_grad=True)
+
+    def objective(point):
+        loss = (X ** 2).sum(-1)
+        return loss / torch.tensor([1.0, 0.0, 1.0, 0.0]), {}
+
+    with pytest.raises(FloatingPointError, match=r"item\(s\) \[1, 3\]"):
+        minimize(objective, make_optimizer("adam", [{"params": [X], "lr": 0.1}]), Budget(steps=3))

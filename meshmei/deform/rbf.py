@@ -287,9 +287,19 @@ class RBFDeformer(torch.nn.Module):
         self.n_rebuilds += 1
 
     def _ensure_covered(self) -> None:
+        self.cover(self.log_sigma)
+
+    def cover(self, log_sigma: torch.Tensor) -> None:
+        """Rebuild the pair list if it no longer covers ``r_cut`` scales of the kernels ``exp(log_sigma)``."""
         with torch.no_grad():
-            if bool((self.r_cut * self.sigma > self._radius).any()):
-                self._build(self.sigma)
+            sigma = torch.exp(log_sigma)
+            if bool((self.r_cut * sigma > self._radius).any()):
+                self._build(sigma)
+
+    def dense_pairs(self):
+        """``(D2, mask)``, the ``(n, K)`` squared distances (zero off the pair list) and 0/1 mask when the map
+        runs as one dense matrix (see :data:`DENSE_MIN_FILL`); None when it runs on the sparse pair list."""
+        return None if self._dense_d2 is None else (self._dense_d2, self._dense_mask)
 
     @property
     def truncation_error(self) -> float:
@@ -331,16 +341,22 @@ class RBFDeformer(torch.nn.Module):
     def displacement(self) -> torch.Tensor:
         """``sum_k delta_k w_k(V0)``, ``(n, 3)``."""
         self._ensure_covered()
+        return self.displacement_with(self.offsets, self.log_sigma)
+
+    def displacement_with(self, offsets: torch.Tensor, log_sigma: torch.Tensor) -> torch.Tensor:
+        """The displacement for other parameters ``offsets (K, 3)`` and ``log_sigma (K,)`` on this deformer's
+        pair list (call :meth:`cover` for ``log_sigma`` first); differentiable in both."""
         if self._dense_d2 is not None:
             D2, mask = self._dense_d2, self._dense_mask
-            inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)
+            inv = 0.5 * torch.exp(-2.0 * log_sigma)  # (K,) 1 / (2 sigma^2)
             W = torch.exp(-D2 * inv.unsqueeze(0)) * mask  # (n, K), zero off the pair list
-            return (W.to(self.offsets.dtype) @ self.offsets).to(self.V0.dtype)
-        if not self.log_sigma.requires_grad:  # fixed scales: a constant sparse matrix
+            return (W.to(offsets.dtype) @ offsets).to(self.V0.dtype)
+        if not log_sigma.requires_grad and log_sigma is self.log_sigma:  # fixed scales: a constant sparse matrix
             W, Wt = self._fixed_matrices()
-            return _FixedMap.apply(self.offsets, W, Wt).to(self.V0.dtype)
-        w = self._pair_weights()
-        contrib = w.unsqueeze(1) * self.offsets[self._cols]  # (P, 3)
+            return _FixedMap.apply(offsets, W, Wt).to(self.V0.dtype)
+        inv = 0.5 * torch.exp(-2.0 * log_sigma)
+        w = torch.exp(-self._d2 * inv[self._cols])  # (P,)
+        contrib = w.unsqueeze(1) * offsets[self._cols]  # (P, 3)
         return torch.zeros_like(self.V0).index_add(0, self._rows, contrib.to(self.V0.dtype))
 
     def forward(self) -> torch.Tensor:

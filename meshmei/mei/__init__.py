@@ -1,6 +1,7 @@
 """3D maximally exciting inputs: settings, the optimisation, baselines, run directories, and the pixel MEI."""
 
 from .baselines import grid_search, random_deformations, random_mesh_responses
+from .batch import mei_batches, optimize_mei_batch
 from .optimize import optimize_mei
 from .pixel import PixelMEIResult, gaussian_blur, pixel_mei
 from .runs import RUN_FORMAT, load_run, save_run
@@ -10,6 +11,8 @@ __all__ = [
     "MEISettings",
     "MEIResult",
     "optimize_mei",
+    "optimize_mei_batch",
+    "mei_batches",
     "grid_search",
     "random_deformations",
     "random_mesh_responses",

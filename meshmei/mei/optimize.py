@@ -17,13 +17,13 @@ from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS, scale_weights
-from ..render import axis_angle_to_matrix, render
 from ..shapes import INITIAL_KINDS, initial_mesh
 from ..operators import face_normals
 from ..validity import StepGuard, margin_penalty
-from .settings import MEIResult, MEISettings, make_deformer
+from .scene import SeedScene
+from .settings import MEIResult, MEISettings
 
-__all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder"]
+__all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights"]
 
 
 def check_neuron(encoder, neuron) -> int:
@@ -69,43 +69,14 @@ def initial(init, settings: MEISettings):
     return V0.detach().to(settings.torch_dtype), F.long(), "custom"
 
 
-class _Scene:
-    """The learnable scene of one seed: RBF offsets (and scales), optionally the light and the pose."""
-
-    def __init__(self, V0, settings: MEISettings, seed: int):
-        dtype = V0.dtype
-        g = torch.Generator().manual_seed(int(seed))
-        self.rbf = make_deformer(V0, settings)
-        with torch.no_grad():
-            self.rbf.offsets.copy_(settings.init_noise * torch.randn(self.rbf.offsets.shape, generator=g,
-                                                                     dtype=torch.float64))
-        self.groups = [{"params": [self.rbf.offsets], "lr": settings.lr}]
-        if settings.lr_scales > 0:
-            self.groups.append({"params": [self.rbf.log_sigma], "lr": settings.lr_scales})
-        given = settings.light is not None
-        light0 = settings.light if given else (0.0, 0.0, float(settings.camera_distance))
-        self.light = torch.tensor(light0, dtype=dtype) if (settings.optimize_light or given) else None
-        self.rotation, self.translation = torch.zeros(3, dtype=dtype), torch.zeros(3, dtype=dtype)
-        if settings.optimize_light:
-            self.light.requires_grad_(True)
-            self.groups.append({"params": [self.light], "lr": settings.lr_light})
-        self.camera, self.render_settings = settings.camera(), settings.render_settings()  # built once per seed
-        self.pose = settings.optimize_pose
-        if self.pose:
-            self.rotation.requires_grad_(True)
-            self.translation.requires_grad_(True)
-            self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
-
-    def image(self, V, F, *, pose: bool | None = None) -> torch.Tensor:
-        kw = {}
-        if self.pose if pose is None else pose:
-            kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
-        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings, **kw)
-
-
-def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings, n_weights: int):
+def objective_weights(settings: MEISettings, n_weights: int) -> dict:
+    """The regularizer weights a run uses (scaled to ``n_weights`` vertices), the zero ones left out."""
     weights = scale_weights(settings.weights, n_weights, settings.reg_ref_vertices)
-    active = {k: w for k, w in weights.items() if w > 0}
+    return {k: w for k, w in weights.items() if w > 0}
+
+
+def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_weights: int):
+    active = objective_weights(settings, n_weights)
     normals0 = face_normals(scene.rbf.V0, F).detach()
     w_margin = settings.margin_weight if settings.valid_steps else 0.0
 
@@ -127,7 +98,7 @@ def _objective(encoder, neuron, F, scene: _Scene, settings: MEISettings, n_weigh
 
 
 def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights) -> dict:
-    scene = _Scene(V0, settings, seed)
+    scene = SeedScene(V0, settings, seed)
     trace = Trace()
     accept = None if guard is None else guard.acceptor(scene.rbf)
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), make_optimizer("adam", scene.groups),
@@ -197,6 +168,12 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     finally:
         bar.close()
     wall = time.perf_counter() - t0
+    return result_from_seeds(runs, V0, F, settings, neuron, encoder, init_name, wall)
+
+
+def result_from_seeds(runs: dict, V0, F, settings: MEISettings, neuron: int, encoder, init_name: str,
+                      wall: float) -> MEIResult:
+    """The :class:`MEIResult` of one neuron from its seeds' runs (``seed -> run dict``): the lowest loss wins."""
     seed = min(runs, key=lambda s: runs[s]["loss"])
     r = runs[seed]
     return MEIResult(
@@ -205,4 +182,4 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
         seed_activations={s: runs[s]["activation"] for s in runs}, settings=settings, neuron=neuron,
         encoder=encoder_spec(encoder), deformer_state=r["deformer_state"], light=r["light"], rotation=r["rotation"],
         translation=r["translation"], init=init_name, wall_time=wall,
-        seconds_per_step=wall / (settings.steps * len(settings.seeds)))
+        seconds_per_step=wall / (settings.steps * len(runs)))

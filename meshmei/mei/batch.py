@@ -1,0 +1,208 @@
+"""Batched 3D-MEIs: many (neuron, seed) items optimised together, one render and one model call per step.
+
+The items share the start mesh, its faces and the settings. Each has its own RBF offsets and scales (and
+light and pose when those are optimised), stacked on a leading batch axis. A step renders the B meshes in
+one call, runs the model once on the B images and reads each item's own neuron, evaluates the regularizers
+on the batch, and takes one backward of the summed losses: items share no parameter, so each gets the
+gradient it would get alone, and Adam, which acts element by element, steps each as if alone
+(:func:`meshmei.optim.minimize`, batched objectives). Results equal those of :func:`optimize_mei` run item
+by item up to float rounding (tested).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Iterator
+
+import torch
+
+from ..encoders import Encoder, frozen_encoder
+from ..errors import MEIError
+from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
+from ..regularizers import REGULARIZERS
+from ..render import axis_angle_to_matrix, render
+from .optimize import check_neuron, initial, objective_weights, optimize_mei, result_from_seeds, settings_for_encoder
+from .scene import SeedScene
+from .settings import MEIResult, MEISettings
+
+__all__ = ["BatchScene", "optimize_mei_batch", "mei_batches"]
+
+
+class BatchScene:
+    """The learnable scenes of B items, stacked: offsets ``(B, K, 3)``, log-scales ``(B, K)``, lights and poses.
+
+    Each item keeps its own :class:`~meshmei.deform.RBFDeformer` for its pair list (rebuilt when its own
+    scales outgrow it, as alone); when every item's map is dense the B maps run as one batched product.
+    """
+
+    def __init__(self, V0, settings: MEISettings, seeds):
+        self.seeds = [SeedScene(V0, settings, s) for s in seeds]  # the same initial draws as alone
+        self.rbfs = [s.rbf for s in self.seeds]
+        self.V0 = V0
+        self.offsets = torch.nn.Parameter(torch.stack([r.offsets.detach() for r in self.rbfs]))
+        log_sigma = torch.stack([r.log_sigma.detach() for r in self.rbfs])
+        learn = settings.lr_scales > 0
+        self.log_sigma = torch.nn.Parameter(log_sigma) if learn else log_sigma
+        self.groups = [{"params": [self.offsets], "lr": settings.lr}]
+        if learn:
+            self.groups.append({"params": [self.log_sigma], "lr": settings.lr_scales})
+        first = self.seeds[0]
+        self.light = None
+        if first.light is not None:
+            self.light = torch.stack([s.light.detach() for s in self.seeds])
+            if settings.optimize_light:
+                self.light = torch.nn.Parameter(self.light)
+                self.groups.append({"params": [self.light], "lr": settings.lr_light})
+        B = len(self.seeds)
+        self.rotation = torch.zeros(B, 3, dtype=V0.dtype)
+        self.translation = torch.zeros(B, 3, dtype=V0.dtype)
+        self.pose = settings.optimize_pose
+        if self.pose:
+            self.rotation, self.translation = torch.nn.Parameter(self.rotation), torch.nn.Parameter(self.translation)
+            self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
+        self.camera, self.render_settings = first.camera, first.render_settings
+        self._dense_key, self._dense = None, None
+
+    def vertices(self) -> torch.Tensor:
+        """Deformed vertices of every item, ``(B, n, 3)``."""
+        for r, ls in zip(self.rbfs, self.log_sigma):
+            r.cover(ls)
+        pairs = [r.dense_pairs() for r in self.rbfs]
+        if any(p is None for p in pairs):  # a sparse map somewhere: item by item
+            disp = torch.stack([r.displacement_with(o, ls) for r, o, ls in zip(self.rbfs, self.offsets, self.log_sigma)])
+            return self.V0 + disp
+        key = tuple(r.n_rebuilds for r in self.rbfs)
+        if key != self._dense_key:
+            self._dense = (torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs]))
+            self._dense_key = key
+        D2, mask = self._dense
+        inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (B, K)
+        W = torch.exp(-D2 * inv.unsqueeze(1)) * mask  # (B, n, K)
+        return self.V0 + torch.matmul(W.to(self.offsets.dtype), self.offsets).to(self.V0.dtype)
+
+    def image(self, V, F, *, pose: bool | None = None) -> torch.Tensor:
+        kw = {}
+        if self.pose if pose is None else pose:
+            kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
+        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings, **kw)
+
+    def item_state(self, b: int) -> dict:
+        """Item ``b``'s deformer ``state_dict``, as :func:`optimize_mei` stores it."""
+        rbf = self.rbfs[b]
+        with torch.no_grad():
+            rbf.offsets.copy_(self.offsets[b])
+            rbf.log_sigma.copy_(self.log_sigma[b])
+        return {k: v.detach().clone() for k, v in rbf.state_dict().items()}
+
+
+def _responses(encoder, images, neurons) -> torch.Tensor:
+    """Each item's own neuron's response, ``(B,)``, from one model call over the distinct neurons."""
+    unique, cols = torch.unique(torch.as_tensor(neurons), return_inverse=True)
+    return encoder(images, unique.tolist()).gather(1, cols.view(-1, 1)).squeeze(1)
+
+
+def _objective(encoder, neurons, F, scene: BatchScene, active: dict):
+    def objective(point):
+        V = scene.vertices()
+        f = _responses(encoder, scene.image(V, F), neurons)
+        loss, record = -f, {"response": f.detach().tolist()}
+        for k, w in active.items():
+            r = REGULARIZERS[k](V, scene.V0, F)  # (B,)
+            record[k] = r.detach().tolist()
+            loss = loss + w * r
+        return loss, record
+
+    return objective
+
+
+def _check_batch_size(batch_size) -> None:
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise MEIError(f"batch_size must be a positive integer, got {batch_size!r}")
+
+
+def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress) -> list[dict]:
+    """Optimise the ``(neuron, seed)`` items together; one run dict per item, as ``optimize_mei`` makes per seed."""
+    neurons = [n for n, _ in items]
+    scene = BatchScene(V0, settings, [s for _, s in items])
+    trace = Trace()
+    out = minimize(_objective(encoder, neurons, F, scene, objective_weights(settings, n_weights)),
+                   make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
+                   schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep=settings.keep,
+                   evaluate_last=True, trace=trace, progress=bar, error=MEIError,
+                   where=f" (items {items})")
+    with torch.no_grad():
+        V = scene.vertices().detach()
+        images = scene.image(V, F, pose=True).detach()
+        acts = _responses(encoder, images, neurons).tolist()
+    h = trace.history
+    runs = []
+    for b in range(len(items)):
+        runs.append(dict(
+            V=V[b], image=images[b:b + 1], activation=acts[b], loss=out.loss[b], best_step=out.step[b],
+            history=[r["response"][b] for r in h], loss_history=[r["loss"][b] for r in h],
+            reg_history={k: [r[k][b] for r in h] for k, w in settings.weights.items() if w > 0},
+            time_history=[r["time"] for r in h], deformer_state=scene.item_state(b),
+            light=None if scene.light is None else scene.light[b].detach().clone(),
+            rotation=scene.rotation[b].detach().clone(), translation=scene.translation[b].detach().clone()))
+    return runs
+
+
+def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings | None = None, *,
+                batch_size: int = 8, progress: Progress | None = None, **overrides) -> Iterator[tuple[int, MEIResult]]:
+    """3D-MEIs of several neurons, their (neuron, seed) items run ``batch_size`` at a time; yields
+    ``(neuron, MEIResult)`` as soon as all of a neuron's seeds are done, in the order of ``neurons``.
+
+    Each result is the one :func:`optimize_mei` gives for that neuron (the lowest-loss seed), up to float
+    rounding; its ``wall_time`` is the neuron's share of its batches' time. With ``valid_steps`` (the step
+    guard is per item and not batched) every neuron runs alone through :func:`optimize_mei`.
+    ``progress`` (a :class:`~meshmei.optim.Progress` over steps of batches) is updated, not closed.
+    """
+    settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
+    neurons = [check_neuron(encoder, n) for n in neurons]
+    if len(set(neurons)) != len(neurons):
+        twice = sorted({n for n in neurons if neurons.count(n) > 1})
+        raise MEIError(f"neurons {twice} are listed twice; each neuron's seeds are its items")
+    _check_batch_size(batch_size)
+    if settings.valid_steps:
+        for n in neurons:
+            yield n, optimize_mei(encoder, n, init, settings)
+        return
+    V0, F, init_name = initial(init, settings)
+    n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
+    items = [(n, s) for n in neurons for s in settings.seeds]
+    done: dict[int, dict] = {}
+    seconds: dict[int, float] = {}
+    bar = progress if progress is not None else Progress(1, "", enabled=False)
+    with frozen_encoder(encoder):
+        for start in range(0, len(items), batch_size):
+            chunk = items[start:start + batch_size]
+            t0 = time.perf_counter()
+            runs = _run_batch(encoder, chunk, V0, F, settings, n_weights, bar)
+            share = (time.perf_counter() - t0) / len(chunk)
+            for (n, s), run in zip(chunk, runs):
+                done.setdefault(n, {})[s] = run
+                seconds[n] = seconds.get(n, 0.0) + share
+            finished = [n for n in dict.fromkeys(n for n, _ in chunk) if len(done[n]) == len(settings.seeds)]
+            for n in finished:
+                yield n, result_from_seeds(done.pop(n), V0, F, settings, n, encoder, init_name, seconds.pop(n))
+
+
+def optimize_mei_batch(encoder: Encoder, neurons, init="sheet", settings: MEISettings | None = None, *,
+                       batch_size: int = 8, progress: bool = False, **overrides) -> dict[int, MEIResult]:
+    """3D-MEIs of several neurons, batched (see :func:`mei_batches`): ``{neuron: MEIResult}``.
+
+    Examples
+    --------
+    >>> from meshmei.encoders import GaborSimpleCell
+    >>> res = optimize_mei_batch(GaborSimpleCell(), [0], "sheet", steps=3, seeds=(0, 1), image_size=16, n_vertices=64)
+    >>> sorted(res[0].seed_activations)
+    [0, 1]
+    """
+    s = MEISettings.with_overrides(settings, overrides)
+    _check_batch_size(batch_size)
+    neurons = list(neurons)
+    bar = Progress(s.steps * -(-len(neurons) * len(s.seeds) // batch_size), "3D-MEI batches", enabled=progress)
+    try:
+        return dict(mei_batches(encoder, neurons, init, s, batch_size=batch_size, progress=bar))
+    finally:
+        bar.close()
