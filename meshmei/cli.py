@@ -13,6 +13,7 @@ import torch
 from .encoders import load_model, make_encoder
 from .errors import MEIError
 from .mei import MEISettings, optimize_mei, pixel_mei, save_run
+from .population import parse_neurons, run_population
 from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
     METHODS,
@@ -243,10 +244,58 @@ def _run_tune(args) -> int:
     return 0
 
 
+def _add_population(sub) -> None:
+    d = MEISettings()
+    p = sub.add_parser("population", help="3D-MEIs and pixel MEIs of many neurons: batched, resumable, one folder each",
+                       description="3D-MEIs of many neurons (each with every seed; the best kept), their pixel MEIs, "
+                                   "one run folder per neuron under --out/neurons, population.csv and population.png. "
+                                   "Rerun the same command to resume: finished neurons are skipped.")
+    p.add_argument("--encoder", default="demo", choices=ENCODERS, help="a built-in encoder (default demo)")
+    _add_model_options(p, "--encoder")
+    p.add_argument("--neurons", required=True, help="ranges and lists, e.g. 0-99 or 0-9,20,30-32")
+    p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
+    p.add_argument("--steps", type=int, default=d.steps)
+    p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
+    p.add_argument("--image-size", type=int, default=None,
+                   help=f"render size in pixels (default {d.image_size}, or the model's own size with --model)")
+    p.add_argument("--n-vertices", type=int, default=d.n_vertices)
+    p.add_argument("--out", required=True, help="the population folder (created, or resumed)")
+    p.add_argument("--batch-size", type=int, default=8, help="(neuron, seed) items optimised together (default 8)")
+    p.add_argument("--pixel-steps", type=int, default=200, help="steps of each pixel MEI (0: none; default 200)")
+    p.add_argument("--cluster", default=None, metavar="ray|ray://HOST:PORT",
+                   help="run batches as Ray tasks (pip install 'meshmei[cluster]'); default: in this process")
+    p.add_argument("--device", default="cpu", help="cpu (this version renders on the CPU)")
+    p.add_argument("--figures", action="store_true", help="also write each run folder's figures")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_run_population)
+
+
+def _run_population(args) -> int:
+    encoder = _cli_encoder(args)
+    image_size = args.image_size or getattr(encoder, "image_size", (MEISettings.image_size,))[0]
+    settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
+                           n_vertices=args.n_vertices)
+    try:
+        rows = run_population(encoder, parse_neurons(args.neurons), args.out, init=args.init, settings=settings,
+                              batch_size=args.batch_size, pixel_steps=args.pixel_steps, cluster=args.cluster,
+                              device=args.device, figures=args.figures, progress=not args.quiet)
+    except KeyboardInterrupt:
+        print(f"meshmei population: interrupted; finished neurons are kept in {args.out}; run the same command "
+              "to resume", file=sys.stderr)
+        return 130
+    ratios = [r["ratio"] for r in rows if r["ratio"] is not None]
+    line = f"population: {len(rows)} neurons in {args.out}"
+    if ratios:
+        line += f"; 3D-MEI / pixel-MEI response {sum(ratios) / len(ratios):.3f} on average ({min(ratios):.3f}-{max(ratios):.3f})"
+    clean = sum(1 for r in rows if r["self_intersections"] == 0)
+    print(f"{line}; {clean} of {len(rows)} free of self-intersections; wrote population.csv, population.png")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshmei", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_regularizers, _add_demo, _add_reconstruct, _add_tune, _add_mei):
+    for add in (_add_regularizers, _add_demo, _add_reconstruct, _add_tune, _add_mei, _add_population):
         add(sub)
     return parser
 

@@ -22,7 +22,7 @@ def _two_cell_encoder():
     def model(x):
         return torch.cat([simple(x, preprocessed=True), complex_(x, preprocessed=True)], 1)
 
-    return encoder_from_model(model, mean=0.5, std=0.2)
+    return encoder_from_model(model, mean=0.5, std=0.2, image_size=24)
 
 
 @pytest.mark.parametrize("batch_size", [3, 8])
@@ -51,7 +51,7 @@ def test_batched_items_equal_their_runs_alone(batch_size):
 
 def test_batches_yield_each_neuron_once_as_its_seeds_finish():
     enc = _two_cell_encoder()
-    s = MEISettings(steps=2, seeds=(0, 1, 2), image_size=16, n_vertices=40)
+    s = MEISettings(steps=2, seeds=(0, 1, 2), image_size=24, n_vertices=40)
     seen = []
     for n, res in mei_batches(enc, [1, 0], "sheet", s, batch_size=4):  # batches (1,0..2)+(0,0), then (0,1..2)
         seen.append(n)
@@ -61,7 +61,7 @@ def test_batches_yield_each_neuron_once_as_its_seeds_finish():
 
 def test_valid_steps_runs_each_neuron_alone_with_its_guard():
     enc = _two_cell_encoder()
-    s = MEISettings(steps=3, seeds=(0,), image_size=16, n_vertices=40, valid_steps=True)
+    s = MEISettings(steps=3, seeds=(0,), image_size=24, n_vertices=40, valid_steps=True)
     res = optimize_mei_batch(enc, [0, 1], "sheet", s)
     for n in (0, 1):
         torch.testing.assert_close(res[n].V, optimize_mei(enc, n, "sheet", s).V)

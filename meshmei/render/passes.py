@@ -26,6 +26,7 @@ import torch.nn.functional as nnf
 
 from ..topology import mesh_topology
 from .camera import Camera
+from .samples import PixelSamples, face_table, fringe_samples, inside_samples, seg_dist, used_faces
 from .settings import RenderSettings
 
 __all__ = ["PixelSamples", "RasterPasses", "run_passes"]
@@ -64,51 +65,6 @@ def _pairs(x0, x1, y0, y1, chunk):
 def _edge_fn(ax, ay, bx, by, px, py):
     """Twice the signed area of (a, b, p): positive when p is left of a->b in (u, v) pixel coordinates."""
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
-
-
-def _seg_dist(ax, ay, bx, by, px, py, eps):
-    """Distance from p to segment ab and the foot parameter t in [0, 1]."""
-    dx, dy = bx - ax, by - ay
-    L2 = dx * dx + dy * dy
-    t = (((px - ax) * dx + (py - ay) * dy) / L2.clamp_min(eps)).clamp(0.0, 1.0)
-    ex, ey = ax + t * dx - px, ay + t * dy - py
-    return ex, ey, t
-
-
-# --------------------------------------------------------------------------------------------------
-# outputs of the passes
-
-@dataclass(frozen=True)
-class PixelSamples:
-    """Pixels paired with a point of a face, the point given by screen-space barycentrics.
-
-    Attributes
-    ----------
-    pix : (N,) int64 tensor
-        Flat pixel index into ``(B, S, S)``.
-    b : (N,) int64 tensor
-        Batch member.
-    f : (N,) int64 tensor
-        Face.
-    l : (3, N) float tensor
-        Screen-space barycentrics in the face's corners (differentiable). Per-sample fields are stored
-        corner-major, ``(3, N)``: sums over corners then add rows, which is what keeps them cheap.
-    iz : (3, N) float tensor
-        Inverse view depth of the face's corners (differentiable).
-    slot : (N,) int64 tensor
-        The face's column in the per-face tables of the faces the samples use (:attr:`RasterPasses.used`).
-    """
-
-    pix: torch.Tensor
-    b: torch.Tensor
-    f: torch.Tensor
-    l: torch.Tensor
-    iz: torch.Tensor
-    slot: torch.Tensor
-
-    def __getitem__(self, mask) -> "PixelSamples":
-        return PixelSamples(self.pix[mask], self.b[mask], self.f[mask], self.l[:, mask], self.iz[:, mask],
-                            self.slot[mask])
 
 
 @dataclass(frozen=True)
@@ -292,7 +248,7 @@ def _segment_buffer(sc: _Screen, seg, ends, B, S, st: RenderSettings) -> torch.T
     for it, ii, jj in _pairs(x0, x1, y0, y1, st.chunk_size):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         ax, ay, bx, by = table.index_select(0, it).unbind(1)
-        ex, ey, _ = _seg_dist(ax, ay, bx, by, px, py, eps)
+        ex, ey, _ = seg_dist(ax, ay, bx, by, px, py, eps)
         d = torch.sqrt(ex * ex + ey * ey)
         key = torch.where(d <= margin, (d.float().view(torch.int32).long() << 32) | it, _NONE)
         skey.scatter_reduce_(0, pix0.index_select(0, it) + ii * S + jj, key, "amin")
@@ -318,71 +274,6 @@ def _soft_pixels(skey, hit, B, S, margin, dt) -> torch.Tensor:
              - torch.take(table, base + i1 * W + j0) + torch.take(table, base + i0 * W + j0))
     near_bg = count > 0
     return soft.index_put((check,), near_bg)
-
-
-_TABLE = (1, 1, 3, 3, 3, 3, 3, 3)  # rows of the face table, see _face_table
-
-
-def _face_table(u, v, z, corner_index, eps) -> torch.Tensor:
-    """What the per-pixel recomputation needs of each used face, one column per face (autograd).
-
-    Rows: corner 0 ``(u0, v0)``; the corners relative to it ``du, dv`` (3 + 3); the screen-space
-    barycentrics as affine functions of the pixel centre relative to corner 0, ``l = a + bu * pu + bv * pv``
-    (3 + 3 + 3); the corners' inverse view depths (3). Relative coordinates keep float32 exact enough
-    on small faces far from the image origin.
-    """
-    U = corner_index.shape[1]
-    per_vertex = torch.stack([u, v, 1.0 / z]).reshape(3, -1)  # (u v iz, B * n)
-    cu, cv, iz = per_vertex.index_select(1, corner_index.reshape(-1)).view(3, 3, U)  # (corner, U) each
-    u0, v0 = cu[:1], cv[:1]
-    du, dv = cu - u0, cv - v0
-    ua, va = du.roll(-1, 0), dv.roll(-1, 0)  # corner i + 1
-    eu, ev = du.roll(-2, 0) - ua, dv.roll(-2, 0) - va  # edge from corner i + 1 to corner i + 2
-    a = ev * ua - eu * va  # twice the signed area of (i + 1, i + 2, corner 0)
-    tot = a[0] + a[1] + a[2]
-    tot = torch.where(tot.abs() > eps, tot, torch.full_like(tot, eps))
-    return torch.cat([u0, v0, du, dv, a / tot, -ev / tot, eu / tot, iz], 0)  # (20, U)
-
-
-def _pixel_centres(pix, S, dt):
-    return (pix % S).to(dt) + 0.5, ((pix // S) % S).to(dt) + 0.5
-
-
-def _inside_samples(pix, b, f, slot, table, S) -> PixelSamples:
-    """Covered pixels with the screen-space barycentrics of their centre in the visible face (autograd)."""
-    u0, v0, _, _, a, bu, bv, iz = table.index_select(1, slot).split(_TABLE, 0)
-    pu, pv = _pixel_centres(pix, S, table.dtype)
-    return PixelSamples(pix, b, f, a + bu * (pu - u0) + bv * (pv - v0), iz, slot)
-
-
-def _fringe_samples(pix, b, f, slot, k_, hit, table, S, st: RenderSettings):
-    """Soft pixels with the nearest point of their segment (autograd), and their coverage ``(Q,)``."""
-    dt, dev, eps = table.dtype, table.device, st.eps
-    u0, v0, du, dv, _, _, _, iz = table.index_select(1, slot).split(_TABLE, 0)
-    ends = torch.stack([(k_ + 1) % 3, (k_ + 2) % 3])  # (2, Q): the segment's corners in the face
-    au, bu = du.gather(0, ends)
-    av, bv = dv.gather(0, ends)
-    pu, pv = _pixel_centres(pix, S, dt)
-    ex, ey, t = _seg_dist(au, av, bu, bv, pu - u0[0], pv - v0[0], eps)
-    d = torch.sqrt((ex * ex + ey * ey).clamp_min(eps * eps))
-    sign = torch.where(hit[pix], 1.0, -1.0).to(dt)
-    cov = torch.sigmoid(sign * d / st.sigma)
-    corners = torch.arange(3, device=dev).unsqueeze(1)
-    l = (corners == ends[:1]).to(dt) * (1 - t) + (corners == ends[1:]).to(dt) * t
-    return PixelSamples(pix, b, f, l, iz, slot), cov
-
-
-def _used_faces(in_b, in_f, fr_b, fr_f, F, B, n):
-    """The faces some sample lies on (``b * m + f``, sorted), each sample's slot among them, their corners."""
-    m = F.shape[0]
-    mark = torch.zeros(B * m, dtype=torch.bool, device=F.device)
-    g_in, g_fr = in_b * m + in_f, fr_b * m + fr_f
-    mark[g_in] = True
-    mark[g_fr] = True
-    used = mark.nonzero().squeeze(1)
-    slot_of = torch.cumsum(mark, 0) - 1
-    corner_index = ((used // m) * n).unsqueeze(0) + F.index_select(0, used % m).t()  # (3, U)
-    return used, corner_index, slot_of[g_in], slot_of[g_fr]
 
 
 def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) -> RasterPasses:
@@ -428,10 +319,10 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
             fr_b, fr_f = sc.kb[s_], sc.kf[s_]
         else:
             fr_b = fr_f = k_ = fr_pix
-        used, corner_index, in_slot, fr_slot = _used_faces(in_b, in_f, fr_b, fr_f, F, B, Vw.shape[1])
-    table = _face_table(u, v, z, corner_index, st.eps)
-    inside = _inside_samples(in_pix, in_b, in_f, in_slot, table, S)
-    fringe, cov_s = _fringe_samples(fr_pix, fr_b, fr_f, fr_slot, k_, hit, table, S, st)
+        used, corner_index, in_slot, fr_slot = used_faces(in_b, in_f, fr_b, fr_f, F, B, Vw.shape[1])
+    table = face_table(u, v, z, corner_index, st.eps)
+    inside = inside_samples(in_pix, in_b, in_f, in_slot, table, S)
+    fringe, cov_s = fringe_samples(fr_pix, fr_b, fr_f, fr_slot, k_, hit, table, S, st)
     cov = torch.zeros(B * S * S, dtype=dt, device=Vw.device).index_put((inside.pix,), torch.ones_like(inside.pix, dtype=dt))
     return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=sc.front, face_id=face_id.view(B, S, S), hit=hit, inside=inside,
                         fringe=fringe, coverage=cov.index_put((fringe.pix,), cov_s), used=used,

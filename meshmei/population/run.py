@@ -1,0 +1,163 @@
+"""3D-MEIs of a population of neurons: batched, resumable, idempotent, locally or on a Ray cluster."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from ..encoders import Encoder, encoder_spec
+from ..errors import MEIError
+from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
+from ..mei.optimize import check_neuron, settings_for_encoder
+from ..optim import Progress
+from .store import CONFIG_FORMAT, finished_neurons, neuron_dir, prepare_folder, table_row, write_table
+
+__all__ = ["run_population", "population_config", "neuron_results", "check_device"]
+
+
+def population_config(encoder: Encoder, init: str, settings: MEISettings, pixel_steps: int) -> dict:
+    """What shapes every neuron's result: hashed into the folder, so that other settings never mix in."""
+    return {"format": CONFIG_FORMAT, "encoder": encoder_spec(encoder), "init": str(init),
+            "settings": settings.to_dict(), "pixel_mei": {"steps": pixel_steps, "seeds": list(settings.seeds)}}
+
+
+def check_device(device) -> torch.device:
+    """``cpu``, ``cuda`` or ``cuda:N`` as a torch device; a clear error for what cannot run here."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise MEIError(f"device must be cpu, cuda or cuda:N, got {device!r}") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise MEIError(f"device {device!r} asked for, but this machine has no CUDA device")
+        raise MEIError("this version renders and optimises on the CPU; --device cuda is not supported yet "
+                       "(a model on the GPU is refused before the first step)")
+    if dev.type != "cpu":
+        raise MEIError(f"device must be cpu, cuda or cuda:N, got {device!r}")
+    return dev
+
+
+def neuron_results(encoder: Encoder, neurons, init, settings: MEISettings, *, batch_size: int,
+                   pixel_steps: int, progress: Progress | None = None):
+    """Yield ``(neuron, MEIResult with the pixel MEI's response in extra, seconds)`` as neurons finish.
+
+    The work of one process: the neurons' (neuron, seed) items in batches (:func:`meshmei.mei.mei_batches`),
+    then each finished neuron's pixel MEI in the same image space (``pixel_steps`` 0: none).
+    """
+    for n, res in mei_batches(encoder, neurons, init, settings, batch_size=batch_size, progress=progress):
+        extra, t0 = dict(res.extra), time.perf_counter()
+        if pixel_steps:
+            pm = pixel_mei(encoder, n, image_size=settings.image_size, steps=pixel_steps, seeds=settings.seeds)
+            extra["pixel_mei_activation"] = pm.activation
+        # the neuron's share of its batches, and its own pixel MEI
+        yield n, replace(res, extra=extra), res.wall_time + time.perf_counter() - t0
+
+
+class _Interrupted(KeyboardInterrupt):
+    pass
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a scheduler cancelling the job) ends the run like Ctrl-C: finished neurons are kept."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Interrupted(f"signal {signum}")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures: bool) -> dict:
+    res = replace(res, extra={**res.extra, "config_hash": digest, "population_seconds": seconds})
+    d = save_run(res, neuron_dir(out, res.neuron), figures=figures)
+    return json.loads((d / "summary.json").read_text())
+
+
+def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", settings: MEISettings | None = None,
+                   batch_size: int = 8, pixel_steps: int = 200, cluster: str | None = None, device="cpu",
+                   figures: bool = False, progress: bool = True, **overrides) -> list[dict]:
+    """3D-MEIs (and pixel MEIs) of ``neurons``, one run folder each under ``out``, and a table of them.
+
+    Parameters
+    ----------
+    encoder : Encoder
+        A built-in encoder or a lab's model (:func:`meshmei.encoders.encoder_from_model`).
+    neurons : sequence of int
+        The neurons, each with every seed of ``settings.seeds`` (the best seed is its result).
+    out : path
+        The population folder (see :mod:`meshmei.population.store`). Rerunning the same call skips the
+        finished neurons; a call with other settings on the same folder raises :class:`MEIError`.
+    init : str
+        The start mesh (``"sheet"``, ``"sphere"``, ``"torus"``).
+    settings : MEISettings, optional
+    batch_size : int
+        (neuron, seed) items optimised together in one render and model call per step.
+    pixel_steps : int
+        Steps of each neuron's pixel MEI (0: none; the table's pixel-MEI columns stay empty).
+    cluster : None, ``"ray"`` or ``"ray://HOST:PORT"``
+        None: in this process. ``"ray"``: a local Ray instance (or the cluster ``RAY_ADDRESS`` names);
+        ``"ray://..."``: that cluster. Needs ``pip install "meshmei[cluster]"``.
+    device : str
+        ``"cpu"`` (this version renders on the CPU).
+    figures : bool
+        Also write each run folder's PNG figures (about a second per neuron).
+    progress : bool
+        A progress bar over items (neuron x seed).
+    **overrides
+        Fields of :class:`MEISettings`.
+
+    Returns
+    -------
+    list of dict
+        The table's rows (``population.csv``), by neuron, finished ones from earlier runs included.
+    """
+    check_device(device)
+    settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
+    neurons = [check_neuron(encoder, n) for n in neurons]
+    if isinstance(pixel_steps, bool) or not isinstance(pixel_steps, int) or pixel_steps < 0:
+        raise MEIError(f"pixel_steps must be a non-negative integer, got {pixel_steps!r}")
+    out = Path(out)
+    digest = prepare_folder(out, population_config(encoder, init, settings, pixel_steps))
+    done = finished_neurons(out, digest)
+    todo = [n for n in dict.fromkeys(neurons) if n not in done]
+    bar = Progress(len(todo) * len(settings.seeds), "population", unit="item", enabled=progress and bool(todo),
+                   postfix=lambda rec: {"neuron": rec["neuron"], "3D-MEI": f"{rec['response']:.3f}"})
+    try:
+        with _terminate_as_interrupt():
+            if cluster is None:
+                results = neuron_results(encoder, todo, init, settings, batch_size=batch_size,
+                                         pixel_steps=pixel_steps)
+            else:
+                from .cluster import ray_neuron_results
+
+                results = ray_neuron_results(cluster, encoder, todo, init, settings, batch_size=batch_size,
+                                             pixel_steps=pixel_steps)
+            for n, res, seconds in results:
+                done[n] = _save_neuron(out, digest, res, seconds, figures)
+                done = {**finished_neurons(out, digest), **done}  # with what other jobs on this folder finished
+                write_table(out, done)
+                for _ in settings.seeds:
+                    bar.update(seconds, {"step": 0, "neuron": n, "response": res.activation})
+    finally:
+        bar.close()
+    done = finished_neurons(out, digest)
+    write_table(out, done)
+    if done:
+        from .figure import population_figure
+
+        population_figure(out, [table_row(done[n]) for n in sorted(done)])
+    return [table_row(done[n]) for n in sorted(done)]

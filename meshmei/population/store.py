@@ -1,0 +1,168 @@
+"""A population's folder: its configuration and hash, one run folder per finished neuron, the table.
+
+Layout of ``OUT``::
+
+    population.json          what the population was run with, and the configuration hash
+    neurons/neuron_00007/    a complete 3D-MEI run (meshmei.mei.save_run), written atomically; its
+                             summary.json records the configuration hash and the pixel MEI's response
+    population.csv           one row per finished neuron, rebuilt from the run folders
+    population.png           3D-MEI against pixel-MEI responses
+
+A neuron is finished when its run folder exists: the folder is renamed into place only when complete, so
+an interrupted run (SIGINT, SIGTERM, kill -9) leaves finished neurons whole and nothing else that counts.
+The hash covers everything that shapes a result (encoder, settings, start, pixel-MEI settings) and not
+which neurons are asked for, so a population can grow; a folder made with another hash is an error,
+never mixed in.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import uuid
+from pathlib import Path
+
+from ..errors import MEIError
+
+__all__ = ["CONFIG_FORMAT", "COLUMNS", "config_hash", "neuron_dir", "prepare_folder", "finished_neurons",
+           "table_row", "write_table", "read_table", "parse_neurons"]
+
+CONFIG_FORMAT = 1
+COLUMNS = ("neuron", "mei_response", "pixel_mei_response", "ratio", "fraction_of_bound", "seed",
+           "self_intersections", "flipped_faces", "min_quality", "watertight", "manifold", "seconds")
+
+
+def config_hash(config: dict) -> str:
+    """A short stable hash of a JSON-able configuration (sorted keys)."""
+    text = json.dumps(config, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def neuron_dir(out: Path, neuron: int) -> Path:
+    return Path(out) / "neurons" / f"neuron_{neuron:05d}"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:8]}.tmp"
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def prepare_folder(out, config: dict) -> str:
+    """Create ``out`` with its ``population.json``, or check that an existing one holds the same configuration.
+
+    Returns the configuration hash. Raises :class:`MEIError` when ``out`` was made with another one.
+    """
+    out = Path(out)
+    digest = config_hash(config)
+    meta = out / "population.json"
+    if meta.is_file():
+        try:
+            old = json.loads(meta.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise MEIError(f"{meta} is unreadable ({err}); choose another --out") from None
+        if old.get("config_hash") != digest:
+            changed = sorted(k for k in set(config) | set(old.get("config", {}))
+                             if config.get(k) != old.get("config", {}).get(k))
+            raise MEIError(f"{out} holds a population run with other settings (config {old.get('config_hash')}, "
+                           f"this run {digest}; differing: {', '.join(changed) or 'format'}); use another --out "
+                           "or the same settings to resume")
+        return digest
+    if out.exists() and any(not p.name.startswith(".") for p in out.iterdir()):
+        raise MEIError(f"{out} exists and is not a population folder; choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    # the description first, then the neurons folder: jobs of one SLURM array may start at once
+    _write_atomic(meta, json.dumps({"format": CONFIG_FORMAT, "config_hash": digest, "config": config}, indent=1,
+                                   default=str))
+    (out / "neurons").mkdir(exist_ok=True)
+    return digest
+
+
+def finished_neurons(out, digest: str) -> dict[int, dict]:
+    """``{neuron: summary}`` of the complete run folders; a folder made with another configuration raises."""
+    found = {}
+    root = Path(out) / "neurons"
+    if not root.is_dir():
+        return found
+    for d in sorted(root.glob("neuron_*")):
+        try:
+            summary = json.loads((d / "summary.json").read_text())
+        except (OSError, json.JSONDecodeError):
+            raise MEIError(f"{d} is not a complete run folder; remove it and resume") from None
+        if summary.get("config_hash") != digest:
+            raise MEIError(f"{d} was made with other settings (config {summary.get('config_hash')}, this run "
+                           f"{digest}); it would mix results of different settings: use another --out")
+        found[int(summary["neuron"])] = summary
+    return found
+
+
+def table_row(summary: dict) -> dict:
+    """One table row from a run folder's ``summary.json``."""
+    q = summary.get("quality", {})
+    mei, pix = summary["activation"], summary.get("pixel_mei_activation")
+    ratio = mei / pix if pix not in (None, 0) else None
+    return {"neuron": summary["neuron"], "mei_response": mei, "pixel_mei_response": pix, "ratio": ratio,
+            "fraction_of_bound": summary.get("fraction_of_bound"), "seed": summary.get("seed"),
+            "self_intersections": q.get("self_intersections"), "flipped_faces": q.get("flipped_faces"),
+            "min_quality": q.get("min_quality"), "watertight": q.get("watertight"),
+            "manifold": None if q.get("nonmanifold_edges") is None else q["nonmanifold_edges"] == 0,
+            "seconds": summary.get("population_seconds", summary.get("wall_time_s"))}
+
+
+def write_table(out, summaries: dict[int, dict]) -> Path:
+    """Write ``population.csv`` (one row per neuron, by neuron) atomically.
+
+    Pass every finished neuron (:func:`finished_neurons`): jobs that share a folder (a SLURM array) each
+    rewrite the table from the folders, so the last writer's table holds them all.
+    """
+    path = Path(out) / "population.csv"
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:8]}.tmp"
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        for n in sorted(summaries):
+            w.writerow({k: ("" if v is None else v) for k, v in table_row(summaries[n]).items()})
+    os.replace(tmp, path)
+    return path
+
+
+def read_table(out) -> list[dict]:
+    """``population.csv`` as a list of dicts (numbers parsed; empty cells None)."""
+    rows = []
+    with open(Path(out) / "population.csv", newline="") as fh:
+        for row in csv.DictReader(fh):
+            parsed = {}
+            for k, v in row.items():
+                if v == "":
+                    parsed[k] = None
+                elif v in ("True", "False"):
+                    parsed[k] = v == "True"
+                else:
+                    try:
+                        parsed[k] = int(v) if k in ("neuron", "seed", "self_intersections", "flipped_faces") else float(v)
+                    except ValueError:
+                        parsed[k] = v
+            rows.append(parsed)
+    return rows
+
+
+def parse_neurons(text: str) -> list[int]:
+    """``"0-99"``, ``"3,7,12"``, ``"0-9,20,30-32"``: neuron indices in the order given, without repeats."""
+    out: list[int] = []
+    for part in str(text).replace(" ", "").split(","):
+        if not part:
+            continue
+        lo, sep, hi = part.partition("-")
+        try:
+            a = int(lo)
+            b = int(hi) if sep else a
+        except ValueError:
+            raise MEIError(f"neurons must be ranges and lists such as 0-99 or 3,7,12; got {text!r}") from None
+        if a < 0 or b < a:
+            raise MEIError(f"neuron range {part!r} is empty or negative")
+        out.extend(range(a, b + 1))
+    if not out:
+        raise MEIError(f"no neurons in {text!r}")
+    return list(dict.fromkeys(out))

@@ -1,0 +1,159 @@
+"""Populations: batched runs of many neurons into one folder, resumable, idempotent, on a local Ray cluster."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from meshmei.encoders import GaborComplexCell, GaborSimpleCell, encoder_from_model
+from meshmei.errors import MEIError
+from meshmei.mei import MEISettings, load_run, optimize_mei, pixel_mei
+from meshmei.population import parse_neurons, read_table, run_population
+
+SMALL = dict(steps=6, seeds=(0, 1), image_size=20, n_vertices=50, dtype="float64")
+
+
+def cells():
+    """Four Gabor cells as one model's neurons."""
+    units = [GaborSimpleCell(), GaborComplexCell(orientation=0.7), GaborSimpleCell(orientation=1.2, phase=1.0),
+             GaborComplexCell(frequency=3.0)]
+
+    def model(x):
+        return torch.cat([u(x, preprocessed=True) for u in units], 1)
+
+    return encoder_from_model(model, mean=0.5, std=0.2, image_size=20)
+
+
+def test_neuron_lists_parse_ranges_and_keep_order():
+    assert parse_neurons("0-3") == [0, 1, 2, 3]
+    assert parse_neurons("7,2-4,3,9") == [7, 2, 3, 4, 9]
+    for bad in ("", "a-b", "5-2", "-3"):
+        with pytest.raises(MEIError):
+            parse_neurons(bad)
+
+
+def test_a_population_writes_one_run_per_neuron_and_a_table(tmp_path):
+    enc = cells()
+    rows = run_population(enc, [2, 0], tmp_path / "pop", settings=MEISettings(**SMALL), batch_size=3,
+                          pixel_steps=5, progress=False)
+    assert [r["neuron"] for r in rows] == [0, 2]
+    assert read_table(tmp_path / "pop") == rows and (tmp_path / "pop" / "population.png").is_file()
+    s = MEISettings(**SMALL)
+    for r in rows:
+        n = r["neuron"]
+        run = load_run(tmp_path / "pop" / "neurons" / f"neuron_{n:05d}")
+        solo = optimize_mei(enc, n, "sheet", s)
+        assert run.neuron == n and run.seed == solo.seed == r["seed"]
+        assert r["mei_response"] == pytest.approx(solo.activation, rel=1e-9)
+        assert r["pixel_mei_response"] == pytest.approx(
+            pixel_mei(enc, n, image_size=s.image_size, steps=5, seeds=s.seeds).activation, rel=1e-9)
+        assert r["ratio"] == pytest.approx(r["mei_response"] / r["pixel_mei_response"])
+        assert r["self_intersections"] == run.health()["self_intersections"]
+        assert r["seconds"] > 0
+
+
+def test_a_rerun_skips_finished_neurons_and_other_settings_are_refused(tmp_path):
+    enc, out = cells(), tmp_path / "pop"
+    run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    first = (out / "neurons" / "neuron_00000" / "summary.json").stat().st_mtime_ns
+    rows = run_population(enc, [0, 1, 3], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    assert [r["neuron"] for r in rows] == [0, 1, 3]
+    assert (out / "neurons" / "neuron_00000" / "summary.json").stat().st_mtime_ns == first  # not redone
+    assert all(r["pixel_mei_response"] is None and r["ratio"] is None for r in rows)
+    with pytest.raises(MEIError, match="other settings.*differing: settings"):
+        run_population(enc, [2], out, settings=MEISettings(**{**SMALL, "steps": 7}), pixel_steps=0, progress=False)
+    with pytest.raises(MEIError, match="other settings.*differing: pixel_mei"):
+        run_population(enc, [2], out, settings=MEISettings(**SMALL), pixel_steps=4, progress=False)
+    # a neuron folder from another configuration is never mixed in
+    summary = out / "neurons" / "neuron_00001" / "summary.json"
+    data = json.loads(summary.read_text())
+    summary.write_text(json.dumps({**data, "config_hash": "0" * 16}))
+    with pytest.raises(MEIError, match="neuron_00001 was made with other settings"):
+        run_population(enc, [2], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    with pytest.raises(MEIError, match="not a population folder"):
+        (tmp_path / "other").mkdir()
+        (tmp_path / "other" / "notes.txt").write_text("mine")
+        run_population(enc, [0], tmp_path / "other", settings=MEISettings(**SMALL), progress=False)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_an_interrupted_population_resumes_with_nothing_lost_or_repeated(tmp_path, sig):
+    """The CLI on the demo model is stopped once a neuron is finished; the same command then completes the
+    population: every neuron once, and the ones finished before the stop are untouched."""
+    out = tmp_path / "pop"
+    cmd = [sys.executable, "-m", "meshmei.cli", "population", "--neurons", "0-7", "--steps", "40", "--seeds", "0",
+           "--batch-size", "1", "--pixel-steps", "0", "--image-size", "32", "--n-vertices", "80", "--out", str(out),
+           "--quiet"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list((out / "neurons").glob("neuron_*")) if (out / "neurons").exists() \
+            else time.time() < deadline:
+        if proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be interrupted; make it longer"
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    kept = {p.name: (p / "summary.json").stat().st_mtime_ns for p in (out / "neurons").glob("neuron_*")}
+    assert 1 <= len(kept) < 8
+    if sig == signal.SIGTERM:
+        assert proc.returncode == 130 and "finished neurons are kept" in err
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = read_table(out)
+    assert [r["neuron"] for r in rows] == list(range(8))
+    assert sorted(p.name for p in (out / "neurons").glob("neuron_*")) == [f"neuron_{n:05d}" for n in range(8)]
+    for name, mtime in kept.items():
+        assert (out / "neurons" / name / "summary.json").stat().st_mtime_ns == mtime
+
+
+def test_devices_other_than_the_cpu_are_refused_clearly(tmp_path):
+    with pytest.raises(MEIError, match="cuda|CUDA"):
+        run_population(cells(), [0], tmp_path / "p", device="cuda", settings=MEISettings(**SMALL), progress=False)
+    with pytest.raises(MEIError, match="device must be"):
+        run_population(cells(), [0], tmp_path / "p", device="tpu", settings=MEISettings(**SMALL), progress=False)
+
+
+# ---------------------------------------------------------------------------------------------- Ray
+ray = pytest.importorskip("ray")
+
+
+def test_a_ray_run_matches_the_local_run(tmp_path):
+    enc, s = cells(), MEISettings(**SMALL)
+    local = run_population(enc, [0, 1, 3], tmp_path / "local", settings=s, batch_size=2, pixel_steps=3,
+                           progress=False)
+    remote = run_population(enc, [0, 1, 3], tmp_path / "ray", settings=s, batch_size=2, pixel_steps=3,
+                            cluster="ray", progress=False)
+    assert not ray.is_initialized()  # the local Ray instance it started is stopped
+    assert [r["neuron"] for r in remote] == [0, 1, 3]
+    for a, b in zip(local, remote):
+        for k in ("mei_response", "pixel_mei_response", "seed", "self_intersections", "min_quality"):
+            assert a[k] == pytest.approx(b[k], rel=1e-9), k
+
+
+def test_a_ray_task_whose_worker_dies_is_retried_with_nothing_lost_or_repeated(tmp_path):
+    """The model kills its worker process the first time it runs there; Ray retries the task."""
+    marker, driver = tmp_path / "killed-once", os.getpid()
+    unit = GaborSimpleCell()
+
+    def fragile(x):
+        if os.getpid() != driver and not os.path.exists(marker):
+            Path(marker).write_text(str(os.getpid()))
+            os._exit(1)  # the worker dies mid-task
+        return torch.cat([unit(x, preprocessed=True)] * 3, 1)
+
+    enc = encoder_from_model(fragile, mean=0.5, std=0.2, image_size=20)
+    rows = run_population(enc, [0, 1, 2], tmp_path / "pop", settings=MEISettings(**SMALL), batch_size=2,
+                          pixel_steps=0, cluster="ray", progress=False)
+    assert marker.is_file()  # a worker did die
+    assert [r["neuron"] for r in rows] == [0, 1, 2]
+    assert sorted(p.name for p in (tmp_path / "pop" / "neurons").iterdir()) == [f"neuron_{n:05d}" for n in range(3)]
