@@ -67,6 +67,8 @@ def _add_mei(sub) -> None:
                    help="regularizer weight, e.g. --weight laplacian=1 (repeatable)")
     p.add_argument("--optimize-light", action="store_true")
     p.add_argument("--optimize-pose", action="store_true")
+    p.add_argument("--albedo", action="store_true",
+                   help="also optimise the surface albedo (a texture over the sheet's grid; per vertex otherwise)")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
@@ -120,7 +122,7 @@ def _run_mei(args) -> int:
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
-                           valid_steps=args.valid_steps)
+                           valid_steps=args.valid_steps, albedo=args.albedo)
     res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
     line = f"3D-MEI neuron {res.neuron} ({args.model or args.encoder}, {args.init}): response {res.activation:.4f}"
@@ -265,6 +267,7 @@ def _add_population(sub) -> None:
     p.add_argument("--cluster", default=None, metavar="ray|ray://HOST:PORT",
                    help="run batches as Ray tasks (pip install 'meshmei[cluster]'); default: in this process")
     p.add_argument("--device", default="cpu", help="cpu (this version renders on the CPU)")
+    p.add_argument("--albedo", action="store_true", help="also optimise the surface albedo (see meshmei mei --albedo)")
     p.add_argument("--figures", action="store_true", help="also write each run folder's figures")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_run_population)
@@ -274,7 +277,7 @@ def _run_population(args) -> int:
     encoder = _cli_encoder(args)
     image_size = args.image_size or getattr(encoder, "image_size", (MEISettings.image_size,))[0]
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
-                           n_vertices=args.n_vertices)
+                           n_vertices=args.n_vertices, albedo=args.albedo)
     try:
         rows = run_population(encoder, parse_neurons(args.neurons), args.out, init=args.init, settings=settings,
                               batch_size=args.batch_size, pixel_steps=args.pixel_steps, cluster=args.cluster,

@@ -41,6 +41,8 @@ from .operators import (
 from .topology import mesh_topology
 
 __all__ = [
+    "albedo_roughness",
+    "texture_roughness",
     "laplacian_loss",
     "edge_loss",
     "area_loss",
@@ -232,6 +234,22 @@ def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
 
 
 # name -> loss(V, V0, F); the paper's four first, then the two variants beyond it
+def albedo_roughness(a, F) -> torch.Tensor:
+    """Roughness of a per-vertex scalar field ``a`` (n,) or (B, n) such as an albedo: ``mean_i (a_i - mean of a
+    over i's 1-ring)^2`` over vertices with neighbours. Returns () or (B,)."""
+    topo = mesh_topology(torch.as_tensor(F).long(), a.shape[-1])
+    d = uniform_laplacian_from_topology(a.unsqueeze(-1), topo).squeeze(-1)
+    live = topo.degree > 0
+    return ((d * d) * live).sum(-1) / live.sum().clamp_min(1)
+
+
+def texture_roughness(T) -> torch.Tensor:
+    """:func:`albedo_roughness` of a texture ``(H, W)`` or ``(B, H, W)`` over its grid: ``mean (t - mean of
+    the 4 neighbours)^2`` over interior texels. Returns () or (B,)."""
+    d = T[..., 1:-1, 1:-1] - 0.25 * (T[..., :-2, 1:-1] + T[..., 2:, 1:-1] + T[..., 1:-1, :-2] + T[..., 1:-1, 2:])
+    return (d * d).mean((-1, -2))
+
+
 REGULARIZERS = {
     "laplacian": lambda V, V0, F: laplacian_loss(V, F),
     "edge": lambda V, V0, F: edge_loss(V, F),

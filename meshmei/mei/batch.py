@@ -19,10 +19,10 @@ import torch
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..regularizers import REGULARIZERS
+from ..regularizers import REGULARIZERS, albedo_roughness, texture_roughness
 from ..render import axis_angle_to_matrix, render
 from .optimize import check_neuron, initial, objective_weights, optimize_mei, result_from_seeds, settings_for_encoder
-from .scene import SeedScene
+from .scene import SeedScene, sheet_uv
 from .settings import MEIResult, MEISettings
 
 __all__ = ["BatchScene", "optimize_mei_batch", "mei_batches"]
@@ -35,15 +35,15 @@ class BatchScene:
     scales outgrow it, as alone); when every item's map is dense the B maps run as one batched product.
     """
 
-    def __init__(self, V0, settings: MEISettings, seeds):
-        self.seeds = [SeedScene(V0, settings, s) for s in seeds]  # the same initial draws as alone
+    def __init__(self, V0, settings: MEISettings, seeds, uv=None):
+        self.seeds = [SeedScene(V0, settings, s, uv) for s in seeds]  # the same initial draws as alone
         self.rbfs = [s.rbf for s in self.seeds]
         self.V0 = V0
         self.offsets = torch.nn.Parameter(torch.stack([r.offsets.detach() for r in self.rbfs]))
         log_sigma = torch.stack([r.log_sigma.detach() for r in self.rbfs])
         learn = settings.lr_scales > 0
         self.log_sigma = torch.nn.Parameter(log_sigma) if learn else log_sigma
-        self.groups = [{"params": [self.offsets], "lr": settings.lr}]
+        self.groups = [{"params": [self.offsets], "lr": self.seeds[0].groups[0]["lr"]}]  # as alone
         if learn:
             self.groups.append({"params": [self.log_sigma], "lr": settings.lr_scales})
         first = self.seeds[0]
@@ -53,6 +53,10 @@ class BatchScene:
             if settings.optimize_light:
                 self.light = torch.nn.Parameter(self.light)
                 self.groups.append({"params": [self.light], "lr": settings.lr_light})
+        self.albedo_logit = None
+        if settings.albedo:
+            self.albedo_logit = torch.nn.Parameter(torch.stack([s.albedo_logit.detach() for s in self.seeds]))
+            self.groups.append({"params": [self.albedo_logit], "lr": settings.lr_albedo})
         B = len(self.seeds)
         self.rotation = torch.zeros(B, 3, dtype=V0.dtype)
         self.translation = torch.zeros(B, 3, dtype=V0.dtype)
@@ -84,7 +88,12 @@ class BatchScene:
         kw = {}
         if self.pose if pose is None else pose:
             kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
-        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings, **kw)
+        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings,
+                      albedo=self.albedo(), uv=self.seeds[0].uv, **kw)
+
+    def albedo(self) -> torch.Tensor | None:
+        """Every item's per-vertex albedo ``(B, n)`` in [0, 1], or None (shape only)."""
+        return None if self.albedo_logit is None else torch.sigmoid(self.albedo_logit)
 
     def item_state(self, b: int) -> dict:
         """Item ``b``'s deformer ``state_dict``, as :func:`optimize_mei` stores it."""
@@ -101,7 +110,7 @@ def _responses(encoder, images, neurons) -> torch.Tensor:
     return encoder(images, unique.tolist()).gather(1, cols.view(-1, 1)).squeeze(1)
 
 
-def _objective(encoder, neurons, F, scene: BatchScene, active: dict):
+def _objective(encoder, neurons, F, scene: BatchScene, active: dict, settings: MEISettings):
     def objective(point):
         V = scene.vertices()
         f = _responses(encoder, scene.image(V, F), neurons)
@@ -110,6 +119,11 @@ def _objective(encoder, neurons, F, scene: BatchScene, active: dict):
             r = REGULARIZERS[k](V, scene.V0, F)  # (B,)
             record[k] = r.detach().tolist()
             loss = loss + w * r
+        if settings.albedo:
+            a = scene.albedo()
+            r = texture_roughness(a) if scene.seeds[0].uv is not None else albedo_roughness(a, F)
+            record["albedo_roughness"] = r.detach().tolist()
+            loss = loss + settings.albedo_smoothness * r
         return loss, record
 
     return objective
@@ -120,12 +134,12 @@ def _check_batch_size(batch_size) -> None:
         raise MEIError(f"batch_size must be a positive integer, got {batch_size!r}")
 
 
-def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress) -> list[dict]:
+def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress, uv) -> list[dict]:
     """Optimise the ``(neuron, seed)`` items together; one run dict per item, as ``optimize_mei`` makes per seed."""
     neurons = [n for n, _ in items]
-    scene = BatchScene(V0, settings, [s for _, s in items])
+    scene = BatchScene(V0, settings, [s for _, s in items], uv)
     trace = Trace()
-    out = minimize(_objective(encoder, neurons, F, scene, objective_weights(settings, n_weights)),
+    out = minimize(_objective(encoder, neurons, F, scene, objective_weights(settings, n_weights), settings),
                    make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                    schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep=settings.keep,
                    evaluate_last=True, trace=trace, progress=bar, error=MEIError,
@@ -143,6 +157,8 @@ def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar
             reg_history={k: [r[k][b] for r in h] for k, w in settings.weights.items() if w > 0},
             time_history=[r["time"] for r in h], deformer_state=scene.item_state(b),
             light=None if scene.light is None else scene.light[b].detach().clone(),
+            albedo=None if scene.albedo_logit is None else scene.albedo()[b].detach().clone(),
+            albedo_uv=scene.seeds[0].uv,
             rotation=scene.rotation[b].detach().clone(), translation=scene.translation[b].detach().clone()))
     return runs
 
@@ -177,7 +193,8 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
         for start in range(0, len(items), batch_size):
             chunk = items[start:start + batch_size]
             t0 = time.perf_counter()
-            runs = _run_batch(encoder, chunk, V0, F, settings, n_weights, bar)
+            runs = _run_batch(encoder, chunk, V0, F, settings, n_weights, bar,
+                              sheet_uv(V0) if init_name == "sheet" else None)
             share = (time.perf_counter() - t0) / len(chunk)
             for (n, s), run in zip(chunk, runs):
                 done.setdefault(n, {})[s] = run

@@ -20,7 +20,7 @@ from ..regularizers import REGULARIZERS, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
 from ..operators import face_normals
 from ..validity import StepGuard, margin_penalty
-from .scene import SeedScene
+from .scene import SeedScene, sheet_uv
 from .settings import MEIResult, MEISettings
 
 __all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights"]
@@ -88,6 +88,10 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
             r = REGULARIZERS[k](V, scene.rbf.V0, F)
             record[k] = float(r.detach())
             loss = loss + w * r
+        if settings.albedo:
+            r = scene.albedo_roughness(F)
+            record["albedo_roughness"] = float(r.detach())
+            loss = loss + settings.albedo_smoothness * r
         if w_margin > 0:
             m = margin_penalty(V, normals0, F, min_quality=settings.min_quality)
             record["margin"] = float(m.detach())
@@ -97,8 +101,9 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
     return objective
 
 
-def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights) -> dict:
-    scene = SeedScene(V0, settings, seed)
+def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights,
+              uv=None) -> dict:
+    scene = SeedScene(V0, settings, seed, uv)
     trace = Trace()
     accept = None if guard is None else guard.acceptor(scene.rbf)
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), make_optimizer("adam", scene.groups),
@@ -113,7 +118,8 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     h = trace.history
     state = {k: v.detach().clone() for k, v in scene.rbf.state_dict().items()}
     light = None if scene.light is None else scene.light.detach().clone()
-    return dict(V=V, image=image, activation=act, loss=out.loss, best_step=out.step,
+    albedo = None if scene.albedo_logit is None else scene.albedo().detach().clone()
+    return dict(V=V, image=image, activation=act, loss=out.loss, best_step=out.step, albedo=albedo, albedo_uv=scene.uv,
                 history=[r["response"] for r in h], loss_history=[r["loss"] for r in h],
                 reg_history={k: [r[k] for r in h] for k, w in settings.weights.items() if w > 0},
                 time_history=[r["time"] for r in h], deformer_state=state, light=light,
@@ -164,7 +170,8 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
         with frozen_encoder(encoder):
             for seed in settings.seeds:
                 guard = StepGuard(V0, F, settings.validity_rules()) if settings.valid_steps else None
-                runs[seed] = _run_seed(encoder, neuron, V0, F, settings, seed, bar, guard, n_weights)
+                runs[seed] = _run_seed(encoder, neuron, V0, F, settings, seed, bar, guard, n_weights,
+                                       uv=sheet_uv(V0) if init_name == "sheet" else None)
     finally:
         bar.close()
     wall = time.perf_counter() - t0
@@ -182,4 +189,4 @@ def result_from_seeds(runs: dict, V0, F, settings: MEISettings, neuron: int, enc
         seed_activations={s: runs[s]["activation"] for s in runs}, settings=settings, neuron=neuron,
         encoder=encoder_spec(encoder), deformer_state=r["deformer_state"], light=r["light"], rotation=r["rotation"],
         translation=r["translation"], init=init_name, wall_time=wall,
-        seconds_per_step=wall / (settings.steps * len(runs)))
+        seconds_per_step=wall / (settings.steps * len(runs)), albedo=r.get("albedo"), albedo_uv=r.get("albedo_uv"))

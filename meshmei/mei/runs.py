@@ -69,7 +69,9 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
         save_mesh(tmp / "rest.obj", result.V0, result.F)
         torch.save({"format": RUN_FORMAT, "V": result.V, "F": result.F, "V0": result.V0,
                     "deformer": result.deformer_state, "light": result.light, "rotation": result.rotation,
-                    "translation": result.translation, "image": result.image}, tmp / "state.pt")
+                    "translation": result.translation, "image": result.image, "albedo": result.albedo,
+                    "albedo_uv": result.albedo_uv},
+                   tmp / "state.pt")
         if figures:
             mei_figures(result, tmp)
         with open(tmp / "summary.json", "w") as fh:
@@ -135,4 +137,5 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
         translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),
         seconds_per_step=float(summary["seconds_per_step"]), time_history=summary.get("time_history", []),
-        extra={k: summary[k] for k in summary if k not in _SUMMARY_KEYS}, encoder_module=module)
+        extra={k: summary[k] for k in summary if k not in _SUMMARY_KEYS}, encoder_module=module,
+        albedo=state.get("albedo"), albedo_uv=state.get("albedo_uv"))

@@ -2,25 +2,28 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
+from ..regularizers import albedo_roughness, texture_roughness
 from ..render import axis_angle_to_matrix, render
 from .settings import MEISettings, make_deformer
 
-__all__ = ["SeedScene"]
+__all__ = ["SeedScene", "sheet_uv"]
 
 
 class SeedScene:
     """The learnable scene of one seed: RBF offsets (and scales), optionally the light and the pose."""
 
-    def __init__(self, V0, settings: MEISettings, seed: int):
+    def __init__(self, V0, settings: MEISettings, seed: int, uv=None):
         dtype = V0.dtype
         g = torch.Generator().manual_seed(int(seed))
         self.rbf = make_deformer(V0, settings)
         with torch.no_grad():
             self.rbf.offsets.copy_(settings.init_noise * torch.randn(self.rbf.offsets.shape, generator=g,
                                                                      dtype=torch.float64))
-        self.groups = [{"params": [self.rbf.offsets], "lr": settings.lr}]
+        self.groups = [{"params": [self.rbf.offsets], "lr": settings.lr * (settings.albedo_shape_lr if settings.albedo else 1.0)}]
         if settings.lr_scales > 0:
             self.groups.append({"params": [self.rbf.log_sigma], "lr": settings.lr_scales})
         given = settings.light is not None
@@ -30,6 +33,14 @@ class SeedScene:
         if settings.optimize_light:
             self.light.requires_grad_(True)
             self.groups.append({"params": [self.light], "lr": settings.lr_light})
+        self.albedo_logit, self.uv = None, None
+        if settings.albedo:  # a texture over the start's own grid when it has one (uv), else per vertex
+            a0 = math.log(settings.albedo_init / (1 - settings.albedo_init))
+            R = settings.albedo_resolution
+            self.uv = uv if R else None
+            shape = (R, R) if self.uv is not None else (V0.shape[0],)
+            self.albedo_logit = torch.nn.Parameter(torch.full(shape, a0, dtype=dtype))
+            self.groups.append({"params": [self.albedo_logit], "lr": settings.lr_albedo})
         self.camera, self.render_settings = settings.camera(), settings.render_settings()  # built once per seed
         self.pose = settings.optimize_pose
         if self.pose:
@@ -41,4 +52,24 @@ class SeedScene:
         kw = {}
         if self.pose if pose is None else pose:
             kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
-        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings, **kw)
+        return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings,
+                      albedo=self.albedo(), uv=self.uv, **kw)
+
+    def albedo(self) -> torch.Tensor | None:
+        """The albedo in [0, 1] (per vertex, or a texture over :attr:`uv`), or None (shape only)."""
+        return None if self.albedo_logit is None else torch.sigmoid(self.albedo_logit)
+
+    def albedo_roughness(self, F) -> torch.Tensor:
+        """The albedo's smoothness penalty (:func:`~meshmei.regularizers.albedo_roughness` or, for a
+        texture, :func:`~meshmei.regularizers.texture_roughness`)."""
+        a = self.albedo()
+        return texture_roughness(a) if self.uv is not None else albedo_roughness(a, F)
+
+
+def sheet_uv(V0: torch.Tensor) -> torch.Tensor:
+    """Texture coordinates of a sheet's rest vertices: its x and y spans mapped onto [0, 1]^2 (v down the
+    image, as rows)."""
+    xy = V0[:, :2]
+    lo, hi = xy.min(0).values, xy.max(0).values
+    uv = (xy - lo) / (hi - lo).clamp_min(torch.finfo(V0.dtype).tiny)
+    return torch.stack([uv[:, 0], 1 - uv[:, 1]], 1)

@@ -75,6 +75,14 @@ class MEISettings:
         Also optimise the point light position / the object's rotation (axis-angle) and translation.
     lr_light, lr_pose : float
         Their learning rates.
+    albedo : bool
+        Also optimise a per-vertex gray surface albedo, ``sigmoid(theta)`` (so in [0, 1]), starting at
+        ``albedo_init`` everywhere, with learning rate ``lr_albedo`` and the smoothness penalty
+        ``albedo_smoothness * mean_i (a_i - mean of a over i's 1-ring)^2``; the RBF offsets then move at
+        ``albedo_shape_lr * lr`` (a tenth by default: the albedo leads, the shape follows). From the sheet the albedo is an
+        ``albedo_resolution`` x ``albedo_resolution`` texture over the sheet's own grid instead (texel
+        neighbours in the penalty); 0: per vertex there too. False (default): shape only, the paper's
+        setting.
     light : tuple of 3 floats or None
         Point light position; None puts it at the camera.
     camera_distance, fov_degrees : float
@@ -109,6 +117,12 @@ class MEISettings:
     optimize_pose: bool = False
     lr_light: float = 2e-2
     lr_pose: float = 1e-2
+    albedo: bool = False
+    lr_albedo: float = 0.2
+    albedo_smoothness: float = 1.0
+    albedo_init: float = 0.5
+    albedo_resolution: int = 64
+    albedo_shape_lr: float = 0.1
     light: tuple | None = None
     camera_distance: float = DEFAULT_DISTANCE
     fov_degrees: float = DEFAULT_FOV_DEGREES
@@ -121,7 +135,7 @@ class MEISettings:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise MEIError(f"{name} must be a positive integer, got {v!r}")
         for name in ("lr", "lr_scales", "lr_decay", "init_noise", "sigma_factor", "r_cut", "lr_light", "lr_pose",
-                     "camera_distance", "fov_degrees"):
+                     "camera_distance", "fov_degrees", "lr_albedo", "albedo_smoothness", "albedo_shape_lr"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
@@ -143,6 +157,12 @@ class MEISettings:
             raise MEIError(f"reg_ref_vertices must be a positive integer or None, got {ref!r}")
         if not 0 <= self.min_quality < 1:
             raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
+        r = self.albedo_resolution
+        if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
+            raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")
+        if not isinstance(self.albedo, bool) or not 0 < self.albedo_init < 1:
+            raise MEIError(f"albedo must be a bool and albedo_init lie in (0, 1), got {self.albedo!r}, "
+                           f"{self.albedo_init!r}")
         if self.keep not in ("best", "last"):
             raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
         if self.dtype not in ("float32", "float64"):
@@ -236,6 +256,11 @@ class MEIResult:
         ``state_dict`` of the winning :class:`~meshmei.deform.RBFDeformer`.
     light : (3,) tensor or None
         Light position used (None: at the camera).
+    albedo : (n,) or (R, R) tensor or None
+        The optimised albedo in [0, 1] (``settings.albedo``): per vertex, or a texture over ``albedo_uv``;
+        None for shape only.
+    albedo_uv : (n, 2) tensor or None
+        The vertices' texture coordinates for a texture albedo.
     rotation : (3,) tensor
         Object pose as an axis-angle vector (zeros unless the pose was optimised).
     translation : (3,) tensor
@@ -276,6 +301,8 @@ class MEIResult:
     time_history: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
     encoder_module: Encoder | None = field(default=None, compare=False, repr=False)
+    albedo: torch.Tensor | None = None
+    albedo_uv: torch.Tensor | None = None
 
     @property
     def fraction_of_bound(self) -> float | None:
@@ -286,7 +313,7 @@ class MEIResult:
         """Keyword arguments for :func:`meshmei.render.render` that reproduce :attr:`image` from ``V, F``."""
         return dict(camera=self.settings.camera(), light=self.light,
                     rotation=axis_angle_to_matrix(self.rotation), translation=self.translation,
-                    settings=self.settings.render_settings())
+                    settings=self.settings.render_settings(), albedo=self.albedo, uv=self.albedo_uv)
 
     def render(self, **overrides) -> torch.Tensor:
         """Re-render the result (``overrides`` replace entries of :meth:`scene`)."""

@@ -10,6 +10,7 @@ from .passes import run_passes
 from .raster import Fragments, prepare_inputs
 from .settings import RenderError, RenderSettings
 from .shading import shade_samples
+from .texture import check_texture, sample_texture
 from .transforms import as_points, check_batch
 
 __all__ = ["render", "Renderer"]
@@ -22,8 +23,35 @@ def _light(light, eye, dtype, device):
     return as_points("light", light, dtype, device)
 
 
+def _vertex_albedo(albedo, n: int, B: int, dtype, device) -> torch.Tensor:
+    """Per-vertex albedo as ``(B * n,)`` for gathering by flat vertex row; RenderError for a bad one."""
+    a = albedo if isinstance(albedo, torch.Tensor) else torch.as_tensor(albedo, dtype=dtype)
+    a = a.to(dtype=dtype, device=device)
+    if a.ndim not in (1, 2) or a.shape[-1] != n or (a.ndim == 2 and a.shape[0] not in (1, B)):
+        raise RenderError(f"albedo must have shape (n,) or (B, n) with n = {n} vertices and B = {B}, got "
+                          f"{tuple(a.shape)}")
+    if not bool(torch.isfinite(a).all()):
+        raise RenderError("albedo holds NaN or Inf")
+    return a.reshape(-1, n).expand(B, n).reshape(B * n)
+
+
+def _corner_normals(posed, F, r, st: RenderSettings, B: int) -> torch.Tensor:
+    """Shading normals at the corners of the used faces, ``(3, U, 3)``: interpolated vertex normals (smooth)
+    or the face's own (flat), turned towards the camera on faces seen from behind (two-sided)."""
+    n, m = posed.shape[-2], F.shape[0]
+    if st.shading == "smooth":  # on the un-expanded batch, then the used faces' corners
+        normals = vertex_normals_from_corners(corners(posed, F), F, n, eps=1e-12).expand(B, n, 3)
+        normals = normals.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3)
+    else:
+        normals = face_normals(posed, F).expand(B, m, 3).reshape(B * m, 3).index_select(0, r.used)
+        normals = normals.unsqueeze(0).expand(3, -1, 3)
+    if st.two_sided:
+        normals = normals * torch.where(r.front.view(-1)[r.used], 1.0, -1.0).to(posed.dtype).view(1, -1, 1)
+    return normals
+
+
 def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, translation=None,
-           settings: RenderSettings | None = None, return_fragments: bool = False):
+           settings: RenderSettings | None = None, albedo=None, uv=None, return_fragments: bool = False):
     """Render grayscale images of a mesh, differentiable in vertices, pose, light and camera placement.
 
     The image is ``I = c * shade + (1 - c) * background`` with soft coverage ``c`` (``Fragments.coverage``)
@@ -44,6 +72,14 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     translation : (3,) or (B, 3) tensor, optional
         Object pose ``V @ R.T + t``.
     settings : RenderSettings, optional
+    albedo : (n,) or (B, n) float tensor, optional
+        Per-vertex surface albedo (a reflectance in [0, 1] for a physical surface; not clamped here),
+        interpolated perspective-correctly over each face and multiplied into the shade together with
+        ``settings.albedo``. Differentiable. None: the uniform ``settings.albedo`` alone.
+        With ``uv``, a texture instead: ``(H, W)`` or ``(B, H, W)``, sampled bilinearly at the surface
+        point's perspective-correct texture coordinates (:func:`~meshmei.render.texture.sample_texture`).
+    uv : (n, 2) float tensor, optional
+        Per-vertex texture coordinates in [0, 1]^2 for a texture ``albedo``.
     return_fragments : bool
         Also return the :class:`~meshmei.render.raster.Fragments`.
 
@@ -69,25 +105,29 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     Vw, eye, R = inp.expanded(B)
     L = L.expand(B, 3)
     r = run_passes(Vw, F, eye, R, inp.camera, st, inp.n_vertices)
-    S, m = r.S, F.shape[0]
-    n = inp.n_vertices
-    if st.shading == "smooth":  # on the un-expanded batch, then the used faces' corners
-        normals = vertex_normals_from_corners(corners(inp.posed, F), F, n, eps=1e-12).expand(B, n, 3)
-        normals = normals.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3)
-    else:
-        normals = face_normals(inp.posed, F).expand(B, m, 3).reshape(B * m, 3).index_select(0, r.used)
-        normals = normals.unsqueeze(0).expand(3, -1, 3)
-    if st.two_sided:  # faces seen from behind are lit with their normal turned towards the camera
-        normals = normals * torch.where(r.front.view(-1)[r.used], 1.0, -1.0).to(V.dtype).view(1, -1, 1)
-    positions = Vw.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3)
-    table = torch.cat([positions, normals], 2).permute(0, 2, 1)  # (corner, 6, used face)
+    S, n = r.S, inp.n_vertices
+    parts = [Vw.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3),
+             _corner_normals(inp.posed, F, r, st, B)]  # positions and normals at the used faces' corners
+    texture = None
+    if albedo is not None and uv is not None:
+        texture, uv = check_texture(albedo, uv, n, B, V.dtype, V.device)
+    elif albedo is not None:
+        a = _vertex_albedo(albedo, n, B, V.dtype, V.device)
+        parts.append(a.index_select(0, r.corner_index.reshape(-1)).view(3, -1, 1))
+    table = torch.cat(parts, 2).permute(0, 2, 1)  # (corner, 6 or 7, used face)
     Lt = L.t()
 
     def shade(samples):
         N = samples.pix.shape[0]
         Lb = Lt.expand(3, N) if B == 1 else Lt.index_select(1, samples.b)
-        return shade_samples(samples.l, samples.iz, table.index_select(2, samples.slot),
-                             Lb, ambient=st.ambient, intensity=st.light_intensity, albedo=st.albedo, eps=st.eps)
+        corners = table.index_select(2, samples.slot)
+        if texture is not None:  # the texel under the surface point, as a seventh channel equal at the corners
+            bary, _ = r.perspective_correct(samples)
+            uv_c = uv.index_select(0, (r.corner_index.index_select(1, samples.slot) % n).reshape(-1)).view(3, N, 2)
+            a = sample_texture(texture, (bary.t().unsqueeze(-1) * uv_c).sum(0), samples.b)
+            corners = torch.cat([corners, a.expand(3, 1, N)], 1)
+        return shade_samples(samples.l, samples.iz, corners, Lb, ambient=st.ambient, intensity=st.light_intensity,
+                             albedo=st.albedo, eps=st.eps)
 
     dt, dev = V.dtype, V.device
     shade_in = shade(r.inside)
@@ -97,7 +137,10 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     sh = sh.index_put((outside.pix,), shade_out)
     c = r.coverage
     # zero-weight anchor: an empty image still depends (with zero gradient) on every differentiable input
-    zero = 0.0 * (r.Vc.sum() + L.sum())
+    anchor = r.Vc.sum() + L.sum()
+    if isinstance(albedo, torch.Tensor):
+        anchor = anchor + albedo.sum()
+    zero = 0.0 * anchor
     image = (c * sh + (1 - c) * st.background + zero).view(B, 1, S, S)
     if not return_fragments:
         return image

@@ -71,22 +71,27 @@ class _ShadeSamples(torch.autograd.Function):
         pos = s > 0
         s = torch.where(pos, s, torch.ones_like(s))
         bary = q / s
-        PN = bary[0] * corners[0] + bary[1] * corners[1] + bary[2] * corners[2]  # (6, N): point and normal
-        n_hat, n_norm, n_ok = _unit(PN[3:], eps)
+        PN = bary[0] * corners[0] + bary[1] * corners[1] + bary[2] * corners[2]  # (6 or 7, N)
+        n_hat, n_norm, n_ok = _unit(PN[3:6], eps)
         d_hat, d_norm, d_ok = _unit(light - PN[:3], eps)
         c = _dot(n_hat, d_hat)
-        ctx.save_for_backward(l, iz, corners, bary, s, pos, n_hat, n_norm, n_ok, d_hat, d_norm, d_ok, c >= 0)
-        ctx.scale = albedo * intensity
-        return albedo * (ambient + intensity * c.clamp_min(0.0))
+        lit = ambient + intensity * c.clamp_min(0.0)
+        reflect = PN[6] * albedo if PN.shape[0] == 7 else torch.full_like(lit, albedo)  # surface albedo
+        ctx.save_for_backward(l, iz, corners, bary, s, pos, n_hat, n_norm, n_ok, d_hat, d_norm, d_ok, c >= 0,
+                              reflect, lit)
+        ctx.intensity, ctx.albedo = intensity, albedo
+        return reflect * lit
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g):
-        l, iz, corners, bary, s, pos, n_hat, n_norm, n_ok, d_hat, d_norm, d_ok, lit = ctx.saved_tensors
-        gc = g * ctx.scale * lit
+        (l, iz, corners, bary, s, pos, n_hat, n_norm, n_ok, d_hat, d_norm, d_ok, lit_side, reflect,
+         lit) = ctx.saved_tensors
+        gc = g * reflect * ctx.intensity * lit_side
         gN = _unit_backward(gc * d_hat, n_hat, n_norm, n_ok)
         gD = _unit_backward(gc * n_hat, d_hat, d_norm, d_ok)
-        gPN = torch.cat([-gD, gN], 0)  # (6, N)
+        parts = [-gD, gN] + ([(g * lit * ctx.albedo).unsqueeze(0)] if corners.shape[1] == 7 else [])
+        gPN = torch.cat(parts, 0)  # (6 or 7, N)
         g_corners = bary.unsqueeze(1) * gPN
         g_bary = (corners * gPN).sum(1)
         gq = torch.where(pos, (g_bary - _dot(g_bary, bary)) / s, g_bary)
@@ -106,8 +111,9 @@ def shade_samples(l, iz, corners, light, *, ambient=0.2, intensity=0.8, albedo=1
         Screen-space barycentrics.
     iz : (3, N) float tensor
         Inverse view depth of the corners.
-    corners : (3, 6, N) float tensor
-        Per corner: world position (3) and normal (3, need not be unit).
+    corners : (3, 6, N) or (3, 7, N) float tensor
+        Per corner: world position (3), normal (3, need not be unit) and optionally a surface albedo (1),
+        interpolated like the rest and multiplied into the shade (with ``albedo``).
     light : (3, N) float tensor
         Point light position for each point.
     ambient, intensity, albedo, eps : float

@@ -1,0 +1,74 @@
+"""Shape + albedo 3D-MEIs against the pixel MEI (issue 19): the demo model's neurons.
+
+Run: ``python -m meshmei.benchmarks.albedo [--neurons 0,1,3,6,9]``; writes the "albedo" section of
+``docs/benchmarks.md``. For each neuron, in the same image space (the demo model's 64 px): the pixel MEI
+(defaults), the shape-only 3D-MEI (the paper's setting, defaults) and the shape + albedo 3D-MEI (defaults
+with ``albedo=True``: a 64 x 64 texture over the sheet's grid, the shape at a tenth of its learning rate),
+and the same with the shape at its full learning rate, from the sheet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+
+from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.encoders import make_encoder
+from meshmei.mei import MEISettings, optimize_mei, pixel_mei
+
+
+
+def run(neurons: list[int]) -> str:
+    load = os.getloadavg()[0]
+    enc = make_encoder("demo")
+    rows, ratios, full_ratios = [], [], []
+    for n in neurons:
+        pm = pixel_mei(enc, n)
+        shape = optimize_mei(enc, n, "sheet", MEISettings())
+        t0 = time.perf_counter()
+        alb = optimize_mei(enc, n, "sheet", MEISettings(albedo=True))
+        secs = time.perf_counter() - t0
+        full = optimize_mei(enc, n, "sheet", MEISettings(albedo=True, albedo_shape_lr=1.0))
+        r, r_full = alb.activation / pm.activation, full.activation / pm.activation
+        ratios.append(r)
+        full_ratios.append(r_full)
+        rows.append([n, f"{pm.activation:.3f}", f"{shape.activation:.3f} ({shape.activation / pm.activation:.3f})",
+                     f"{alb.activation:.3f} ({r:.3f})", f"{float(alb.albedo.min()):.2f}-{float(alb.albedo.max()):.2f}",
+                     alb.health()["self_intersections"], f"{full.activation:.3f} ({r_full:.3f})",
+                     full.health()["self_intersections"], f"{secs:.0f}"])
+    met = sum(r >= 0.95 for r in ratios)
+    body = "\n".join([
+        "## Shape + albedo 3D-MEIs (`python -m meshmei.benchmarks.albedo`)",
+        "",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
+        "",
+        "The demo model at 64 px, from the sheet, default settings (300 steps, seeds 0-2); the albedo run adds "
+        "`albedo=True` (a 64 x 64 texture in [0, 1] over the sheet's grid, `lr_albedo` 0.2, smoothness 1, the "
+        "offsets at a tenth of `lr`), then the same with the offsets at the full `lr` (`albedo_shape_lr=1`). "
+        "Responses, with their ratio to the pixel MEI's in brackets; 'albedo' is the range the texture uses; "
+        "SI = self-intersecting face pairs of the albedo run's mesh.",
+        "",
+        markdown_table(["neuron", "pixel MEI", "shape only", "shape + albedo", "albedo", "SI",
+                        "shape + albedo, shape at full lr", "SI", "s"], rows),
+        "",
+        f"Target (issue 19): shape + albedo at least 0.95 of the pixel MEI on at least 5 demo neurons: "
+        f"{'met' if met >= 5 else 'not met'} at the defaults ({met} of {len(ratios)}; ratios "
+        f"{', '.join(f'{r:.3f}' for r in ratios)}); with the shape at its full learning rate "
+        f"(`albedo_shape_lr=1`): {sum(r >= 0.95 for r in full_ratios)} of {len(full_ratios)} "
+        f"({', '.join(f'{r:.3f}' for r in full_ratios)}).",
+    ])
+    return write_section("albedo", body)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--neurons", default="0,1,3,6,9")
+    args = ap.parse_args(argv)
+    t = time.perf_counter()
+    print(f"wrote {run([int(x) for x in args.neurons.split(',')])} in {time.perf_counter() - t:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
