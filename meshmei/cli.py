@@ -69,6 +69,10 @@ def _add_mei(sub) -> None:
     p.add_argument("--optimize-pose", action="store_true")
     p.add_argument("--albedo", action="store_true",
                    help="also optimise the surface albedo (a texture over the sheet's grid; per vertex otherwise)")
+    p.add_argument("--robust-pose", type=float, default=0.0, metavar="DEG",
+                   help="maximise the mean response over object turns within +-DEG (a 3 x 3 grid; default 0: off)")
+    p.add_argument("--robust-light", type=float, default=0.0, metavar="DEG",
+                   help="maximise the mean response over light positions turned within +-DEG (default 0: off)")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
@@ -122,7 +126,8 @@ def _run_mei(args) -> int:
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
-                           valid_steps=args.valid_steps, albedo=args.albedo)
+                           valid_steps=args.valid_steps, albedo=args.albedo, robust_pose=args.robust_pose,
+                           robust_light=args.robust_light)
     res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
     line = f"3D-MEI neuron {res.neuron} ({args.model or args.encoder}, {args.init}): response {res.activation:.4f}"

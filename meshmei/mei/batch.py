@@ -170,7 +170,8 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
 
     Each result is the one :func:`optimize_mei` gives for that neuron (the lowest-loss seed), up to float
     rounding; its ``wall_time`` is the neuron's share of its batches' time. With ``valid_steps`` (the step
-    guard is per item and not batched) every neuron runs alone through :func:`optimize_mei`.
+    guard is per item and not batched) or a robust objective (K views per item) every neuron runs alone
+    through :func:`optimize_mei`.
     ``progress`` (a :class:`~meshmei.optim.Progress` over steps of batches) is updated, not closed.
     """
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
@@ -179,8 +180,8 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
         twice = sorted({n for n in neurons if neurons.count(n) > 1})
         raise MEIError(f"neurons {twice} are listed twice; each neuron's seeds are its items")
     _check_batch_size(batch_size)
-    if settings.valid_steps:
-        for n in neurons:
+    if settings.valid_steps or settings.robust_pose > 0 or settings.robust_light > 0:
+        for n in neurons:  # per-item guard, or K views per item: each neuron alone
             yield n, optimize_mei(encoder, n, init, settings)
         return
     V0, F, init_name = initial(init, settings)

@@ -82,7 +82,7 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
 
     def objective(point):
         V = scene.rbf()
-        f = encoder(scene.image(V, F), neuron)[0, 0]
+        f = encoder(scene.views(V, F), neuron)[:, 0].mean()  # one view, or the mean over the robust grid
         loss, record = -f, {"response": float(f.detach())}
         for k, w in active.items():
             r = REGULARIZERS[k](V, scene.rbf.V0, F)

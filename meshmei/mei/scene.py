@@ -10,7 +10,7 @@ from ..regularizers import albedo_roughness, texture_roughness
 from ..render import axis_angle_to_matrix, render
 from .settings import MEISettings, make_deformer
 
-__all__ = ["SeedScene", "sheet_uv"]
+__all__ = ["SeedScene", "sheet_uv", "robust_turns"]
 
 
 class SeedScene:
@@ -23,7 +23,8 @@ class SeedScene:
         with torch.no_grad():
             self.rbf.offsets.copy_(settings.init_noise * torch.randn(self.rbf.offsets.shape, generator=g,
                                                                      dtype=torch.float64))
-        self.groups = [{"params": [self.rbf.offsets], "lr": settings.lr * (settings.albedo_shape_lr if settings.albedo else 1.0)}]
+        lr = settings.lr * (settings.albedo_shape_lr if settings.albedo else 1.0)  # with an albedo the shape follows
+        self.groups = [{"params": [self.rbf.offsets], "lr": lr}]
         if settings.lr_scales > 0:
             self.groups.append({"params": [self.rbf.log_sigma], "lr": settings.lr_scales})
         given = settings.light is not None
@@ -42,6 +43,8 @@ class SeedScene:
             self.albedo_logit = torch.nn.Parameter(torch.full(shape, a0, dtype=dtype))
             self.groups.append({"params": [self.albedo_logit], "lr": settings.lr_albedo})
         self.camera, self.render_settings = settings.camera(), settings.render_settings()  # built once per seed
+        self.robust = robust_turns(settings, dtype)
+        self.light0 = torch.tensor(light0, dtype=dtype)
         self.pose = settings.optimize_pose
         if self.pose:
             self.rotation.requires_grad_(True)
@@ -54,6 +57,25 @@ class SeedScene:
             kw = dict(rotation=axis_angle_to_matrix(self.rotation), translation=self.translation)
         return render(V, F, camera=self.camera, light=self.light, settings=self.render_settings,
                       albedo=self.albedo(), uv=self.uv, **kw)
+
+    def views(self, V, F) -> torch.Tensor:
+        """What the objective averages: the plain image ``(1, 1, S, S)``, or with ``robust_pose`` /
+        ``robust_light`` the K images of the grid of object turns and light positions ``(K, 1, S, S)``."""
+        if self.robust is None:
+            return self.image(V, F)
+        turns, lights = self.robust
+        kw = {}
+        if turns is not None or self.pose:
+            R = turns if turns is not None else torch.eye(3, dtype=V.dtype).unsqueeze(0)
+            if self.pose:
+                R = R @ axis_angle_to_matrix(self.rotation)
+                kw["translation"] = self.translation
+            kw["rotation"] = R
+        light = self.light
+        if lights is not None:  # the light (optimised or not) turned about the object
+            light = (lights @ (self.light if self.light is not None else self.light0)).reshape(-1, 3)
+        return render(V, F, camera=self.camera, light=light, settings=self.render_settings, albedo=self.albedo(),
+                      uv=self.uv, **kw)
 
     def albedo(self) -> torch.Tensor | None:
         """The albedo in [0, 1] (per vertex, or a texture over :attr:`uv`), or None (shape only)."""
@@ -73,3 +95,27 @@ def sheet_uv(V0: torch.Tensor) -> torch.Tensor:
     lo, hi = xy.min(0).values, xy.max(0).values
     uv = (xy - lo) / (hi - lo).clamp_min(torch.finfo(V0.dtype).tiny)
     return torch.stack([uv[:, 0], 1 - uv[:, 1]], 1)
+
+
+def _turns(degrees: float, points: int, dtype) -> torch.Tensor:
+    """Rotations ``(points^2, 3, 3)``: azimuth about y times elevation about x, each in ``linspace(-d, d)``."""
+    a = torch.deg2rad(torch.linspace(-degrees, degrees, points, dtype=torch.float64))
+    az, el = torch.meshgrid(a, a, indexing="ij")
+    zero = torch.zeros_like(az)
+    Ry = axis_angle_to_matrix(torch.stack([zero, az, zero], -1).reshape(-1, 3))
+    Rx = axis_angle_to_matrix(torch.stack([el, zero, zero], -1).reshape(-1, 3))
+    return (Ry @ Rx).to(dtype)
+
+
+def robust_turns(settings: MEISettings, dtype):
+    """``(object turns, light turns)`` for the robust objective, the pairs of both grids when both are on;
+    None when neither is."""
+    k = settings.robust_points
+    turns = _turns(settings.robust_pose, k, dtype) if settings.robust_pose > 0 else None
+    lights = _turns(settings.robust_light, k, dtype) if settings.robust_light > 0 else None
+    if turns is None and lights is None:
+        return None
+    if turns is not None and lights is not None:  # every (turn, light) pair
+        K, J = turns.shape[0], lights.shape[0]
+        turns, lights = turns.repeat_interleave(J, 0), lights.repeat(K, 1, 1)
+    return turns, lights

@@ -83,6 +83,13 @@ class MEISettings:
         ``albedo_resolution`` x ``albedo_resolution`` texture over the sheet's own grid instead (texel
         neighbours in the penalty); 0: per vertex there too. False (default): shape only, the paper's
         setting.
+    robust_pose, robust_light : float
+        Degrees (0: off). Maximise the mean response over a ``robust_points`` x ``robust_points`` grid of
+        object turns (azimuth about y, elevation about x) within +-``robust_pose``, and of light positions
+        turned the same way about the object within +-``robust_light`` (both: every pair), instead of
+        the response in the one scene. The reported response is the one in the plain scene.
+    robust_points : int
+        Grid points per axis (3: -d, 0, +d).
     light : tuple of 3 floats or None
         Point light position; None puts it at the camera.
     camera_distance, fov_degrees : float
@@ -123,6 +130,9 @@ class MEISettings:
     albedo_init: float = 0.5
     albedo_resolution: int = 64
     albedo_shape_lr: float = 0.1
+    robust_pose: float = 0.0
+    robust_light: float = 0.0
+    robust_points: int = 3
     light: tuple | None = None
     camera_distance: float = DEFAULT_DISTANCE
     fov_degrees: float = DEFAULT_FOV_DEGREES
@@ -130,12 +140,13 @@ class MEISettings:
     dtype: str = "float32"
 
     def __post_init__(self):
-        for name in ("image_size", "n_vertices", "steps"):
+        for name in ("image_size", "n_vertices", "steps", "robust_points"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise MEIError(f"{name} must be a positive integer, got {v!r}")
         for name in ("lr", "lr_scales", "lr_decay", "init_noise", "sigma_factor", "r_cut", "lr_light", "lr_pose",
-                     "camera_distance", "fov_degrees", "lr_albedo", "albedo_smoothness", "albedo_shape_lr"):
+                     "camera_distance", "fov_degrees", "lr_albedo", "albedo_smoothness", "albedo_shape_lr",
+                     "robust_pose", "robust_light"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
