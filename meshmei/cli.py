@@ -4,6 +4,7 @@ settings dataclasses, and a thin runner that calls the library."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -12,7 +13,8 @@ import torch
 
 from .encoders import load_model, make_encoder
 from .errors import MEIError
-from .mei import MEISettings, optimize_mei, pixel_mei, save_run
+from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
+from .plots import diverse_figure
 from .population import parse_neurons, run_population
 from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
@@ -73,6 +75,8 @@ def _add_mei(sub) -> None:
                    help="maximise the mean response over object turns within +-DEG (a 3 x 3 grid; default 0: off)")
     p.add_argument("--robust-light", type=float, default=0.0, metavar="DEG",
                    help="maximise the mean response over light positions turned within +-DEG (default 0: off)")
+    p.add_argument("--diverse", type=int, default=1, metavar="K",
+                   help="K diverse 3D-MEIs of the neuron, optimised together and pushed apart (default 1: one)")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
@@ -128,6 +132,8 @@ def _run_mei(args) -> int:
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
                            valid_steps=args.valid_steps, albedo=args.albedo, robust_pose=args.robust_pose,
                            robust_light=args.robust_light)
+    if args.diverse > 1:
+        return _run_diverse(args, encoder, settings, out)
     res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
     line = f"3D-MEI neuron {res.neuron} ({args.model or args.encoder}, {args.init}): response {res.activation:.4f}"
@@ -144,6 +150,22 @@ def _run_mei(args) -> int:
     print(line)
     print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png "
           f"({res.wall_time:.1f} s, {1000 * res.seconds_per_step:.0f} ms per step)")
+    return 0
+
+
+def _run_diverse(args, encoder, settings, out: Path) -> int:
+    """``meshmei mei --diverse K``: OUT/member_<i> run folders, OUT/diversity.json and OUT/diverse.png."""
+    d = diverse_meis(encoder, args.neuron, args.diverse, args.init, settings)
+    out.mkdir(parents=True, exist_ok=True)
+    for i, res in enumerate(d.results):
+        save_run(res, out / f"member_{i}", overwrite=args.overwrite)
+    (out / "diversity.json").write_text(json.dumps({"responses": d.responses,
+                                                     "dissimilarity": d.dissimilarity.tolist()}, indent=1))
+    diverse_figure(d, out / "diverse.png")
+    off = d.dissimilarity[~torch.eye(len(d.results), dtype=torch.bool)]
+    print(f"{len(d.results)} diverse 3D-MEIs of neuron {args.neuron}: responses "
+          f"{', '.join(f'{r:.4f}' for r in d.responses)}; mean pairwise dissimilarity {float(off.mean()):.3f}; "
+          f"wrote {out}/member_*, diversity.json, diverse.png")
     return 0
 
 

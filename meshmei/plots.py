@@ -14,7 +14,8 @@ import torch
 
 from .render import camera_from_angles, render
 
-__all__ = ["mei_figures", "reconstruction_figures", "plot_pose_heatmap", "plot_light_polar", "summary_sheet"]
+__all__ = ["mei_figures", "diverse_figure", "reconstruction_figures", "plot_pose_heatmap", "plot_light_polar",
+           "summary_sheet"]
 
 # the three extra views of a 3D-MEI run's mesh: the camera orbits the origin at these angles (degrees)
 ORBIT_AZIMUTHS = (0, 45, 90)
@@ -94,6 +95,24 @@ def mei_figures(result, out) -> None:
     ax.set_title(f"neuron {result.neuron}, seed {result.seed}")
     fig.tight_layout()
     fig.savefig(out / "activation.png", dpi=100)
+
+
+def diverse_figure(diverse, path) -> Path:
+    """The K diverse 3D-MEIs' renders side by side, with their responses, and their dissimilarity matrix."""
+    results = diverse.results
+    k = len(results)
+    fig = _figure(figsize=(2.2 * (k + 1), 2.6))
+    axes = fig.subplots(1, k + 1)
+    for ax, r in zip(axes, results):
+        _gray(ax, r.image[0, 0].detach().cpu().numpy(), f"seed {r.seed}: {r.activation:.3f}", fontsize=9)
+    im = axes[-1].imshow(diverse.dissimilarity.cpu().numpy(), vmin=0, vmax=1, cmap="viridis")
+    axes[-1].set_title("dissimilarity", fontsize=9)
+    axes[-1].set_xticks(range(k))
+    axes[-1].set_yticks(range(k))
+    fig.colorbar(im, ax=axes[-1], fraction=0.046)
+    path = Path(path)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    return path
 
 
 def _orbit_view(result, azimuth) -> np.ndarray:

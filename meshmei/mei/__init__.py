@@ -2,6 +2,7 @@
 
 from .baselines import grid_search, random_deformations, random_mesh_responses
 from .batch import mei_batches, optimize_mei_batch
+from .diverse import DiverseMEIs, diverse_meis
 from .optimize import optimize_mei
 from .pixel import PixelMEIResult, gaussian_blur, pixel_mei
 from .runs import RUN_FORMAT, load_run, save_run
@@ -13,6 +14,8 @@ __all__ = [
     "optimize_mei",
     "optimize_mei_batch",
     "mei_batches",
+    "diverse_meis",
+    "DiverseMEIs",
     "grid_search",
     "random_deformations",
     "random_mesh_responses",

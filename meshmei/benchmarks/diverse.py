@@ -1,0 +1,64 @@
+"""Diverse 3D-MEIs (issue 19): K members of one neuron, with and without the diversity reward.
+
+Run: ``python -m meshmei.benchmarks.diverse``; writes the "diverse" section of ``docs/benchmarks.md``. The
+Gabor complex cell (phase-invariant: its members should take distinct phases), the simple cell (one
+optimum: its members should not drift from it) and demo neuron 6; K = 4, sheet, default settings
+otherwise; ``diversity`` 0 (four runs kept at their final iterate) and 0.5 (``floor`` 0.8).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import torch
+
+from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.encoders import GaborComplexCell, GaborSimpleCell, make_encoder
+from meshmei.mei import diverse_meis
+
+CASES = (("complex cell", GaborComplexCell, 0), ("simple cell", GaborSimpleCell, 0), ("demo neuron 6", None, 6))
+
+
+def run(k: int = 4) -> str:
+    load = os.getloadavg()[0]
+    rows = []
+    for name, cls, neuron in CASES:
+        enc = cls() if cls is not None else make_encoder("demo")
+        for w in (0.0, 0.5):
+            t0 = time.perf_counter()
+            d = diverse_meis(enc, neuron, k=k, diversity=w)
+            secs = time.perf_counter() - t0
+            off = d.dissimilarity[~torch.eye(k, dtype=torch.bool)]
+            phases = ""
+            if isinstance(enc, GaborComplexCell):
+                phases = ", ".join(f"{float(enc.phase_of(r.image)[0]):+.2f}" for r in d.results)
+            rows.append([name, w, ", ".join(f"{r:.3f}" for r in d.responses), f"{float(off.mean()):.3f}",
+                         f"{float(off.min()):.3f}", phases, f"{secs:.0f}"])
+    body = "\n".join([
+        "## Diverse 3D-MEIs (`python -m meshmei.benchmarks.diverse`)",
+        "",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
+        "",
+        f"K = {k} members from the sheet, default settings (64 px, 300 steps); 'responses' per member; "
+        "dissimilarity is the distance between two members' preprocessed images as a share of the largest "
+        "possible (mean and smallest over pairs); 'phases' the complex cell members' phase against its "
+        "quadrature pair (radians).",
+        "",
+        markdown_table(["neuron", "diversity", "responses", "mean dissimilarity", "min dissimilarity", "phases",
+                        "s"], rows),
+    ])
+    return write_section("diverse", body)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--k", type=int, default=4)
+    args = ap.parse_args(argv)
+    t = time.perf_counter()
+    print(f"wrote {run(args.k)} in {time.perf_counter() - t:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,123 @@
+"""Diverse 3D-MEIs: K meshes for one neuron, optimised together and pushed apart in image space.
+
+The K members are the items of one batch (:class:`meshmei.mei.batch.BatchScene`, seeds 0 .. K-1 after the
+first of ``settings.seeds``). Each member's loss is its usual one minus a diversity reward: the mean
+distance between its preprocessed image and the others', as a share of the largest possible one (two
+images of norm ``r`` are at most ``2 r`` apart), times the best member's response. A floor keeps every
+member near the best: a member below ``floor`` times the best response pays
+``10 * best * (floor - f / best)^2``. The final iterate is kept (a per-member best would break the set).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import torch
+
+from ..encoders import Encoder, frozen_encoder
+from ..errors import MEIError
+from ..optim import Budget, Schedule, Trace, make_optimizer, minimize
+from ..regularizers import REGULARIZERS
+from .batch import BatchScene
+from .optimize import check_neuron, initial, objective_weights, result_from_seeds, settings_for_encoder
+from .scene import sheet_uv
+from .settings import MEISettings
+
+__all__ = ["DiverseMEIs", "diverse_meis"]
+
+
+@dataclass(frozen=True)
+class DiverseMEIs:
+    """K 3D-MEIs of one neuron.
+
+    Attributes
+    ----------
+    results : list of MEIResult
+        One per member, each a complete result (its ``seed`` is the member's).
+    dissimilarity : (K, K) tensor
+        Distances between the members' preprocessed images, as a share of the largest possible (0 .. 1).
+    """
+
+    results: list
+    dissimilarity: torch.Tensor
+
+    @property
+    def responses(self) -> list[float]:
+        return [r.activation for r in self.results]
+
+
+def _objective(encoder, neuron, F, scene: BatchScene, active, weight: float, floor: float):
+    norm = float(encoder.preprocess.norm)
+
+    def objective(point):
+        V = scene.vertices()
+        z, idx = encoder.inputs(scene.image(V, F), [neuron])
+        f = encoder.respond(z, idx)[:, 0]
+        K = f.shape[0]
+        flat = z.reshape(K, -1)
+        d = torch.cdist(flat, flat) / (2 * norm)  # (K, K) in [0, 1]
+        spread = d.sum(1) / max(K - 1, 1)
+        best = f.detach().max().abs().clamp_min(1e-12)
+        loss = -f - weight * best * spread + 10 * best * torch.relu(floor - f / best) ** 2
+        record = {"response": f.detach().tolist(), "spread": spread.detach().tolist()}
+        for k, w in active.items():
+            r = REGULARIZERS[k](V, scene.V0, F)
+            record[k] = r.detach().tolist()
+            loss = loss + w * r
+        return loss, record
+
+    return objective
+
+
+def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settings: MEISettings | None = None, *,
+                 diversity: float = 0.5, floor: float = 0.8, **overrides) -> DiverseMEIs:
+    """K diverse 3D-MEIs of ``neuron`` (see the module's description for the objective).
+
+    Parameters
+    ----------
+    k : int
+        Members (>= 2).
+    diversity : float
+        Weight of the diversity reward (>= 0; 0: K independent runs, kept at their final iterate).
+    floor : float
+        Share of the best member's response that every member should keep, in [0, 1].
+    """
+    settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
+    neuron = check_neuron(encoder, neuron)
+    if isinstance(k, bool) or not isinstance(k, int) or k < 2:
+        raise MEIError(f"k must be an integer >= 2, got {k!r}")
+    if not (diversity >= 0 and 0 <= floor <= 1):
+        raise MEIError(f"need diversity >= 0 and floor in [0, 1], got {diversity!r}, {floor!r}")
+    V0, F, init_name = initial(init, settings)
+    n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
+    seeds = [settings.seeds[0] + i for i in range(k)]
+    t0 = time.perf_counter()
+    with frozen_encoder(encoder):
+        scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None)
+        trace = Trace()
+        minimize(_objective(encoder, neuron, F, scene, objective_weights(settings, n_weights), diversity, floor),
+                 make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
+                 schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep="last", trace=trace,
+                 error=MEIError, where=f" (diverse MEIs of neuron {neuron})")
+        with torch.no_grad():
+            V = scene.vertices()
+            images = scene.image(V, F, pose=True)
+            z, idx = encoder.inputs(images, [neuron])
+            acts = encoder.respond(z, idx)[:, 0].tolist()
+            flat = z.reshape(k, -1)
+            dissimilarity = torch.cdist(flat, flat) / (2 * float(encoder.preprocess.norm))
+    wall = (time.perf_counter() - t0) / k
+    h = trace.history
+    results = []
+    for b, s in enumerate(seeds):
+        run = dict(V=V[b], image=images[b:b + 1], activation=acts[b], loss=h[-1]["loss"][b],
+                   history=[r["response"][b] for r in h], loss_history=[r["loss"][b] for r in h],
+                   reg_history={key: [r[key][b] for r in h] for key, w in settings.weights.items() if w > 0},
+                   time_history=[r["time"] for r in h], deformer_state=scene.item_state(b),
+                   light=None if scene.light is None else scene.light[b].detach().clone(),
+                   albedo=None if scene.albedo_logit is None else scene.albedo()[b].detach().clone(),
+                   albedo_uv=scene.seeds[0].uv, rotation=scene.rotation[b].detach().clone(),
+                   translation=scene.translation[b].detach().clone())
+        results.append(result_from_seeds({s: run}, V0, F, settings, neuron, encoder, init_name, wall))
+    return DiverseMEIs(results=results, dissimilarity=dissimilarity)
