@@ -19,10 +19,10 @@ import torch
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..regularizers import REGULARIZERS, albedo_roughness, texture_roughness
+from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from .optimize import check_neuron, initial, objective_weights, optimize_mei, result_from_seeds, settings_for_encoder
-from .scene import SeedScene, sheet_uv
+from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
 __all__ = ["BatchScene", "optimize_mei_batch", "mei_batches"]
@@ -95,6 +95,35 @@ class BatchScene:
         """Every item's per-vertex albedo ``(B, n)`` in [0, 1], or None (shape only)."""
         return None if self.albedo_logit is None else torch.sigmoid(self.albedo_logit)
 
+    def penalties(self, V, F, active: dict, settings: MEISettings, record: dict) -> torch.Tensor:
+        """The items' regularizer terms ``(B,)``, weighted, with the albedo's smoothness; each term's values
+        go into ``record`` as lists."""
+        total = torch.zeros(V.shape[0], dtype=V.dtype, device=V.device)
+        for k, w in active.items():
+            r = REGULARIZERS[k](V, self.V0, F)  # (B,)
+            record[k] = r.detach().tolist()
+            total = total + w * r
+        if settings.albedo:
+            r = albedo_penalty(self.albedo(), self.seeds[0].uv, F)
+            record["albedo_roughness"] = r.detach().tolist()
+            total = total + settings.albedo_smoothness * r
+        return total
+
+    def item_runs(self, V, images, acts, history: list, losses, steps, settings: MEISettings) -> list[dict]:
+        """One run dict per item, as ``optimize_mei`` makes per seed, from the batch's final state and its
+        history (records holding one list entry per item)."""
+        h = history
+        return [dict(
+            V=V[b], image=images[b:b + 1], activation=acts[b], loss=losses[b], best_step=steps[b],
+            history=[r["response"][b] for r in h], loss_history=[r["loss"][b] for r in h],
+            reg_history={k: [r[k][b] for r in h] for k, w in settings.weights.items() if w > 0},
+            time_history=[r["time"] for r in h], deformer_state=self.item_state(b),
+            light=None if self.light is None else self.light[b].detach().clone(),
+            albedo=None if self.albedo_logit is None else self.albedo()[b].detach().clone(),
+            albedo_uv=self.seeds[0].uv,
+            rotation=self.rotation[b].detach().clone(), translation=self.translation[b].detach().clone())
+            for b in range(V.shape[0])]
+
     def item_state(self, b: int) -> dict:
         """Item ``b``'s deformer ``state_dict``, as :func:`optimize_mei` stores it."""
         rbf = self.rbfs[b]
@@ -114,17 +143,8 @@ def _objective(encoder, neurons, F, scene: BatchScene, active: dict, settings: M
     def objective(point):
         V = scene.vertices()
         f = _responses(encoder, scene.image(V, F), neurons)
-        loss, record = -f, {"response": f.detach().tolist()}
-        for k, w in active.items():
-            r = REGULARIZERS[k](V, scene.V0, F)  # (B,)
-            record[k] = r.detach().tolist()
-            loss = loss + w * r
-        if settings.albedo:
-            a = scene.albedo()
-            r = texture_roughness(a) if scene.seeds[0].uv is not None else albedo_roughness(a, F)
-            record["albedo_roughness"] = r.detach().tolist()
-            loss = loss + settings.albedo_smoothness * r
-        return loss, record
+        record = {"response": f.detach().tolist()}
+        return -f + scene.penalties(V, F, active, settings, record), record
 
     return objective
 
@@ -148,19 +168,7 @@ def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar
         V = scene.vertices().detach()
         images = scene.image(V, F, pose=True).detach()
         acts = _responses(encoder, images, neurons).tolist()
-    h = trace.history
-    runs = []
-    for b in range(len(items)):
-        runs.append(dict(
-            V=V[b], image=images[b:b + 1], activation=acts[b], loss=out.loss[b], best_step=out.step[b],
-            history=[r["response"][b] for r in h], loss_history=[r["loss"][b] for r in h],
-            reg_history={k: [r[k][b] for r in h] for k, w in settings.weights.items() if w > 0},
-            time_history=[r["time"] for r in h], deformer_state=scene.item_state(b),
-            light=None if scene.light is None else scene.light[b].detach().clone(),
-            albedo=None if scene.albedo_logit is None else scene.albedo()[b].detach().clone(),
-            albedo_uv=scene.seeds[0].uv,
-            rotation=scene.rotation[b].detach().clone(), translation=scene.translation[b].detach().clone()))
-    return runs
+    return scene.item_runs(V, images, acts, trace.history, out.loss, out.step, settings)
 
 
 def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings | None = None, *,

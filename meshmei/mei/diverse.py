@@ -18,7 +18,6 @@ import torch
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Schedule, Trace, make_optimizer, minimize
-from ..regularizers import REGULARIZERS
 from .batch import BatchScene
 from .optimize import check_neuron, initial, objective_weights, result_from_seeds, settings_for_encoder
 from .scene import sheet_uv
@@ -47,7 +46,7 @@ class DiverseMEIs:
         return [r.activation for r in self.results]
 
 
-def _objective(encoder, neuron, F, scene: BatchScene, active, weight: float, floor: float):
+def _objective(encoder, neuron, F, scene: BatchScene, active, settings: MEISettings, weight: float, floor: float):
     norm = float(encoder.preprocess.norm)
 
     def objective(point):
@@ -61,11 +60,7 @@ def _objective(encoder, neuron, F, scene: BatchScene, active, weight: float, flo
         best = f.detach().max().abs().clamp_min(1e-12)
         loss = -f - weight * best * spread + 10 * best * torch.relu(floor - f / best) ** 2
         record = {"response": f.detach().tolist(), "spread": spread.detach().tolist()}
-        for k, w in active.items():
-            r = REGULARIZERS[k](V, scene.V0, F)
-            record[k] = r.detach().tolist()
-            loss = loss + w * r
-        return loss, record
+        return loss + scene.penalties(V, F, active, settings, record), record
 
     return objective
 
@@ -96,7 +91,8 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     with frozen_encoder(encoder):
         scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None)
         trace = Trace()
-        minimize(_objective(encoder, neuron, F, scene, objective_weights(settings, n_weights), diversity, floor),
+        minimize(_objective(encoder, neuron, F, scene, objective_weights(settings, n_weights), settings, diversity,
+                            floor),
                  make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                  schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep="last", trace=trace,
                  error=MEIError, where=f" (diverse MEIs of neuron {neuron})")
@@ -108,16 +104,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
             flat = z.reshape(k, -1)
             dissimilarity = torch.cdist(flat, flat) / (2 * float(encoder.preprocess.norm))
     wall = (time.perf_counter() - t0) / k
-    h = trace.history
-    results = []
-    for b, s in enumerate(seeds):
-        run = dict(V=V[b], image=images[b:b + 1], activation=acts[b], loss=h[-1]["loss"][b],
-                   history=[r["response"][b] for r in h], loss_history=[r["loss"][b] for r in h],
-                   reg_history={key: [r[key][b] for r in h] for key, w in settings.weights.items() if w > 0},
-                   time_history=[r["time"] for r in h], deformer_state=scene.item_state(b),
-                   light=None if scene.light is None else scene.light[b].detach().clone(),
-                   albedo=None if scene.albedo_logit is None else scene.albedo()[b].detach().clone(),
-                   albedo_uv=scene.seeds[0].uv, rotation=scene.rotation[b].detach().clone(),
-                   translation=scene.translation[b].detach().clone())
-        results.append(result_from_seeds({s: run}, V0, F, settings, neuron, encoder, init_name, wall))
+    runs = scene.item_runs(V, images, acts, trace.history, trace.history[-1]["loss"], [trace.step] * k, settings)
+    results = [result_from_seeds({s: run}, V0, F, settings, neuron, encoder, init_name, wall)
+               for s, run in zip(seeds, runs)]
     return DiverseMEIs(results=results, dissimilarity=dissimilarity)

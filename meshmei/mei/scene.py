@@ -10,7 +10,7 @@ from ..regularizers import albedo_roughness, texture_roughness
 from ..render import axis_angle_to_matrix, render
 from .settings import MEISettings, make_deformer
 
-__all__ = ["SeedScene", "sheet_uv", "robust_turns"]
+__all__ = ["SeedScene", "sheet_uv", "robust_turns", "albedo_penalty"]
 
 
 class SeedScene:
@@ -82,10 +82,13 @@ class SeedScene:
         return None if self.albedo_logit is None else torch.sigmoid(self.albedo_logit)
 
     def albedo_roughness(self, F) -> torch.Tensor:
-        """The albedo's smoothness penalty (:func:`~meshmei.regularizers.albedo_roughness` or, for a
-        texture, :func:`~meshmei.regularizers.texture_roughness`)."""
-        a = self.albedo()
-        return texture_roughness(a) if self.uv is not None else albedo_roughness(a, F)
+        return albedo_penalty(self.albedo(), self.uv, F)
+
+
+def albedo_penalty(a, uv, F) -> torch.Tensor:
+    """The albedo's smoothness penalty: :func:`~meshmei.regularizers.texture_roughness` for a texture
+    (``uv`` given), else :func:`~meshmei.regularizers.albedo_roughness` over the mesh; () or (B,)."""
+    return texture_roughness(a) if uv is not None else albedo_roughness(a, F)
 
 
 def sheet_uv(V0: torch.Tensor) -> torch.Tensor:

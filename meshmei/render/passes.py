@@ -255,7 +255,7 @@ def _segment_buffer(sc: _Screen, seg, ends, B, S, st: RenderSettings) -> torch.T
     return skey
 
 
-def _soft_pixels(skey, hit, B, S, margin, dt) -> torch.Tensor:
+def _soft_pixels(skey, hit, B, S, margin) -> torch.Tensor:
     """Pixels that get a soft coverage value, ``(B * S * S,)`` bool: near a segment, and if covered, near
     an uncovered pixel (see docs: interior fold contours)."""
     soft = skey != _NONE
@@ -310,7 +310,7 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
             skey = _segment_buffer(sc, seg, ends, B, S, st)
         else:
             seg, skey = None, torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Vw.device)
-        soft = _soft_pixels(skey, hit, B, S, st.soft_margin, dt)
+        soft = _soft_pixels(skey, hit, B, S, st.soft_margin)
         in_pix = hit.nonzero().squeeze(1)
         in_b, in_f = in_pix // (S * S), face_id[in_pix]
         fr_pix = soft.nonzero().squeeze(1)
