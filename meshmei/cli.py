@@ -69,21 +69,31 @@ def _add_mei(sub) -> None:
                    help="regularizer weight, e.g. --weight laplacian=1 (repeatable)")
     p.add_argument("--optimize-light", action="store_true")
     p.add_argument("--optimize-pose", action="store_true")
+    _add_objective_options(p, d)
+    p.add_argument("--diverse", type=int, default=1, metavar="K",
+                   help="K diverse 3D-MEIs of the neuron, optimised together and pushed apart (default 1: one)")
+    p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_run_mei)
+
+
+def _add_objective_options(p, d: MEISettings) -> None:
+    """What a 3D-MEI optimises and how its steps are checked: the options ``mei`` and ``population`` share."""
     p.add_argument("--albedo", action="store_true",
                    help="also optimise the surface albedo (a texture over the sheet's grid; per vertex otherwise)")
     p.add_argument("--robust-pose", type=float, default=0.0, metavar="DEG",
                    help="maximise the mean response over object turns within +-DEG (a 3 x 3 grid; default 0: off)")
     p.add_argument("--robust-light", type=float, default=0.0, metavar="DEG",
                    help="maximise the mean response over light positions turned within +-DEG (default 0: off)")
-    p.add_argument("--diverse", type=int, default=1, metavar="K",
-                   help="K diverse 3D-MEIs of the neuron, optimised together and pushed apart (default 1: one)")
-    p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
                         f"(default {'on' if d.valid_steps else 'off'})")
-    p.add_argument("--overwrite", action="store_true")
-    p.add_argument("--quiet", action="store_true")
-    p.set_defaults(func=_run_mei)
+
+
+def _objective_settings(args) -> dict:
+    return dict(valid_steps=args.valid_steps, albedo=args.albedo, robust_pose=args.robust_pose,
+                robust_light=args.robust_light)
 
 
 def _weights(items: list) -> dict:
@@ -130,8 +140,7 @@ def _run_mei(args) -> int:
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
-                           valid_steps=args.valid_steps, albedo=args.albedo, robust_pose=args.robust_pose,
-                           robust_light=args.robust_light)
+                           **_objective_settings(args))
     if args.diverse > 1:
         return _run_diverse(args, encoder, settings, out)
     res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
@@ -253,8 +262,10 @@ def _add_demo(sub) -> None:
 def _add_tune(sub) -> None:
     p = sub.add_parser("tune", help="sweep the pose or the light of a saved MEI run and plot the tuning")
     p.add_argument("what", choices=["pose", "light"])
-    p.add_argument("--mei", required=True, help="a run directory written by 'meshmei mei'")
-    p.add_argument("--out", default=None, help="output directory (default: MEI_DIR/tuning_<what>)")
+    p.add_argument("--mei", required=True, help="a run directory written by 'meshmei mei' (with --diverse K: "
+                                                "the folder of the K members, each swept)")
+    p.add_argument("--out", default=None, help="output directory (default: MEI_DIR/tuning_<what>; for diverse "
+                                               "members OUT/member_<i>)")
     p.add_argument("--neurons", type=int, nargs="+", default=None, help="default: the run's neuron")
     p.add_argument("--elevation", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:90:10)")
     p.add_argument("--azimuth", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:350:36)")
@@ -268,8 +279,14 @@ def _run_tune(args) -> int:
     # the command line gives ranges as text; everything else is run_tuning's
     ranges = {k: None if getattr(args, k) is None else parse_range(getattr(args, k))
               for k in ("elevation", "azimuth", "roll")}
-    run_tuning(args.what, args.mei, args.out, neurons=args.neurons, distance=args.distance,
-               overwrite=args.overwrite, **ranges)
+    root = Path(args.mei)
+    members = [root]
+    if (root / "diversity.json").is_file():  # meshmei mei --diverse K: sweep every member
+        members = sorted(root.glob("member_*"), key=lambda m: int(m.name.rpartition("_")[2]))
+    for run_dir in members:
+        out = args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name
+        run_tuning(args.what, run_dir, out, neurons=args.neurons, distance=args.distance,
+                   overwrite=args.overwrite, **ranges)
     return 0
 
 
@@ -294,7 +311,7 @@ def _add_population(sub) -> None:
     p.add_argument("--cluster", default=None, metavar="ray|ray://HOST:PORT",
                    help="run batches as Ray tasks (pip install 'meshmei[cluster]'); default: in this process")
     p.add_argument("--device", default="cpu", help="cpu (this version renders on the CPU)")
-    p.add_argument("--albedo", action="store_true", help="also optimise the surface albedo (see meshmei mei --albedo)")
+    _add_objective_options(p, d)
     p.add_argument("--figures", action="store_true", help="also write each run folder's figures")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_run_population)
@@ -304,7 +321,7 @@ def _run_population(args) -> int:
     encoder = _cli_encoder(args)
     image_size = args.image_size or getattr(encoder, "image_size", (MEISettings.image_size,))[0]
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
-                           n_vertices=args.n_vertices, albedo=args.albedo)
+                           n_vertices=args.n_vertices, **_objective_settings(args))
     try:
         rows = run_population(encoder, parse_neurons(args.neurons), args.out, init=args.init, settings=settings,
                               batch_size=args.batch_size, pixel_steps=args.pixel_steps, cluster=args.cluster,

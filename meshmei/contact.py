@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from .mesh import check_mesh
 
-__all__ = ["ContactBarrier", "point_triangle_sqdist", "mean_edge_length"]
+__all__ = ["ContactBarrier", "log_barrier", "point_triangle_sqdist", "mean_edge_length"]
 
 
 def point_triangle_sqdist(P: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
@@ -55,6 +55,14 @@ def point_triangle_sqdist(P: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: 
 
     edge = torch.minimum(torch.minimum(segment(A, B), segment(B, C)), segment(C, A))
     return torch.where(inside, plane, edge)
+
+
+def log_barrier(d: torch.Tensor, d_hat: float) -> torch.Tensor:
+    """Incremental potential contact's barrier ``-(d - d_hat)^2 log(d / d_hat)`` for ``d < d_hat``, else 0,
+    element by element: zero with zero slope at ``d_hat``, unbounded as ``d`` falls to 0 (``d <= 0`` is
+    clamped to the smallest positive float, a very large but finite value)."""
+    dc = d.clamp_min(torch.finfo(d.dtype).tiny)
+    return torch.where(d < d_hat, -(dc - d_hat).square() * torch.log(dc / d_hat), torch.zeros_like(d))
 
 
 def mean_edge_length(V: torch.Tensor, F: torch.Tensor) -> float:
@@ -163,5 +171,4 @@ class ContactBarrier:
             return V.sum() * 0.0
         d2 = point_triangle_sqdist(V[vt], V[F[ft, 0]], V[F[ft, 1]], V[F[ft, 2]])
         d = d2.clamp_min(torch.finfo(V.dtype).tiny).sqrt()
-        dh = self.distance
-        return (-(d - dh).square() * torch.log(d / dh)).sum() / V.shape[0]
+        return log_barrier(d, self.distance).sum() / V.shape[0]

@@ -252,19 +252,38 @@ def _as_record(values: torch.Tensor):
 
 
 @torch.no_grad()
-def _backtrack(params, before, accept, max_halvings: int) -> float:
-    """Shrink the step just taken until ``accept()`` holds; the scale kept (0: the step is undone)."""
+def _backtrack(params, before, accept, max_halvings: int, items: int | None = None):
+    """Shrink the step just taken until ``accept()`` holds; the scale kept (0: the step is undone).
+
+    With ``items`` (a batched objective), ``accept(pending)`` gets a ``(B,)`` bool mask of the items still
+    to check and returns a ``(B,)`` bool verdict; each item's slice (leading axis) is halved on its own,
+    and the scales come back as a list.
+    """
     after = [p.detach().clone() for p in params]
-    scale = 1.0
+    if items is None:
+        scale = 1.0
+        for _ in range(max_halvings + 1):
+            if accept():
+                return scale
+            scale *= 0.5
+            for p, b, a in zip(params, before, after):
+                p.copy_(b + scale * (a - b))
+        for p, b in zip(params, before):
+            p.copy_(b)
+        return 0.0
+    scale = torch.ones(items, dtype=torch.float64)
+    done = torch.zeros(items, dtype=torch.bool)
     for _ in range(max_halvings + 1):
-        if accept():
-            return scale
-        scale *= 0.5
+        done |= torch.as_tensor(accept(~done), dtype=torch.bool).cpu()
+        if bool(done.all()):
+            return scale.tolist()
+        scale = torch.where(done, scale, 0.5 * scale)
         for p, b, a in zip(params, before, after):
-            p.copy_(b + scale * (a - b))
+            s = scale.to(device=p.device, dtype=p.dtype).view(-1, *[1] * (p.ndim - 1))
+            p.copy_(torch.where(done.to(p.device).view_as(s), p, b + s * (a - b)))
     for p, b in zip(params, before):
-        p.copy_(b)
-    return 0.0
+        p.copy_(torch.where(done.to(p.device).view(-1, *[1] * (p.ndim - 1)), p, b))
+    return torch.where(done, scale, torch.zeros_like(scale)).tolist()
 
 
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
@@ -285,8 +304,9 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     every parameter then has the items on its leading axis and no parameter is shared between items. One
     backward of the sum gives each item its own gradient; element-wise optimisers (Adam) then step each
     item as if alone. Keep-best, the final comparison and the outcome are per item; the history records
-    the loss as a list. A non-finite loss of any item raises ``error`` naming the items. ``accept`` is
-    for scalar objectives only.
+    the loss as a list. A non-finite loss of any item raises ``error`` naming the items. With a batched
+    objective ``accept(pending)`` takes a ``(B,)`` bool mask of the items to check and returns a ``(B,)``
+    bool verdict (True for the items not checked); each refused item's step is halved on its own.
 
     Parameters
     ----------
@@ -340,9 +360,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         optimizer.zero_grad(set_to_none=True)
         loss, record = objective(StepPoint(trace.step, f, c))
         values = loss.detach()
-        if values.ndim > 1 or (values.ndim == 1 and accept is not None):
-            raise ValueError(f"the objective must return a scalar or, without accept, a (B,) loss; got shape "
-                             f"{tuple(values.shape)}")
+        if values.ndim > 1:
+            raise ValueError(f"the objective must return a scalar or a (B,) loss; got shape {tuple(values.shape)}")
         _guard(values, trace.step, optimizer, error, where)
         if keep == "best":
             best.offer(values, trace.step)
@@ -350,7 +369,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         before = None if accept is None else [p.detach().clone() for p in params]
         optimizer.step()
         if accept is not None:
-            record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings))
+            items = None if values.ndim == 0 else values.shape[0]
+            record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings, items))
         trace.step += 1
         trace.seconds += time.perf_counter() - t0
         rec = {"step": trace.step, "time": trace.seconds, "loss": _as_record(values),

@@ -14,7 +14,7 @@ import torch
 
 from .render import camera_from_angles, render
 
-__all__ = ["mei_figures", "diverse_figure", "reconstruction_figures", "plot_pose_heatmap", "plot_light_polar",
+__all__ = ["mei_figures", "diverse_figure", "albedo_figure", "reconstruction_figures", "plot_pose_heatmap", "plot_light_polar",
            "summary_sheet"]
 
 # the three extra views of a 3D-MEI run's mesh: the camera orbits the origin at these angles (degrees)
@@ -95,6 +95,29 @@ def mei_figures(result, out) -> None:
     ax.set_title(f"neuron {result.neuron}, seed {result.seed}")
     fig.tight_layout()
     fig.savefig(out / "activation.png", dpi=100)
+    if result.albedo is not None:
+        albedo_figure(result, out / "albedo.png")
+
+
+def albedo_figure(result, path) -> Path:
+    """The albedo of a shape + albedo 3D-MEI: its render, the albedo alone as the camera sees it (ambient
+    light only), the shading alone (albedo 1 everywhere), and, for a texture, the texture map itself."""
+    import dataclasses
+
+    s = result.settings.render_settings()
+    with torch.no_grad():
+        flat = result.render(settings=dataclasses.replace(s, ambient=1.0, light_intensity=0.0))
+        shading = result.render(albedo=None, uv=None)
+    panels = [(result.image, f"render, response {result.activation:.3f}"), (flat, "albedo (camera view)"),
+              (shading, "shading alone (albedo 1)")]
+    if result.albedo.ndim == 2:  # a texture over the sheet's grid, row 0 at v = 0
+        panels.append((result.albedo.flip(0)[None, None], f"texture {result.albedo.shape[0]} x {result.albedo.shape[1]}"))
+    fig = _figure(figsize=(2.6 * len(panels), 2.8))
+    for ax, (img, title) in zip(fig.subplots(1, len(panels)), panels):
+        _gray(ax, img[0, 0].detach().cpu().numpy(), title, fontsize=9)
+    path = Path(path)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    return path
 
 
 def diverse_figure(diverse, path) -> Path:
@@ -120,7 +143,8 @@ def _orbit_view(result, azimuth) -> np.ndarray:
     s = result.settings
     cam = camera_from_angles(float(azimuth), float(ORBIT_ELEVATION), s.camera_distance, fov_degrees=s.fov_degrees)
     with torch.no_grad():
-        img = render(result.V, result.F, camera=cam, settings=s.render_settings())
+        img = render(result.V, result.F, camera=cam, settings=s.render_settings(), albedo=result.albedo,
+                     uv=result.albedo_uv)
     return img[0, 0].cpu().numpy()
 
 

@@ -22,12 +22,13 @@ from dataclasses import dataclass
 
 import torch
 
+from .contact import log_barrier
 from .errors import MeshError
 from .mesh import check_mesh
 from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners
 from .quality import count_self_intersections
 
-__all__ = ["ValidityRules", "StepGuard", "margin_penalty", "face_frame"]
+__all__ = ["ValidityRules", "StepGuard", "face_frame"]
 
 
 def face_frame(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -178,6 +179,34 @@ class StepGuard:
         self.seconds += time.perf_counter() - t0
         return rule is None
 
+    def report(self) -> dict:
+        """What the guard did, JSON-able: candidates checked, refused, refusals by rule, seconds."""
+        return {"checks": self.checks, "refused": self.failures, "reasons": dict(self.reasons),
+                "seconds": round(self.seconds, 4)}
+
+    def barrier(self, V: torch.Tensor, *, turn_band_degrees: float = 20.0, quality_band: float = 2.0) -> torch.Tensor:
+        """A smooth energy that keeps iterates away from the turn and quality bounds (a scalar with a graph
+        to ``V``).
+
+        ``sum_f b(cos t_f - cos T, cos(T - band) - cos T) + sum_f b(q_f - q_min, quality_band * q_min)`` with
+        :func:`~meshmei.contact.log_barrier` ``b``: ``t_f`` is face ``f``'s turn from its reference, ``T``
+        the rules' ``max_turn_degrees``, ``q_f`` its quality and ``q_min`` :attr:`quality_floor`. A face
+        more than ``turn_band_degrees`` inside the turn bound, and a triangle of quality above
+        ``(1 + quality_band) q_min``, add nothing; the energy grows without bound at the bounds. Added to an
+        objective with a small weight, it turns the run before a step reaches a bound, where the guard would
+        refuse it: with a quadratic margin penalty instead, a 3D-MEI run from the sheet had four steps in
+        five refused and stalled (docs/benchmarks.md, *Valid steps*). The sum runs over faces, so a single
+        face at its bound is felt whatever the mesh size.
+        """
+        n, q = face_frame(V, self.F)
+        total = log_barrier(q - self.quality_floor, quality_band * self.quality_floor).sum()
+        if self.rules.max_turn_degrees < 180:
+            T = math.radians(self.rules.max_turn_degrees)
+            band = math.cos(max(T - math.radians(turn_band_degrees), 0.0)) - self.cos_bound
+            cos = (n * self.normals.to(n.dtype)).sum(-1)
+            total = total + log_barrier(cos - self.cos_bound, band).sum()
+        return total
+
     def acceptor(self, vertices):
         """A callable for :func:`meshmei.optim.minimize`'s ``accept``: ``vertices()`` (no gradient), checked."""
 
@@ -186,19 +215,3 @@ class StepGuard:
                 return self.accept(vertices())
 
         return accept
-
-
-def margin_penalty(V: torch.Tensor, normals0: torch.Tensor, F: torch.Tensor, *, max_turn_degrees: float = 90.0,
-                   min_quality: float = 0.02, margin: float = 2.0) -> torch.Tensor:
-    """A smooth penalty that rises as faces near the guard's turn and quality bounds, zero well inside them.
-
-    ``mean_f relu(c_m - cos t_f)^2 + mean_f relu(q_m - q_f)^2`` where ``t_f`` is the angle between face
-    ``f``'s normal and its reference ``normals0`` and ``q_f`` its quality; ``c_m = cos(max_turn / margin)``
-    and ``q_m = margin * min_quality``. Added to an objective with a weight, it turns the optimisation away
-    before :class:`StepGuard` has to refuse a step, so the run slides along the bounds instead of stalling
-    at them.
-    """
-    n, q = face_frame(V, F)
-    cos = (n * normals0.to(n.dtype)).sum(-1)
-    c_m = math.cos(math.radians(max_turn_degrees) / margin)
-    return torch.relu(c_m - cos).square().mean() + torch.relu(margin * min_quality - q).square().mean()

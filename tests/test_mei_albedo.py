@@ -31,6 +31,27 @@ def test_a_sphere_gets_a_per_vertex_albedo():
     torch.testing.assert_close(res.render(), res.image)
 
 
+@pytest.mark.parametrize("init", ["sheet", "sphere"])
+def test_the_albedo_figure_shows_the_albedo_the_camera_sees(init, tmp_path):
+    """albedo.png's "albedo alone" panel renders with ambient light 1 and no point light: there the render
+    shows the reflectance itself (a constant albedo of 0.3 reads 0.3 on the covered pixels). save_run
+    writes the figure for an albedo run and not for a shape-only one."""
+    import dataclasses
+
+    from meshmei.plots import albedo_figure
+
+    res = optimize_mei(GaborSimpleCell(), 0, init, **TINY)
+    flat = dataclasses.replace(res.settings.render_settings(), ambient=1.0, light_intensity=0.0)
+    img = dataclasses.replace(res, albedo=torch.full_like(res.albedo, 0.3)).render(settings=flat)[0, 0]
+    covered = (img - flat.background).abs() > 1e-3
+    on = (img[covered] - 0.3).abs() < 1e-4  # the rest: soft edges, blended with the background
+    assert int(covered.sum()) > 20 and float(on.float().mean()) > 0.5
+    assert albedo_figure(res, tmp_path / "a.png").stat().st_size > 0
+    assert (save_run(res, tmp_path / "run") / "albedo.png").is_file()
+    shape_only = optimize_mei(GaborSimpleCell(), 0, init, **dict(TINY, albedo=False, steps=2))
+    assert not (save_run(shape_only, tmp_path / "shape") / "albedo.png").exists()
+
+
 def test_shape_only_stays_the_default_and_bad_albedo_settings_are_refused():
     assert MEISettings().albedo is False
     assert optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40).albedo is None

@@ -9,6 +9,7 @@ import torch
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
 from meshmei.mei import MEISettings, mei_batches, optimize_mei, optimize_mei_batch
+from meshmei.quality import count_flipped_faces, count_self_intersections
 
 from conftest import demo_or_skip
 
@@ -59,12 +60,22 @@ def test_batches_yield_each_neuron_once_as_its_seeds_finish():
     assert seen == [1, 0]
 
 
-def test_valid_steps_runs_each_neuron_alone_with_its_guard():
+def test_guarded_items_equal_their_guarded_runs_alone():
+    """valid_steps (the default) in float64 at ten times the default rate: each item's guard refuses and
+    halves its own steps, and every item ends where its guarded run alone ends, with the same step scales."""
     enc = _two_cell_encoder()
-    s = MEISettings(steps=3, seeds=(0,), image_size=24, n_vertices=40, valid_steps=True)
-    res = optimize_mei_batch(enc, [0, 1], "sheet", s)
+    s = MEISettings(steps=15, seeds=(0, 1), image_size=24, n_vertices=60, dtype="float64", lr=3e-2)
+    assert s.valid_steps
+    batched = optimize_mei_batch(enc, [0, 1], "sheet", s, batch_size=3)
     for n in (0, 1):
-        torch.testing.assert_close(res[n].V, optimize_mei(enc, n, "sheet", s).V)
+        solo = optimize_mei(enc, n, "sheet", s)
+        assert batched[n].seed == solo.seed and batched[n].extra["guard"] == {**solo.extra["guard"], "seconds":
+                                                                               batched[n].extra["guard"]["seconds"]}
+        assert solo.extra["guard"]["refused"] > 0  # the rate does make the guard refuse steps
+        torch.testing.assert_close(batched[n].V, solo.V, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(torch.tensor(batched[n].history), torch.tensor(solo.history), rtol=1e-9, atol=1e-9)
+        assert count_self_intersections(batched[n].V, batched[n].F) == 0
+        assert count_flipped_faces(batched[n].V, batched[n].V0, batched[n].F) == 0
 
 
 def test_bad_batches_fail_before_any_step():

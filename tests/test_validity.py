@@ -101,14 +101,81 @@ def test_a_sheet_pulled_through_itself_stays_clean_in_every_accepted_iterate():
     assert float(triangle_quality(seen[-1], F).min()) >= guard.quality_floor
 
 
-def test_mei_at_ten_times_the_learning_rate_gives_a_clean_object():
+@pytest.mark.parametrize("init", ["sheet", "torus"])
+def test_mei_at_ten_times_the_learning_rate_is_clean_in_every_iterate(init, monkeypatch):
+    """The default 3D-MEI (guard, its barrier and the contact barrier on) at ten times the default rate,
+    under a simple cell whose unguarded optimum folds the sheet: every iterate the optimiser steps from,
+    read from the scene after each step, has no self-intersection and no face flipped against the start."""
+    import meshmei.mei.optimize as mo
+
+    scenes, seen = [], []
+
+    class Scene(mo.SeedScene):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            scenes.append(self)
+
+    def minimize(*a, **k):
+        return real(*a, **k, callbacks=[lambda rec: seen.append(scenes[-1].rbf().detach().clone())])
+
+    real = mo.minimize
+    monkeypatch.setattr(mo, "SeedScene", Scene)
+    monkeypatch.setattr(mo, "minimize", minimize)
     cell = GaborSimpleCell()
-    res = optimize_mei(cell, 0, "sheet", steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
-                       valid_steps=True)
-    assert _clean(res.V, res.F, res.V0)
-    off = optimize_mei(cell, 0, "sheet", steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
+    res = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2)
+    assert len(seen) == 40 and all(_clean(V, res.F, res.V0) for V in seen)
+    assert _clean(res.V, res.F, res.V0) and res.extra["guard"]["checks"] >= 40
+    off = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
                        valid_steps=False)
-    assert res.activation > 0 and off.activation > 0
+    assert not _clean(off.V, off.F, off.V0)  # unguarded, the same run does fold or cross itself
+    assert max(res.history) > res.history[0] + 0.02  # and the guarded run still climbs
+
+
+def test_the_guard_barrier_is_zero_inside_its_band_and_grows_without_bound_at_the_bounds(ball):
+    V, F = ball
+    guard = StepGuard(V, F, ValidityRules(min_quality=0.02))
+    assert float(guard.barrier(V)) == 0.0  # the start: every face unturned, every triangle well shaped
+    f = F[0]
+
+    def slid(t):  # face 0's first vertex slid a share t of the way onto its opposite edge: quality -> 0
+        W = V.clone()
+        W[f[0]] = (1 - t) * V[f[0]] + t * 0.5 * (V[f[1]] + V[f[2]])
+        return W
+
+    assert float(guard.barrier(slid(0.5))) == 0.0  # a worse triangle, still far from the bound
+    ts = [t for t in (0.95, 0.97, 0.98, 0.985, 0.99, 0.995, 0.999) if guard.why_not(slid(t)) is None]
+    values = [v for v in (float(guard.barrier(slid(t))) for t in ts) if v > 0]  # in the band: rising
+    assert len(values) >= 3 and all(b > a for a, b in zip(values, values[1:])) and values[-1] > 10 * values[0]
+    from meshmei.contact import log_barrier
+
+    b = log_barrier(torch.tensor([2.0, 1.0, 0.5, 1e-3, 1e-6, 1e-12, 0.0, -1.0], dtype=torch.float64), 1.0)
+    assert b[:2].tolist() == [0.0, 0.0] and bool((b[2:6].diff() > 0).all()) and float(b[5]) > 25  # no bound at 0
+    assert bool(torch.isfinite(b).all()) and float(b[6]) == float(b[7]) > float(b[5])  # at and past 0: finite
+    W = slid(ts[-1]).requires_grad_(True)
+    guard.barrier(W).backward()
+    step = W.detach() - 1e-4 * W.grad / W.grad.norm()  # down the barrier's gradient: the triangle opens up
+    assert float(triangle_quality(step, F)[0]) > float(triangle_quality(W.detach(), F)[0])
+    # the turn: the whole mesh turned by 80 degrees (inside the 90 degree bound, in the 20 degree band)
+    c, s_ = torch.cos(torch.tensor(1.396, dtype=V.dtype)), torch.sin(torch.tensor(1.396, dtype=V.dtype))
+    R = torch.stack([torch.stack([c, -s_, c * 0]), torch.stack([s_, c, c * 0]), torch.tensor([0.0, 0, 1], dtype=V.dtype)])
+    assert guard.why_not(V @ R.T) is None and float(guard.barrier(V @ R.T)) > 0
+
+
+def test_minimize_halves_each_refused_item_on_its_own():
+    x = torch.zeros(3, 1, dtype=torch.float64, requires_grad=True)  # three items, one parameter each
+    objective = lambda point: (((x - 1.0) ** 2).sum(1), {})  # noqa: E731
+    checked = []
+
+    def accept(pending):  # item 0 may not pass 0.3, item 1 anything, item 2 nothing but its start
+        checked.append(pending.tolist())
+        v = x.detach()[:, 0]
+        return torch.tensor([float(v[0]) <= 0.3, True, float(v[2]) == 0.0])
+
+    trace = Trace()
+    minimize(objective, torch.optim.SGD([x], lr=0.5), Budget(steps=1), trace=trace, accept=accept, max_halvings=2)
+    assert trace.history[0]["step_scale"] == [0.25, 1.0, 0.0]
+    assert x.detach()[:, 0].tolist() == [0.25, 1.0, 0.0]
+    assert checked[0] == [True, True, True] and checked[1] == [True, False, True]  # accepted items: not again
 
 
 def test_reconstruction_at_ten_times_the_learning_rate_is_clean_in_every_iterate():

@@ -21,7 +21,9 @@ from ..errors import MEIError
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
-from .optimize import check_neuron, initial, objective_weights, optimize_mei, result_from_seeds, settings_for_encoder
+from ..validity import StepGuard
+from .optimize import (check_neuron, contact_barrier, initial, objective_weights, optimize_mei, result_from_seeds,
+                       settings_for_encoder, validity_barriers)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -33,9 +35,11 @@ class BatchScene:
 
     Each item keeps its own :class:`~meshmei.deform.RBFDeformer` for its pair list (rebuilt when its own
     scales outgrow it, as alone); when every item's map is dense the B maps run as one batched product.
+    Given the faces ``F`` and ``settings.valid_steps``, each item has its own
+    :class:`~meshmei.validity.StepGuard` and contact barrier, as alone (:meth:`acceptor`, :meth:`penalties`).
     """
 
-    def __init__(self, V0, settings: MEISettings, seeds, uv=None):
+    def __init__(self, V0, settings: MEISettings, seeds, uv=None, F=None):
         self.seeds = [SeedScene(V0, settings, s, uv) for s in seeds]  # the same initial draws as alone
         self.rbfs = [s.rbf for s in self.seeds]
         self.V0 = V0
@@ -66,6 +70,10 @@ class BatchScene:
             self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
         self.camera, self.render_settings = first.camera, first.render_settings
         self._dense_key, self._dense = None, None
+        self.guards = self.contacts = None
+        if settings.valid_steps and F is not None:
+            self.guards = [StepGuard(V0, F, settings.validity_rules()) for _ in self.seeds]
+            self.contacts = [contact_barrier(V0, F, settings) for _ in self.seeds]
 
     def vertices(self) -> torch.Tensor:
         """Deformed vertices of every item, ``(B, n, 3)``."""
@@ -107,7 +115,29 @@ class BatchScene:
             r = albedo_penalty(self.albedo(), self.seeds[0].uv, F)
             record["albedo_roughness"] = r.detach().tolist()
             total = total + settings.albedo_smoothness * r
+        if self.guards is not None:  # each item's guard barrier and contact barrier, as alone
+            terms = [{} for _ in self.guards]
+            total = total + torch.stack([validity_barriers(g, c, V[b], settings, terms[b])
+                                         for b, (g, c) in enumerate(zip(self.guards, self.contacts))])
+            record.update({k: [t[k] for t in terms] for k in terms[0]})
         return total
+
+    def acceptor(self):
+        """``accept(pending)`` for :func:`meshmei.optim.minimize`: each pending item's mesh checked by its own
+        guard, a ``(B,)`` bool verdict; None without guards."""
+        if self.guards is None:
+            return None
+
+        def accept(pending: torch.Tensor) -> torch.Tensor:
+            with torch.no_grad():
+                V = self.vertices()
+            return torch.tensor([not p or g.accept(V[b]) for b, (g, p) in enumerate(zip(self.guards, pending.tolist()))])
+
+        return accept
+
+    @property
+    def max_halvings(self) -> int:
+        return 0 if self.guards is None else self.guards[0].rules.max_halvings
 
     def item_runs(self, V, images, acts, history: list, losses, steps, settings: MEISettings) -> list[dict]:
         """One run dict per item, as ``optimize_mei`` makes per seed, from the batch's final state and its
@@ -120,7 +150,7 @@ class BatchScene:
             time_history=[r["time"] for r in h], deformer_state=self.item_state(b),
             light=None if self.light is None else self.light[b].detach().clone(),
             albedo=None if self.albedo_logit is None else self.albedo()[b].detach().clone(),
-            albedo_uv=self.seeds[0].uv,
+            albedo_uv=self.seeds[0].uv, guard=None if self.guards is None else self.guards[b].report(),
             rotation=self.rotation[b].detach().clone(), translation=self.translation[b].detach().clone())
             for b in range(V.shape[0])]
 
@@ -157,13 +187,13 @@ def _check_batch_size(batch_size) -> None:
 def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress, uv) -> list[dict]:
     """Optimise the ``(neuron, seed)`` items together; one run dict per item, as ``optimize_mei`` makes per seed."""
     neurons = [n for n, _ in items]
-    scene = BatchScene(V0, settings, [s for _, s in items], uv)
+    scene = BatchScene(V0, settings, [s for _, s in items], uv, F)
     trace = Trace()
     out = minimize(_objective(encoder, neurons, F, scene, objective_weights(settings, n_weights), settings),
                    make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                    schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep=settings.keep,
-                   evaluate_last=True, trace=trace, progress=bar, error=MEIError,
-                   where=f" (items {items})")
+                   evaluate_last=True, trace=trace, progress=bar, accept=scene.acceptor(),
+                   max_halvings=scene.max_halvings, error=MEIError, where=f" (items {items})")
     with torch.no_grad():
         V = scene.vertices().detach()
         images = scene.image(V, F, pose=True).detach()
@@ -177,9 +207,9 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
     ``(neuron, MEIResult)`` as soon as all of a neuron's seeds are done, in the order of ``neurons``.
 
     Each result is the one :func:`optimize_mei` gives for that neuron (the lowest-loss seed), up to float
-    rounding; its ``wall_time`` is the neuron's share of its batches' time. With ``valid_steps`` (the step
-    guard is per item and not batched) or a robust objective (K views per item) every neuron runs alone
-    through :func:`optimize_mei`.
+    rounding; its ``wall_time`` is the neuron's share of its batches' time. With ``valid_steps`` each item
+    has its own guard and contact barrier; a refused item's step is halved on its own. With a robust
+    objective (K views per item) every neuron runs alone through :func:`optimize_mei`.
     ``progress`` (a :class:`~meshmei.optim.Progress` over steps of batches) is updated, not closed.
     """
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
@@ -188,8 +218,8 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
         twice = sorted({n for n in neurons if neurons.count(n) > 1})
         raise MEIError(f"neurons {twice} are listed twice; each neuron's seeds are its items")
     _check_batch_size(batch_size)
-    if settings.valid_steps or settings.robust_pose > 0 or settings.robust_light > 0:
-        for n in neurons:  # per-item guard, or K views per item: each neuron alone
+    if settings.robust_pose > 0 or settings.robust_light > 0:
+        for n in neurons:  # K views per item: each neuron alone
             yield n, optimize_mei(encoder, n, init, settings)
         return
     V0, F, init_name = initial(init, settings)

@@ -89,13 +89,13 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     seeds = [settings.seeds[0] + i for i in range(k)]
     t0 = time.perf_counter()
     with frozen_encoder(encoder):
-        scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None)
+        scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None, F)
         trace = Trace()
         minimize(_objective(encoder, neuron, F, scene, objective_weights(settings, n_weights), settings, diversity,
                             floor),
                  make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                  schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep="last", trace=trace,
-                 error=MEIError, where=f" (diverse MEIs of neuron {neuron})")
+                 accept=scene.acceptor(), max_halvings=scene.max_halvings, error=MEIError, where=f" (diverse MEIs of neuron {neuron})")
         with torch.no_grad():
             V = scene.vertices()
             images = scene.image(V, F, pose=True)

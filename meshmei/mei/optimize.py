@@ -12,18 +12,19 @@ from dataclasses import replace
 
 import torch
 
+from ..contact import ContactBarrier
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
-from ..operators import face_normals
-from ..validity import StepGuard, margin_penalty
+from ..validity import StepGuard
 from .scene import SeedScene, sheet_uv
 from .settings import MEIResult, MEISettings
 
-__all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights"]
+__all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights",
+           "validity_barriers", "contact_barrier"]
 
 
 def check_neuron(encoder, neuron) -> int:
@@ -75,10 +76,31 @@ def objective_weights(settings: MEISettings, n_weights: int) -> dict:
     return {k: w for k, w in weights.items() if w > 0}
 
 
-def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_weights: int):
+def validity_barriers(guard, contact, V, settings: MEISettings, record: dict) -> torch.Tensor:
+    """The guard's barrier and the contact barrier of one item, weighted (0 without a guard); their values
+    go into ``record`` (``"barrier"``, ``"contact"``) when they are evaluated."""
+    total = V.new_zeros(())
+    if guard is not None and settings.barrier_weight > 0:
+        b = guard.barrier(V)
+        record["barrier"] = float(b.detach())
+        total = total + settings.barrier_weight * b
+    if contact is not None:
+        c = contact(V)
+        record["contact"] = float(c.detach())
+        total = total + settings.contact_weight * c
+    return total
+
+
+def contact_barrier(V0, F, settings: MEISettings):
+    """The contact barrier of a guarded run (None without ``valid_steps`` or with ``contact_weight`` 0)."""
+    if not settings.valid_steps or settings.contact_weight <= 0:
+        return None
+    return ContactBarrier.for_mesh(V0, F, settings.contact_distance)
+
+
+def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_weights: int, guard):
     active = objective_weights(settings, n_weights)
-    normals0 = face_normals(scene.rbf.V0, F).detach()
-    w_margin = settings.margin_weight if settings.valid_steps else 0.0
+    contact = contact_barrier(scene.rbf.V0, F, settings)
 
     def objective(point):
         V = scene.rbf()
@@ -92,11 +114,7 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
             r = scene.albedo_roughness(F)
             record["albedo_roughness"] = float(r.detach())
             loss = loss + settings.albedo_smoothness * r
-        if w_margin > 0:
-            m = margin_penalty(V, normals0, F, min_quality=settings.min_quality)
-            record["margin"] = float(m.detach())
-            loss = loss + w_margin * m
-        return loss, record
+        return loss + validity_barriers(guard, contact, V, settings, record), record
 
     return objective
 
@@ -106,7 +124,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     scene = SeedScene(V0, settings, seed, uv)
     trace = Trace()
     accept = None if guard is None else guard.acceptor(scene.rbf)
-    out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights), make_optimizer("adam", scene.groups),
+    out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights, guard), make_optimizer("adam", scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, accept=accept,
                    max_halvings=0 if guard is None else guard.rules.max_halvings,
@@ -120,6 +138,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     light = None if scene.light is None else scene.light.detach().clone()
     albedo = None if scene.albedo_logit is None else scene.albedo().detach().clone()
     return dict(V=V, image=image, activation=act, loss=out.loss, best_step=out.step, albedo=albedo, albedo_uv=scene.uv,
+                guard=None if guard is None else guard.report(),
                 history=[r["response"] for r in h], loss_history=[r["loss"] for r in h],
                 reg_history={k: [r[k] for r in h] for k, w in settings.weights.items() if w > 0},
                 time_history=[r["time"] for r in h], deformer_state=state, light=light,
@@ -189,4 +208,5 @@ def result_from_seeds(runs: dict, V0, F, settings: MEISettings, neuron: int, enc
         seed_activations={s: runs[s]["activation"] for s in runs}, settings=settings, neuron=neuron,
         encoder=encoder_spec(encoder), deformer_state=r["deformer_state"], light=r["light"], rotation=r["rotation"],
         translation=r["translation"], init=init_name, wall_time=wall,
-        seconds_per_step=wall / (settings.steps * len(runs)), albedo=r.get("albedo"), albedo_uv=r.get("albedo_uv"))
+        seconds_per_step=wall / (settings.steps * len(runs)), albedo=r.get("albedo"), albedo_uv=r.get("albedo_uv"),
+        extra={} if r.get("guard") is None else {"guard": r["guard"]})

@@ -23,6 +23,9 @@ def _default_weights():
     return {"laplacian": 30.0, "edge": 30.0, "area": 1000.0, "arap": 0.0}
 
 
+_RETIRED = {"margin_weight"}  # fields of older runs that no longer apply (a quadratic margin, now a barrier)
+
+
 @dataclass(frozen=True)
 class MEISettings:
     """Everything that defines a 3D-MEI run besides the encoder, the neuron and the initial mesh.
@@ -60,15 +63,20 @@ class MEISettings:
         Laplacian and area weights by ``(n / ref)^2``, edge and direction ARAP by ``n / ref``. None (the
         default for now, issue 16): the weights as given.
     valid_steps : bool
-        (Off by default until issue 16's targets are met; docs/benchmarks.md, *Valid steps*.) Accept only
-        steps whose mesh is valid (:class:`~meshmei.validity.ValidityRules`: no new
-        self-intersections, no face flipped against the rest mesh, no triangle below ``min_quality``); a
-        refused step is halved until it passes (:func:`meshmei.optim.minimize`).
+        (Default on.) Accept only steps whose mesh is valid (:class:`~meshmei.validity.ValidityRules`: no
+        new self-intersections, no face flipped against the rest mesh, no triangle below ``min_quality``);
+        a refused step is halved until it passes (:func:`meshmei.optim.minimize`). Every accepted iterate,
+        and so the result, is intersection-free and unflipped (docs/mei.md, *Valid objects*).
     min_quality : float
         The triangle-quality bound of ``valid_steps``.
-    margin_weight : float
-        Weight of :func:`~meshmei.validity.margin_penalty` with ``valid_steps``: it steers the run away from
-        the bounds before the guard must refuse a step.
+    barrier_weight : float
+        Weight of the guard's own barrier (:meth:`~meshmei.validity.StepGuard.barrier`, summed over faces)
+        with ``valid_steps``: it turns the run away from the turn and quality bounds before a step reaches
+        them, so that few steps are refused.
+    contact_weight, contact_distance : float
+        With ``valid_steps``, weight and reach (as a share of the start's mean edge length) of the contact
+        barrier (:class:`~meshmei.contact.ContactBarrier`), which keeps the surface from touching itself
+        (0: no barrier; the guard alone then stalls a run whose optimum presses parts together).
     keep : str
         ``"best"``: return the iterate with the lowest loss seen; ``"last"``: the final iterate.
     optimize_light, optimize_pose : bool
@@ -116,9 +124,11 @@ class MEISettings:
     r_cut: float = 4.0
     weights: dict = field(default_factory=_default_weights)
     reg_ref_vertices: int | None = None
-    valid_steps: bool = False
+    valid_steps: bool = True
     min_quality: float = 0.01
-    margin_weight: float = 10.0
+    barrier_weight: float = 0.1
+    contact_weight: float = 100.0
+    contact_distance: float = 0.25
     keep: str = "best"
     optimize_light: bool = False
     optimize_pose: bool = False
@@ -168,6 +178,12 @@ class MEISettings:
             raise MEIError(f"reg_ref_vertices must be a positive integer or None, got {ref!r}")
         if not 0 <= self.min_quality < 1:
             raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
+        for name in ("barrier_weight", "contact_weight", "contact_distance"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
+        if not self.contact_distance > 0:
+            raise MEIError(f"contact_distance must be positive, got {self.contact_distance!r}")
         r = self.albedo_resolution
         if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
             raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")
@@ -223,6 +239,7 @@ class MEISettings:
     @classmethod
     def from_dict(cls, d: dict) -> "MEISettings":
         known = {f.name for f in fields(cls)}
+        d = {k: v for k, v in d.items() if k not in _RETIRED}
         unknown = set(d) - known
         if unknown:
             raise MEIError(f"unknown MEISettings fields {sorted(unknown)}")
