@@ -89,6 +89,11 @@ class ContactBarrier:
         How far a vertex may move before the candidates are found again (default ``distance / 2``: the
         candidates then reach ``2 distance``, which on a well-shaped mesh still leaves out the faces one
         ring away).
+    min_interval : int
+        Fewest calls between two searches (default 1: search whenever a vertex moved ``margin``). Above
+        1, a pair may come within ``distance`` for up to that many calls before the barrier sees it; use it
+        only where a :class:`~meshmei.validity.StepGuard` holds the guarantee and the barrier only steers
+        (the 3D-MEI, whose steps are long against its edges, uses 4).
 
     Attributes
     ----------
@@ -98,7 +103,7 @@ class ContactBarrier:
         Candidate searches so far.
     """
 
-    def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None):
+    def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1):
         if not distance > 0:
             raise ValueError(f"distance must be positive, got {distance!r}")
         self.F = F
@@ -107,15 +112,19 @@ class ContactBarrier:
         self.margin = float(0.5 * distance if margin is None else margin)
         if not self.margin > 0:
             raise ValueError(f"margin must be positive, got {margin!r}")
-        self.active, self.rebuilds = 0, 0
+        if isinstance(min_interval, bool) or not isinstance(min_interval, int) or min_interval < 1:
+            raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
+        self.min_interval = min_interval
+        self.active, self.rebuilds, self._since = 0, 0, 0
         self._built_at = None
         self._pairs = None
 
     @classmethod
-    def for_mesh(cls, V: torch.Tensor, F: torch.Tensor, factor: float = 1.0 / 3.0) -> "ContactBarrier":
-        """A barrier whose ``distance`` is ``factor`` times the mesh's mean edge length."""
+    def for_mesh(cls, V: torch.Tensor, F: torch.Tensor, factor: float = 1.0 / 3.0, **kwargs) -> "ContactBarrier":
+        """A barrier whose ``distance`` is ``factor`` times the mesh's mean edge length (``kwargs``: the
+        other parameters)."""
         V, F = check_mesh(V, F)
-        return cls(F, factor * mean_edge_length(V, F))
+        return cls(F, factor * mean_edge_length(V, F), **kwargs)
 
     def _candidates(self, Vn: np.ndarray):
         """(vertex, face) pairs, the vertex not in the face, that may be within ``distance + 2 margin``."""
@@ -155,10 +164,13 @@ class ContactBarrier:
         """The contact energy of ``V`` (a scalar with a graph to ``V``)."""
         with torch.no_grad():
             Vn = V.detach().cpu().double().numpy()
-            if self._built_at is None or np.abs(Vn - self._built_at).max() > self.margin:
+            self._since += 1
+            if self._built_at is None or (self._since >= self.min_interval and
+                                          np.sqrt(((Vn - self._built_at) ** 2).sum(1).max()) > self.margin):
                 self._pairs = self._candidates(Vn)
                 self._built_at = Vn.copy()
                 self.rebuilds += 1
+                self._since = 0
             vt, ft = (x.to(V.device) for x in self._pairs)
             F = self.F
             if len(vt):

@@ -95,7 +95,7 @@ def contact_barrier(V0, F, settings: MEISettings):
     """The contact barrier of a guarded run (None without ``valid_steps`` or with ``contact_weight`` 0)."""
     if not settings.valid_steps or settings.contact_weight <= 0:
         return None
-    return ContactBarrier.for_mesh(V0, F, settings.contact_distance)
+    return ContactBarrier.for_mesh(V0, F, settings.contact_distance, min_interval=4)  # the guard holds the guarantee
 
 
 def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_weights: int, guard):
