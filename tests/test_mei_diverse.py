@@ -46,3 +46,24 @@ def test_bad_diverse_settings_are_refused():
         diverse_meis(GaborSimpleCell(), 0, k=1, steps=2)
     with pytest.raises(MEIError, match="floor"):
         diverse_meis(GaborSimpleCell(), 0, k=2, floor=1.5, steps=2)
+
+
+def test_the_cli_writes_the_members_and_tune_sweeps_each(tmp_path, capsys):
+    """meshmei mei --diverse 2 writes member_0, member_1, diversity.json and diverse.png; meshmei tune on
+    that folder sweeps every member into its own folder, and each member's response is its summary's."""
+    import json
+
+    from meshmei.cli import main
+
+    out = tmp_path / "div"
+    assert main(["mei", "--encoder", "gabor-complex", "--diverse", "2", "--steps", "3", "--image-size", "16",
+                 "--n-vertices", "40", "--out", str(out), "--quiet"]) == 0
+    d = json.loads((out / "diversity.json").read_text())
+    assert len(d["responses"]) == 2 and (out / "diverse.png").is_file()
+    for i, r in enumerate(d["responses"]):
+        summary = json.loads((out / f"member_{i}" / "summary.json").read_text())
+        assert summary["activation"] == pytest.approx(r, rel=1e-6)
+    assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth", "-10:10:3"]) == 0
+    for i in range(2):
+        assert (out / f"member_{i}" / "tuning_pose").is_dir()
+    assert capsys.readouterr().out.count("pose sweep, neuron 0") == 2

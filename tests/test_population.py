@@ -116,6 +116,19 @@ def test_an_interrupted_population_resumes_with_nothing_lost_or_repeated(tmp_pat
         assert (out / "neurons" / name / "summary.json").stat().st_mtime_ns == mtime
 
 
+def test_the_cli_passes_the_objective_options_into_every_run(tmp_path):
+    """meshmei population shares meshmei mei's objective options: a robust, unguarded population records
+    them in each run's settings (and so in the configuration hash)."""
+    from meshmei.cli import main
+
+    out = tmp_path / "pop"
+    assert main(["population", "--encoder", "gabor-simple", "--neurons", "0", "--steps", "2", "--seeds", "0",
+                 "--image-size", "16", "--n-vertices", "40", "--pixel-steps", "0", "--robust-pose", "10",
+                 "--robust-light", "5", "--no-valid-steps", "--out", str(out), "--quiet"]) == 0
+    s = json.loads((out / "neurons" / "neuron_00000" / "summary.json").read_text())["settings"]
+    assert (s["robust_pose"], s["robust_light"], s["valid_steps"], s["albedo"]) == (10.0, 5.0, False, False)
+
+
 def test_devices_other_than_the_cpu_are_refused_clearly(tmp_path):
     with pytest.raises(MEIError, match="cuda|CUDA"):
         run_population(cells(), [0], tmp_path / "p", device="cuda", settings=MEISettings(**SMALL), progress=False)
