@@ -32,7 +32,8 @@ __all__ = ["ValidityRules", "StepGuard", "face_frame"]
 
 
 def face_frame(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unit face normals ``(m, 3)`` and triangle qualities ``(m,)`` from one pass over the corners.
+    """Unit face normals ``(..., m, 3)`` and triangle qualities ``(..., m)`` from one pass over the corners
+    (``V`` may hold a batch of meshes, ``(..., n, 3)``).
 
     The normals are those of :func:`~meshmei.operators.face_normals` (zero for a collapsed face), the
     qualities those of :func:`~meshmei.quality.triangle_quality`; ``V`` and ``F`` are not checked. The guard
@@ -44,7 +45,7 @@ def face_frame(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     dbl = safe_norm(c)
     den = torch.maximum(dbl, resolve_eps(None, V.dtype) * l2)
     ok = den > 0
-    n = torch.where(ok[:, None], c / torch.where(ok, den, torch.ones_like(den))[:, None], torch.zeros_like(c))
+    n = torch.where(ok[..., None], c / torch.where(ok, den, torch.ones_like(den))[..., None], torch.zeros_like(c))
     return n, 2.0 * math.sqrt(3.0) * dbl / l2.clamp_min(torch.finfo(dbl.dtype).tiny)
 
 
@@ -133,9 +134,10 @@ class StepGuard:
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
         self.accepted = ref if rules.max_step is not None else None  # the last accepted vertices, for max_step
 
-    def _verdict(self, V: torch.Tensor) -> tuple:
+    def _verdict(self, V: torch.Tensor, frame=None) -> tuple:
         """``(rule, message, normals)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
-        them all), what is wrong, and ``V``'s face normals when they were computed (cheapest checks first)."""
+        them all), what is wrong, and ``V``'s face normals when they were computed (cheapest checks first).
+        ``frame``: :func:`face_frame` of ``V`` in float64, when already computed (a batch's, at once)."""
         if V.ndim != 2 or V.shape[1] != 3:
             raise MeshError(f"candidate vertices must have shape (n, 3), got {tuple(V.shape)}")
         Vd = V.detach().double()
@@ -145,7 +147,7 @@ class StepGuard:
             moved = float((Vd - self.accepted).norm(dim=1).max())
             if moved > self.rules.max_step:
                 return "step", f"a vertex moved {moved:.3g}, more than {self.rules.max_step:.3g}, in one step", None
-        n, quality = face_frame(Vd, self.F)
+        n, quality = face_frame(Vd, self.F) if frame is None else frame
         q = float(quality.min())
         if q < self.quality_floor:
             return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", n
@@ -163,10 +165,11 @@ class StepGuard:
         """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first)."""
         return self._verdict(V)[1]
 
-    def accept(self, V: torch.Tensor) -> bool:
-        """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``."""
+    def accept(self, V: torch.Tensor, frame=None) -> bool:
+        """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``.
+        ``frame``: :func:`face_frame` of ``V`` in float64, when already computed."""
         t0 = time.perf_counter()
-        rule, _, normals = self._verdict(V)
+        rule, _, normals = self._verdict(V, frame)
         self.checks += 1
         if rule is not None:
             self.failures += 1
@@ -196,15 +199,16 @@ class StepGuard:
         objective with a small weight, it turns the run before a step reaches a bound, where the guard would
         refuse it: with a quadratic margin penalty instead, a 3D-MEI run from the sheet had four steps in
         five refused and stalled (docs/benchmarks.md, *Valid steps*). The sum runs over faces, so a single
-        face at its bound is felt whatever the mesh size.
+        face at its bound is felt whatever the mesh size. A batch ``V (B, n, 3)`` (meshes of this guard's
+        start) gives the ``(B,)`` energies.
         """
         n, q = face_frame(V, self.F)
-        total = log_barrier(q - self.quality_floor, quality_band * self.quality_floor).sum()
+        total = log_barrier(q - self.quality_floor, quality_band * self.quality_floor).sum(-1)
         if self.rules.max_turn_degrees < 180:
             T = math.radians(self.rules.max_turn_degrees)
             band = math.cos(max(T - math.radians(turn_band_degrees), 0.0)) - self.cos_bound
             cos = (n * self.normals.to(n.dtype)).sum(-1)
-            total = total + log_barrier(cos - self.cos_bound, band).sum()
+            total = total + log_barrier(cos - self.cos_bound, band).sum(-1)
         return total
 
     def acceptor(self, vertices):

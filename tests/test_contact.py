@@ -109,3 +109,23 @@ def test_bad_distances_are_refused():
         ContactBarrier(F, 0.0)
     with pytest.raises(ValueError, match="margin must be positive"):
         ContactBarrier(F, 0.1, margin=-1.0)
+
+
+def test_batched_energies_equal_each_items_own_with_their_gradients():
+    from meshmei.contact import contact_energies
+
+    V0, F = initial_mesh("sphere", n_vertices=150, dtype=torch.float64)
+    g = torch.Generator().manual_seed(3)
+    V = torch.stack([V0, V0 + 0.02 * torch.randn(V0.shape, generator=g, dtype=V0.dtype), 1.3 * V0])
+    alone = [ContactBarrier.for_mesh(V0, F, 1.5) for _ in range(3)]  # reach 1.5 edges: many active pairs
+    batch = [ContactBarrier.for_mesh(V0, F, 1.5) for _ in range(3)]
+    X = V.clone().requires_grad_(True)
+    e = contact_energies(batch, X)
+    e.sum().backward()
+    for b in range(3):
+        Y = V[b].clone().requires_grad_(True)
+        one = alone[b](Y)
+        one.backward()
+        assert one.item() > 0 and batch[b].active == alone[b].active > 0
+        torch.testing.assert_close(e[b], one, rtol=1e-12, atol=0)
+        torch.testing.assert_close(X.grad[b], Y.grad, rtol=1e-10, atol=1e-14)

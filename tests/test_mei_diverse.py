@@ -63,7 +63,7 @@ def test_the_cli_writes_the_members_and_tune_sweeps_each(tmp_path, capsys):
     for i, r in enumerate(d["responses"]):
         summary = json.loads((out / f"member_{i}" / "summary.json").read_text())
         assert summary["activation"] == pytest.approx(r, rel=1e-6)
-    assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth", "-10:10:3"]) == 0
+    assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth=-10:10:3"]) == 0
     for i in range(2):
         assert (out / f"member_{i}" / "tuning_pose").is_dir()
     assert capsys.readouterr().out.count("pose sweep, neuron 0") == 2

@@ -21,9 +21,10 @@ from ..errors import MEIError
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
-from ..validity import StepGuard
+from ..contact import contact_energies
+from ..validity import StepGuard, face_frame
 from .optimize import (check_neuron, contact_barrier, initial, objective_weights, optimize_mei, result_from_seeds,
-                       settings_for_encoder, validity_barriers)
+                       settings_for_encoder)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -116,10 +117,14 @@ class BatchScene:
             record["albedo_roughness"] = r.detach().tolist()
             total = total + settings.albedo_smoothness * r
         if self.guards is not None:  # each item's guard barrier and contact barrier, as alone
-            terms = [{} for _ in self.guards]
-            total = total + torch.stack([validity_barriers(g, c, V[b], settings, terms[b])
-                                         for b, (g, c) in enumerate(zip(self.guards, self.contacts))])
-            record.update({k: [t[k] for t in terms] for k in terms[0]})
+            if settings.barrier_weight > 0:  # the items share the start: one guard's barrier serves all
+                b = self.guards[0].barrier(V)
+                record["barrier"] = b.detach().tolist()
+                total = total + settings.barrier_weight * b
+            if self.contacts[0] is not None:
+                c = contact_energies(self.contacts, V)
+                record["contact"] = c.detach().tolist()
+                total = total + settings.contact_weight * c
         return total
 
     def acceptor(self):
@@ -130,8 +135,10 @@ class BatchScene:
 
         def accept(pending: torch.Tensor) -> torch.Tensor:
             with torch.no_grad():
-                V = self.vertices()
-            return torch.tensor([not p or g.accept(V[b]) for b, (g, p) in enumerate(zip(self.guards, pending.tolist()))])
+                V = self.vertices().double()
+                n, q = face_frame(V, self.guards[0].F)  # every item's frame in one pass
+            return torch.tensor([not p or g.accept(V[b], (n[b], q[b]))
+                                 for b, (g, p) in enumerate(zip(self.guards, pending.tolist()))])
 
         return accept
 
