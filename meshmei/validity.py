@@ -37,7 +37,7 @@ def face_frame(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 
     The normals are those of :func:`~meshmei.operators.face_normals` (zero for a collapsed face), the
     qualities those of :func:`~meshmei.quality.triangle_quality`; ``V`` and ``F`` are not checked. The guard
-    and the margin penalty need both every step, so they share the corners and cross products.
+    and its barrier need both every step, so they share the corners and cross products.
     """
     T = corners(V, F)  # (m, 3, 3)
     c = cross_from_corners(T)  # (m, 3), twice the area long

@@ -87,7 +87,8 @@ class MEISettings:
         Also optimise a per-vertex gray surface albedo, ``sigmoid(theta)`` (so in [0, 1]), starting at
         ``albedo_init`` everywhere, with learning rate ``lr_albedo`` and the smoothness penalty
         ``albedo_smoothness * mean_i (a_i - mean of a over i's 1-ring)^2``; the RBF offsets then move at
-        ``albedo_shape_lr * lr`` (a tenth by default: the albedo leads, the shape follows). From the sheet the albedo is an
+        ``albedo_shape_lr * lr`` (1 by default; 0.1 lets the albedo lead, which unguarded runs needed to keep
+        the shape from folding, docs/mei.md). From the sheet the albedo is an
         ``albedo_resolution`` x ``albedo_resolution`` texture over the sheet's own grid instead (texel
         neighbours in the penalty); 0: per vertex there too. False (default): shape only, the paper's
         setting.
@@ -139,7 +140,7 @@ class MEISettings:
     albedo_smoothness: float = 1.0
     albedo_init: float = 0.5
     albedo_resolution: int = 64
-    albedo_shape_lr: float = 0.1
+    albedo_shape_lr: float = 1.0
     robust_pose: float = 0.0
     robust_light: float = 0.0
     robust_points: int = 3
