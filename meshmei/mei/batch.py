@@ -16,12 +16,12 @@ from typing import Iterator
 
 import torch
 
+from ..contact import contact_energies
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
-from ..contact import contact_energies
 from ..validity import StepGuard, face_frame
 from .optimize import (check_neuron, contact_barrier, initial, objective_weights, optimize_mei, result_from_seeds,
                        settings_for_encoder)
