@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["docs_dir", "write_section", "machine_line", "timeit", "timings", "markdown_table"]
+__all__ = ["docs_dir", "write_section", "machine_line", "median", "timeit", "timings", "markdown_table"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
@@ -42,6 +42,11 @@ def write_section(name: str, body: str) -> Path:
     return path
 
 
+def median(xs) -> float:
+    """The upper median of ``xs`` (an element of it: ``sorted(xs)[len(xs) // 2]``)."""
+    return sorted(xs)[len(xs) // 2]
+
+
 def timings(fn, *, repeat: int = 5, warmup: int = 1) -> tuple[float, float]:
     """Median and best wall time of ``fn()`` in seconds, after ``warmup`` calls.
 
@@ -54,8 +59,7 @@ def timings(fn, *, repeat: int = 5, warmup: int = 1) -> tuple[float, float]:
         t = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t)
-    ts.sort()
-    return ts[len(ts) // 2], ts[0]
+    return median(ts), min(ts)
 
 
 def timeit(fn, *, repeat: int = 5, warmup: int = 1) -> float:

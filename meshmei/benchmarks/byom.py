@@ -23,7 +23,7 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, timings, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, median, timings, write_section
 from meshmei.encoders import encoder_from_model, frozen_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.mei.optimize import initial
@@ -92,11 +92,6 @@ class V4Model(torch.nn.Module):
         return torch.nn.functional.elu(self.readout(self.core(x))) + 1
 
 
-def _median(xs):
-    xs = sorted(xs)
-    return xs[len(xs) // 2]
-
-
 def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
     torch.manual_seed(0)
     model = V4Model().eval()
@@ -145,7 +140,7 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
         rounds.append((d[len(d) // 2], m_med, d[0], m_best))
     shares = sorted((s - m) / m for s, m, _, _ in rounds)
     best_shares = sorted((s - m) / m for _, _, s, m in rounds)
-    step, m = _median([r[0] for r in rounds]), _median([r[1] for r in rounds])
+    step, m = median([r[0] for r in rounds]), median([r[1] for r in rounds])
     return {"parts": parts, "step": step, "model": m, "shares": shares, "best_shares": best_shares,
             "readout": model.readout_name, "shape": model.shape}
 
@@ -154,7 +149,7 @@ def run(steps: int):
     load = os.getloadavg()[0]
     r = measure(steps)
     shares = r["shares"]
-    share = _median(shares)
+    share = median(shares)
     rows = [[name, f"{1000 * t:.1f}"] for name, t in r["parts"].items()]
     rows.append(["3D-MEI step (everything)", f"{1000 * r['step']:.1f}"])
     rows.append(["meshmei's share: step - model", f"{1000 * (r['step'] - r['model']):.1f}"])
@@ -175,7 +170,7 @@ def run(steps: int):
         f"meshmei's share of a step, (step - model) / model, per round, from median times: "
         f"{', '.join(f'{100 * x:.0f} %' for x in shares)}; median {100 * share:.0f} %. From each round's "
         f"best times (the least disturbed by other jobs on this shared machine): "
-        f"{', '.join(f'{100 * x:.0f} %' for x in r['best_shares'])}; median {100 * _median(r['best_shares']):.0f} %.",
+        f"{', '.join(f'{100 * x:.0f} %' for x in r['best_shares'])}; median {100 * median(r['best_shares']):.0f} %.",
         "",
         f"Target (issue 17): meshmei's share at most 20 % of the model's forward and backward: "
         f"{'met' if share <= 0.20 else 'not met'} (median of {len(shares)} rounds: {100 * share:.0f} %).",

@@ -19,16 +19,11 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, median, write_section
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, optimize_mei_batch
 
 SIZES = (1, 2, 4, 8, 15)
-
-
-def _median(xs):
-    xs = sorted(xs)
-    return xs[len(xs) // 2]
 
 
 def _one(enc, B: int, steps: int, valid_steps: bool = True) -> tuple[float, float]:
@@ -39,7 +34,7 @@ def _one(enc, B: int, steps: int, valid_steps: bool = True) -> tuple[float, floa
     else:
         th = optimize_mei_batch(enc, list(range(B)), "sheet", s, batch_size=B)[0].time_history
     wall = time.perf_counter() - t0
-    step = _median([b - a for a, b in zip(th[:-1], th[1:])][3:])
+    step = median([b - a for a, b in zip(th[:-1], th[1:])][3:])
     return step / B, wall / (steps * B)
 
 
@@ -52,7 +47,7 @@ def measure(steps: int = 60, rounds: int = 3) -> dict:
     for _ in range(rounds):
         for B, valid in keys:
             res[B, valid].append(_one(enc, B, steps, valid))
-    return {k: (_median([a for a, _ in v]), _median([b for _, b in v])) for k, v in res.items()}
+    return {k: (median([a for a, _ in v]), median([b for _, b in v])) for k, v in res.items()}
 
 
 def run(steps: int) -> str:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, median, write_section
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
@@ -32,11 +32,6 @@ from meshmei.quality import health_report
 from meshmei.reconstruct import default_schedule, reconstruct
 from meshmei.reconstruct.sources import resolve_source, target_surface
 from meshmei.shapes import initial_mesh
-
-
-def _median(xs):
-    xs = sorted(xs)
-    return xs[len(xs) // 2]
 
 
 def _step_times(history, skip=5):
@@ -51,8 +46,8 @@ def mei_cost(steps: int = 60) -> list:
         for on in (False, True):
             res = optimize_mei(GaborSimpleCell(), 0, "sphere", steps=steps, seeds=(0,), valid_steps=on)
             dt = [b - a for a, b in zip(res.time_history[:-1], res.time_history[1:])][5:]
-            times[on].append(_median(dt))
-    off, on = _median(times[False]), _median(times[True])
+            times[on].append(median(dt))
+    off, on = median(times[False]), median(times[True])
     return ["3D-MEI, 64 px, 400 vertices", f"{1000 * off:.1f}", f"{1000 * on:.1f} ({on / off:.2f})", "-", "-"]
 
 
@@ -71,11 +66,11 @@ def mei_cost_split(steps: int = 60, rounds: int = 3) -> list:
             for mode, kw in MEI_MODES.items():
                 res = optimize_mei(GaborSimpleCell(), 0, init, steps=steps, seeds=(0,), **kw)
                 th = res.time_history
-                times[mode].append(_median([b - a for a, b in zip(th[:-1], th[1:])][5:]))
+                times[mode].append(median([b - a for a, b in zip(th[:-1], th[1:])][5:]))
                 act[mode] = res.activation
-        off = _median(times["off"])
+        off = median(times["off"])
         for mode in MEI_MODES:
-            t = _median(times[mode])
+            t = median(times[mode])
             rows.append([init, mode, f"{1000 * t:.1f}", f"{t / off:.2f}", f"{act[mode]:.3f}"])
             print(rows[-1], flush=True)
     return rows
@@ -108,8 +103,8 @@ def reconstruction_cost(n_vertices: int, steps: int = 40) -> list:
     for _ in range(2):
         for m, kw in modes.items():
             res = reconstruct(src, "bunny", "rbf", steps=steps, eval_samples=2000, **kw)
-            times[m].append(_median(_step_times(res.history)))
-    t = {m: _median(v) for m, v in times.items()}
+            times[m].append(median(_step_times(res.history)))
+    t = {m: median(v) for m, v in times.items()}
     return [f"reconstruction rbf, {src[0].shape[0]} vertices", f"{1000 * t['off']:.1f}",
             f"{1000 * t['guard']:.1f} ({t['guard'] / t['off']:.2f})", f"{1000 * t['default']:.1f}",
             f"{t['default'] / t['off']:.2f}"]
@@ -143,7 +138,7 @@ def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=((
                 walls.append(res.wall_time)
                 refused.append(sum(st.get("refused", 0) for st in res.info["stages"]))
                 print(problem, label, seed, cds[-1], sis[-1], walls[-1], refused[-1], flush=True)
-            rows.append([f"{problem}, {V.shape[0]} vertices", label, ", ".join(f"{c:.2e}" for c in cds), f"{_median(cds):.2e}",
+            rows.append([f"{problem}, {V.shape[0]} vertices", label, ", ".join(f"{c:.2e}" for c in cds), f"{median(cds):.2e}",
                          ", ".join(str(s) for s in sis), ", ".join(str(r) for r in refused) if kw == {} else "-",
                          f"{sum(walls) / len(walls):.1f}"])
     return rows
