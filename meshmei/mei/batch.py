@@ -16,15 +16,14 @@ from typing import Iterator
 
 import torch
 
-from ..contact import contact_energies
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
-from .optimize import (check_neuron, contact_barrier, initial, objective_weights, optimize_mei, result_from_seeds,
-                       settings_for_encoder)
+from .optimize import (check_neuron, contact_barriers, initial, objective_weights, optimize_mei, result_from_seeds,
+                       settings_for_encoder, validity_barriers)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -74,7 +73,7 @@ class BatchScene:
         self.guards = self.contacts = None
         if settings.valid_steps and F is not None:
             self.guards = [StepGuard(V0, F, settings.validity_rules()) for _ in self.seeds]
-            self.contacts = [contact_barrier(V0, F, settings) for _ in self.seeds]
+            self.contacts = contact_barriers(V0, F, settings, len(self.seeds))
 
     def vertices(self) -> torch.Tensor:
         """Deformed vertices of every item, ``(B, n, 3)``."""
@@ -116,15 +115,8 @@ class BatchScene:
             r = albedo_penalty(self.albedo(), self.seeds[0].uv, F)
             record["albedo_roughness"] = r.detach().tolist()
             total = total + settings.albedo_smoothness * r
-        if self.guards is not None:  # each item's guard barrier and contact barrier, as alone
-            if settings.barrier_weight > 0:  # the items share the start: one guard's barrier serves all
-                b = self.guards[0].barrier(V)
-                record["barrier"] = b.detach().tolist()
-                total = total + settings.barrier_weight * b
-            if self.contacts[0] is not None:
-                c = contact_energies(self.contacts, V)
-                record["contact"] = c.detach().tolist()
-                total = total + settings.contact_weight * c
+        if self.guards is not None:  # the items share the start: one guard's barrier serves all
+            total = total + validity_barriers(self.guards[0], self.contacts, V, settings, record)
         return total
 
     def acceptor(self):

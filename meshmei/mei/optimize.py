@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import torch
 
-from ..contact import ContactBarrier
+from ..contact import ContactBarrier, contact_energies
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import check_mesh
@@ -24,7 +24,7 @@ from .scene import SeedScene, sheet_uv
 from .settings import MEIResult, MEISettings
 
 __all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights",
-           "validity_barriers", "contact_barrier"]
+           "validity_barriers", "contact_barriers"]
 
 
 def check_neuron(encoder, neuron) -> int:
@@ -76,31 +76,35 @@ def objective_weights(settings: MEISettings, n_weights: int) -> dict:
     return {k: w for k, w in weights.items() if w > 0}
 
 
-def validity_barriers(guard, contact, V, settings: MEISettings, record: dict) -> torch.Tensor:
-    """The guard's barrier and the contact barrier of one item, weighted (0 without a guard); their values
-    go into ``record`` (``"barrier"``, ``"contact"``) when they are evaluated."""
-    total = V.new_zeros(())
+def validity_barriers(guard, contacts, V, settings: MEISettings, record: dict) -> torch.Tensor:
+    """The guard's barrier and the contact barriers, weighted: of one mesh ``V (n, 3)`` (a scalar) or of a
+    batch ``(B, n, 3)`` of meshes of the guard's start (``(B,)``; one guard serves all). ``contacts``: one
+    :class:`~meshmei.contact.ContactBarrier` per mesh, or None. Their values go into ``record``
+    (``"barrier"``, ``"contact"``: a float, or a list per item) when they are evaluated."""
+    total = V.new_zeros(V.shape[:-2])
     if guard is not None and settings.barrier_weight > 0:
         b = guard.barrier(V)
-        record["barrier"] = float(b.detach())
+        record["barrier"] = b.detach().tolist()
         total = total + settings.barrier_weight * b
-    if contact is not None:
-        c = contact(V)
-        record["contact"] = float(c.detach())
+    if contacts is not None:
+        c = contact_energies(contacts, V) if V.ndim == 3 else contact_energies(contacts, V[None])[0]
+        record["contact"] = c.detach().tolist()
         total = total + settings.contact_weight * c
     return total
 
 
-def contact_barrier(V0, F, settings: MEISettings):
-    """The contact barrier of a guarded run (None without ``valid_steps`` or with ``contact_weight`` 0)."""
+def contact_barriers(V0, F, settings: MEISettings, items: int = 1):
+    """One contact barrier per item of a guarded run (None without ``valid_steps`` or with
+    ``contact_weight`` 0)."""
     if not settings.valid_steps or settings.contact_weight <= 0:
         return None
-    return ContactBarrier.for_mesh(V0, F, settings.contact_distance, min_interval=4)  # the guard holds the guarantee
+    # at most one candidate search every fourth step: the guard, not the barrier, holds the guarantee
+    return [ContactBarrier.for_mesh(V0, F, settings.contact_distance, min_interval=4) for _ in range(items)]
 
 
 def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_weights: int, guard):
     active = objective_weights(settings, n_weights)
-    contact = contact_barrier(scene.rbf.V0, F, settings)
+    contacts = contact_barriers(scene.rbf.V0, F, settings)
 
     def objective(point):
         V = scene.rbf()
@@ -114,7 +118,7 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
             r = scene.albedo_roughness(F)
             record["albedo_roughness"] = float(r.detach())
             loss = loss + settings.albedo_smoothness * r
-        return loss + validity_barriers(guard, contact, V, settings, record), record
+        return loss + validity_barriers(guard, contacts, V, settings, record), record
 
     return objective
 
