@@ -175,27 +175,15 @@ class ContactBarrier:
         return tuple(x.to(V.device) for x in self._pairs)
 
     def __call__(self, V: torch.Tensor) -> torch.Tensor:
-        """The contact energy of ``V`` (a scalar with a graph to ``V``)."""
-        vt, ft = self.candidates(V)
-        F = self.F
-        with torch.no_grad():
-            if len(vt):
-                Vd = V.detach()
-                d2 = point_triangle_sqdist(Vd[vt], Vd[F[ft, 0]], Vd[F[ft, 1]], Vd[F[ft, 2]])
-                close = d2 < self.distance ** 2
-                vt, ft = vt[close], ft[close]
-        self.active = int(len(vt))
-        if not self.active:
-            return V.sum() * 0.0
-        d2 = point_triangle_sqdist(V[vt], V[F[ft, 0]], V[F[ft, 1]], V[F[ft, 2]])
-        d = d2.clamp_min(torch.finfo(V.dtype).tiny).sqrt()
-        return log_barrier(d, self.distance).sum() / V.shape[0]
+        """The contact energy of ``V`` (a scalar with a graph to ``V`` where some pair is within reach)."""
+        return contact_energies([self], V[None])[0]
 
 
 def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     """The contact energies ``(B,)`` of a batch of meshes ``V (B, n, 3)``, one :class:`ContactBarrier` per
-    item (the same faces and ``distance``): each item's candidates as its barrier keeps them, the distances
-    of all items in one pass. Equal to ``[barriers[b](V[b]) for b]``."""
+    item (the same faces and ``distance``): each item's candidates as its barrier keeps them; their
+    distances are measured once without a gradient for all items, and the pairs within ``distance`` once
+    more with it (usually far fewer). Sets each barrier's ``active``."""
     B, n = V.shape[:2]
     F, dh = barriers[0].F, barriers[0].distance
     found = [cb.candidates(V[b]) for b, cb in enumerate(barriers)]
@@ -203,9 +191,16 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     vt = torch.cat([vt for vt, _ in found]) + item * n
     C = F[torch.cat([ft for _, ft in found])] + (item * n)[:, None]
     Vf = V.reshape(-1, 3)
+    with torch.no_grad():
+        if len(vt):  # most steps of a smooth mesh have no candidate at all
+            Vd = Vf.detach()
+            close = point_triangle_sqdist(Vd[vt], Vd[C[:, 0]], Vd[C[:, 1]], Vd[C[:, 2]]) < dh * dh
+            vt, C, item = vt[close], C[close], item[close]
+        counts = torch.bincount(item, minlength=B).tolist()
+    for cb, k in zip(barriers, counts):
+        cb.active = int(k)
+    if not len(vt):
+        return V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient
     d2 = point_triangle_sqdist(Vf[vt], Vf[C[:, 0]], Vf[C[:, 1]], Vf[C[:, 2]])
     d = d2.clamp_min(torch.finfo(V.dtype).tiny).sqrt()
-    close = (d < dh).detach()
-    for b, cb in enumerate(barriers):
-        cb.active = int((close & (item == b)).sum())
     return V.new_zeros(B).index_add(0, item, log_barrier(d, dh)) / n

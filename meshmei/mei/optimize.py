@@ -87,7 +87,7 @@ def validity_barriers(guard, contacts, V, settings: MEISettings, record: dict) -
         record["barrier"] = b.detach().tolist()
         total = total + settings.barrier_weight * b
     if contacts is not None:
-        c = contact_energies(contacts, V) if V.ndim == 3 else contact_energies(contacts, V[None])[0]
+        c = contact_energies(contacts, V) if V.ndim == 3 else contacts[0](V)
         record["contact"] = c.detach().tolist()
         total = total + settings.contact_weight * c
     return total
