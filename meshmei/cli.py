@@ -83,7 +83,8 @@ def _add_objective_options(p, d: MEISettings) -> None:
     p.add_argument("--albedo", action="store_true",
                    help="also optimise the surface albedo (a texture over the sheet's grid; per vertex otherwise)")
     p.add_argument("--robust-pose", type=float, default=0.0, metavar="DEG",
-                   help="maximise the mean response over object turns within +-DEG (a 3 x 3 grid; default 0: off)")
+                   help="maximise the expected response over object turns uniform within +-DEG (3 x 3 Gauss-Legendre "
+                        "quadrature; default 0: off)")
     p.add_argument("--robust-light", type=float, default=0.0, metavar="DEG",
                    help="maximise the mean response over light positions turned within +-DEG (default 0: off)")
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,

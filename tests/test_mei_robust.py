@@ -15,17 +15,25 @@ from meshmei.mei.scene import SeedScene, robust_turns
 from meshmei.mei.optimize import initial
 
 
-def test_the_grids_are_rotations_that_include_the_plain_view():
-    s = MEISettings(robust_pose=20.0, robust_points=3)
-    turns, lights = robust_turns(s, torch.float64)
-    assert turns.shape == (9, 3, 3) and lights is None
+def test_the_turns_are_rotations_whose_weights_give_the_mean_over_the_uniform_square():
+    d = 20.0
+    turns, lights, w = robust_turns(MEISettings(robust_pose=d, robust_points=3), torch.float64)
+    assert turns.shape == (9, 3, 3) and lights is None and w.shape == (9,)
     eye = torch.eye(3, dtype=torch.float64)
     torch.testing.assert_close(turns @ turns.transpose(1, 2), eye.expand(9, 3, 3))
-    assert any(torch.allclose(t, eye) for t in turns)
-    # the largest turn is 20 degrees about one axis (cos 20 on the diagonal)
-    assert float(turns[:, 0, 0].min()) == pytest.approx(math.cos(math.radians(20.0)), abs=1e-12)
-    both = robust_turns(MEISettings(robust_pose=10.0, robust_light=30.0, robust_points=2), torch.float64)
-    assert both[0].shape == both[1].shape == (16, 3, 3)  # every (turn, light) pair
+    assert any(torch.allclose(t, eye) for t in turns)  # the plain view is a node (odd points)
+    assert bool((w > 0).all()) and float(w.sum()) == pytest.approx(1.0, abs=1e-14)
+    # recover the two angles (R = Ry(az) Rx(el)) and integrate az^4 el^2 (degree 5 or less per angle:
+    # exact for 3 Gauss-Legendre nodes): the mean over [-d, d]^2 is (d^4 / 5) (d^2 / 3)
+    az = torch.atan2(-turns[:, 2, 0], turns[:, 0, 0])
+    el = torch.atan2(-turns[:, 1, 2], turns[:, 1, 1])
+    r = math.radians(d)
+    assert float((w * az ** 4 * el ** 2).sum()) == pytest.approx(r ** 4 / 5 * r ** 2 / 3, rel=1e-12)
+    assert float((w * az ** 3 * el).sum()) == pytest.approx(0.0, abs=1e-15)
+    assert float(az.abs().max()) < r  # Gauss nodes lie inside the range
+    T, L, wb = robust_turns(MEISettings(robust_pose=10.0, robust_light=30.0, robust_points=2), torch.float64)
+    assert T.shape == L.shape == (16, 3, 3) and wb.shape == (16,)  # every (turn, light) pair
+    assert float(wb.sum()) == pytest.approx(1.0, abs=1e-14)
     assert robust_turns(MEISettings(), torch.float64) is None
 
 

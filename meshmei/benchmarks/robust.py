@@ -2,7 +2,7 @@
 
 Run: ``python -m meshmei.benchmarks.robust [--neurons 6,0,3]``; writes the "robust" section of
 ``docs/benchmarks.md``. For each demo neuron (64 px, sheet, default settings otherwise): the plain 3D-MEI,
-one with ``robust_pose=20`` and one with ``robust_light=20`` (a 3 x 3 grid within +-20 degrees). Each result's
+one with ``robust_pose=20`` and one with ``robust_light=20`` (the expected response over turns uniform within +-20 degrees, by 3 x 3 Gauss-Legendre quadrature). Each result's
 pose tuning is swept over azimuth x elevation -90 .. 90 degrees (37 x 37, :func:`meshmei.tuning.pose_sweep`)
 and its light tuning over the hemisphere (:func:`meshmei.tuning.light_sweep`); reported are the share of
 the grid above half the sweep's peak and the response in the original scene.
@@ -55,8 +55,8 @@ def run(neurons: list[int]) -> str:
         "",
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
         "",
-        "Demo model, 64 px, sheet, default settings; robust runs average the response over a 3 x 3 grid of object "
-        "turns (pose) or light positions (light) within +-20 degrees. 'response' is in the original scene, with "
+        "Demo model, 64 px, sheet, default settings; robust runs maximise the expected response over object "
+        "turns (pose) or light positions (light) uniform within +-20 degrees (3 x 3 Gauss-Legendre quadrature). 'response' is in the original scene, with "
         "its ratio to the plain 3D-MEI's; 'pose > half' is the share of the 37 x 37 pose grid (azimuth x "
         "elevation, -90 .. 90) where the response is at least half the sweep's peak; 'light > half' the same "
         "over the light hemisphere (10 x 36); 'gain' is the robust run's share over the plain run's on the axis "

@@ -108,7 +108,7 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
 
     def objective(point):
         V = scene.rbf()
-        f = encoder(scene.views(V, F), neuron)[:, 0].mean()  # one view, or the mean over the robust grid
+        f = scene.expected(encoder(scene.views(V, F), neuron)[:, 0])  # one view, or the robust quadrature
         loss, record = -f, {"response": float(f.detach())}
         for k, w in active.items():
             r = REGULARIZERS[k](V, scene.rbf.V0, F)

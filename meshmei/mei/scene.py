@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from ..regularizers import albedo_roughness, texture_roughness
@@ -60,10 +61,11 @@ class SeedScene:
 
     def views(self, V, F) -> torch.Tensor:
         """What the objective averages: the plain image ``(1, 1, S, S)``, or with ``robust_pose`` /
-        ``robust_light`` the K images of the grid of object turns and light positions ``(K, 1, S, S)``."""
+        ``robust_light`` the K images of the quadrature of object turns and light positions ``(K, 1, S, S)``
+        (weighted by :meth:`expected`)."""
         if self.robust is None:
             return self.image(V, F)
-        turns, lights = self.robust
+        turns, lights, _ = self.robust
         kw = {}
         if turns is not None or self.pose:
             R = turns if turns is not None else torch.eye(3, dtype=V.dtype).unsqueeze(0)
@@ -76,6 +78,13 @@ class SeedScene:
             light = (lights @ (self.light if self.light is not None else self.light0)).reshape(-1, 3)
         return render(V, F, camera=self.camera, light=light, settings=self.render_settings, albedo=self.albedo(),
                       uv=self.uv, **kw)
+
+    def expected(self, responses: torch.Tensor) -> torch.Tensor:
+        """The objective's response from the responses ``(K,)`` to :meth:`views`: the one response, or the
+        quadrature's weighted sum, the mean over the uniform distribution of turns."""
+        if self.robust is None:
+            return responses.mean()
+        return (responses * self.robust[2]).sum()
 
     def albedo(self) -> torch.Tensor | None:
         """The albedo in [0, 1] (per vertex, or a texture over :attr:`uv`), or None (shape only)."""
@@ -100,25 +109,33 @@ def sheet_uv(V0: torch.Tensor) -> torch.Tensor:
     return torch.stack([uv[:, 0], 1 - uv[:, 1]], 1)
 
 
-def _turns(degrees: float, points: int, dtype) -> torch.Tensor:
-    """Rotations ``(points^2, 3, 3)``: azimuth about y times elevation about x, each in ``linspace(-d, d)``."""
-    a = torch.deg2rad(torch.linspace(-degrees, degrees, points, dtype=torch.float64))
+def _turns(degrees: float, points: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotations ``(points^2, 3, 3)`` and their weights ``(points^2,)`` (summing to 1): azimuth about y times
+    elevation about x at the Gauss-Legendre nodes of ``[-d, d]`` with their weights, so that the weighted
+    sum is the mean over the uniform distribution on the square, exact for polynomials in the two angles
+    up to degree ``2 * points - 1`` in each."""
+    x, w = np.polynomial.legendre.leggauss(points)
+    a = torch.deg2rad(torch.as_tensor(x * degrees, dtype=torch.float64))
+    w1 = torch.as_tensor(w / 2, dtype=torch.float64)
     az, el = torch.meshgrid(a, a, indexing="ij")
     zero = torch.zeros_like(az)
     Ry = axis_angle_to_matrix(torch.stack([zero, az, zero], -1).reshape(-1, 3))
     Rx = axis_angle_to_matrix(torch.stack([el, zero, zero], -1).reshape(-1, 3))
-    return (Ry @ Rx).to(dtype)
+    return (Ry @ Rx).to(dtype), torch.outer(w1, w1).reshape(-1).to(dtype)
 
 
 def robust_turns(settings: MEISettings, dtype):
-    """``(object turns, light turns)`` for the robust objective, the pairs of both grids when both are on;
-    None when neither is."""
+    """``(object turns, light turns, weights)`` for the robust objective: the quadrature of
+    :func:`_turns` for each axis that is on (the other None), every (turn, light) pair with the product
+    of their weights when both are; None when neither is."""
     k = settings.robust_points
     turns = _turns(settings.robust_pose, k, dtype) if settings.robust_pose > 0 else None
     lights = _turns(settings.robust_light, k, dtype) if settings.robust_light > 0 else None
     if turns is None and lights is None:
         return None
-    if turns is not None and lights is not None:  # every (turn, light) pair
-        K, J = turns.shape[0], lights.shape[0]
-        turns, lights = turns.repeat_interleave(J, 0), lights.repeat(K, 1, 1)
-    return turns, lights
+    if turns is None or lights is None:
+        (R, w), side = (lights, "light") if turns is None else (turns, "pose")
+        return (R, None, w) if side == "pose" else (None, R, w)
+    (T, wt), (L, wl) = turns, lights
+    K, J = T.shape[0], L.shape[0]  # every (turn, light) pair
+    return T.repeat_interleave(J, 0), L.repeat(K, 1, 1), (wt[:, None] * wl[None, :]).reshape(-1)

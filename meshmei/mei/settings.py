@@ -93,12 +93,13 @@ class MEISettings:
         neighbours in the penalty); 0: per vertex there too. False (default): shape only, the paper's
         setting.
     robust_pose, robust_light : float
-        Degrees (0: off). Maximise the mean response over a ``robust_points`` x ``robust_points`` grid of
-        object turns (azimuth about y, elevation about x) within +-``robust_pose``, and of light positions
-        turned the same way about the object within +-``robust_light`` (both: every pair), instead of
-        the response in the one scene. The reported response is the one in the plain scene.
+        Degrees (0: off). Maximise the expected response over object turns (azimuth about y, elevation
+        about x) uniform within +-``robust_pose``, and over light positions turned the same way about the
+        object within +-``robust_light`` (both: every pair), instead of the response in the one scene; the
+        expectation by Gauss-Legendre quadrature, ``robust_points`` nodes per angle. The reported response
+        is the one in the plain scene.
     robust_points : int
-        Grid points per axis (3: -d, 0, +d).
+        Quadrature nodes per angle (3: 0 and +-0.775 d, weights 8/18 and 5/18 each).
     light : tuple of 3 floats or None
         Point light position; None puts it at the camera.
     camera_distance, fov_degrees : float
