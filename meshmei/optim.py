@@ -287,8 +287,8 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
 
 
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
-             schedule: Schedule = Schedule(), keep: str = "last", trace: Trace | None = None,
-             stop_at: float = 1.0, progress: Progress | None = None, callbacks=(),
+             schedule: Schedule = Schedule(), keep: str = "last", keep_from: float = 0.0,
+             trace: Trace | None = None, stop_at: float = 1.0, progress: Progress | None = None, callbacks=(),
              evaluate_last: bool = False, accept: Callable[[], bool] | None = None, max_halvings: int = 6,
              error: type[Exception] = FloatingPointError, where: str = "") -> Outcome:
     """Minimise ``objective`` with ``optimizer`` until ``budget`` (or ``stop_at`` of it) is used.
@@ -319,6 +319,10 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     keep : {"last", "best"}
         ``"best"``: end on the lowest-loss iterate seen, the final one included (evaluated once more
         after the last step, without a gradient).
+    keep_from : float
+        With ``keep="best"``, offer only the iterates from this budget fraction on (and the final one): an
+        objective that changes during the run (a continuation, as the widening robust ranges of a 3D-MEI)
+        has comparable losses only from there.
     evaluate_last : bool
         With ``keep="last"``, also evaluate the final iterate's loss (the outcome's ``loss``); without it
         the outcome reports the loss before the last step, and the objective is not called again (a
@@ -363,7 +367,7 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         if values.ndim > 1:
             raise ValueError(f"the objective must return a scalar or a (B,) loss; got shape {tuple(values.shape)}")
         _guard(values, trace.step, optimizer, error, where)
-        if keep == "best":
+        if keep == "best" and f >= keep_from:
             best.offer(values, trace.step)
         (loss if loss.ndim == 0 else loss.sum()).backward()  # items share no parameter: one backward for all
         before = None if accept is None else [p.detach().clone() for p in params]

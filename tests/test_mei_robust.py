@@ -37,6 +37,33 @@ def test_the_turns_are_rotations_whose_weights_give_the_mean_over_the_uniform_sq
     assert robust_turns(MEISettings(), torch.float64) is None
 
 
+def test_the_ranges_widen_linearly_over_the_first_share_of_the_run():
+    s = MEISettings(image_size=24, n_vertices=60, robust_pose=20.0, robust_light=10.0, robust_widen=0.5)
+    V0, F, _ = initial("sheet", s)
+    scene = SeedScene(V0, s, 0)
+    full = robust_turns(s, torch.float32)
+
+    def largest(turns):  # the largest azimuth and elevation of the turns (R = Ry(az) Rx(el))
+        az = torch.atan2(-turns[:, 2, 0], turns[:, 0, 0])
+        el = torch.atan2(-turns[:, 1, 2], turns[:, 1, 1])
+        return float(az.abs().max()), float(el.abs().max())
+
+    scene.widen(0.0)
+    eye = torch.eye(3).expand(81, 3, 3)
+    torch.testing.assert_close(scene.robust[0], eye)
+    torch.testing.assert_close(scene.robust[1], eye)
+    torch.testing.assert_close(scene.robust[2], full[2])  # the weights do not change
+    scene.widen(0.25)
+    for got, want in zip(scene.robust[:2], full[:2]):
+        assert largest(got) == pytest.approx(tuple(0.5 * a for a in largest(want)), rel=1e-5)
+    for f in (0.5, 0.9):
+        scene.widen(f)
+        for got, want in zip(scene.robust, full):
+            torch.testing.assert_close(got, want)
+    with pytest.raises(MEIError, match="robust_widen"):
+        MEISettings(robust_widen=1.0)
+
+
 def test_the_objective_is_the_mean_over_the_views_and_the_result_is_the_plain_scene():
     s = MEISettings(steps=3, seeds=(0,), image_size=24, n_vertices=60, robust_pose=15.0, robust_light=15.0,
                     robust_points=2, dtype="float64")

@@ -80,6 +80,23 @@ def test_keep_best_restores_the_lowest_loss_iterate_including_the_final_one():
     assert out.step == 4 and out.loss == pytest.approx(0.5**8) and float(x2.detach()) == pytest.approx(1 - 0.5**4)
 
 
+def test_keep_best_from_a_fraction_ignores_the_iterates_before_it():
+    """A continuation's early losses are of another objective: with ``keep_from`` they are not offered."""
+    x = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    one = torch.ones(1, dtype=torch.float64)
+
+    def objective(point):  # the first half's loss is lowered by 10: keep-best from 0 would take the start
+        loss = ((x - one) ** 2).sum() - (10.0 if point.fraction < 0.5 else 0.0)
+        return loss, {}
+
+    # lr 1.5 overshoots: iterates 0, 3, -3, 9, -15, 33 (loss from step 3 on: 64, 256, 1024; final 4096)
+    out = minimize(objective, torch.optim.SGD([x], lr=1.5), Budget(steps=6), keep="best")
+    assert out.step == 0 and float(x.detach()) == 0.0
+    x.data.zero_()
+    out = minimize(objective, torch.optim.SGD([x], lr=1.5), Budget(steps=6), keep="best", keep_from=0.5)
+    assert out.step == 3 and out.loss == pytest.approx(64.0) and float(x.detach()) == pytest.approx(9.0)
+
+
 def test_non_finite_loss_raises_the_clients_error_before_the_step():
     x = torch.ones(2, requires_grad=True)
     calls = []

@@ -56,7 +56,7 @@ def run(neurons: list[int]) -> str:
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
         "",
         "Demo model, 64 px, sheet, default settings; robust runs maximise the expected response over object "
-        "turns (pose) or light positions (light) uniform within +-20 degrees (3 x 3 Gauss-Legendre quadrature). 'response' is in the original scene, with "
+        "turns (pose) or light positions (light) uniform within +-20 degrees (3 x 3 Gauss-Legendre quadrature; the ranges widen from 0 over the first half of the run, `robust_widen=0.5`). 'response' is in the original scene, with "
         "its ratio to the plain 3D-MEI's; 'pose > half' is the share of the 37 x 37 pose grid (azimuth x "
         "elevation, -90 .. 90) where the response is at least half the sweep's peak; 'light > half' the same "
         "over the light hemisphere (10 x 36); 'gain' is the robust run's share over the plain run's on the axis "

@@ -108,6 +108,7 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
 
     def objective(point):
         V = scene.rbf()
+        scene.widen(point.fraction)
         f = scene.expected(encoder(scene.views(V, F), neuron)[:, 0])  # one view, or the robust quadrature
         loss, record = -f, {"response": float(f.detach())}
         for k, w in active.items():
@@ -130,7 +131,8 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     accept = None if guard is None else guard.acceptor(scene.rbf)
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights, guard), make_optimizer("adam", scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
-                   keep=settings.keep, evaluate_last=True, trace=trace, progress=bar, accept=accept,
+                   keep=settings.keep, keep_from=settings.robust_widen if scene.robust is not None else 0.0,
+                   evaluate_last=True, trace=trace, progress=bar, accept=accept,
                    max_halvings=0 if guard is None else guard.rules.max_halvings,
                    error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():

@@ -45,6 +45,7 @@ class SeedScene:
             self.groups.append({"params": [self.albedo_logit], "lr": settings.lr_albedo})
         self.camera, self.render_settings = settings.camera(), settings.render_settings()  # built once per seed
         self.robust = robust_turns(settings, dtype)
+        self.settings, self.widened = settings, 1.0
         self.light0 = torch.tensor(light0, dtype=dtype)
         self.pose = settings.optimize_pose
         if self.pose:
@@ -78,6 +79,18 @@ class SeedScene:
             light = (lights @ (self.light if self.light is not None else self.light0)).reshape(-1, 3)
         return render(V, F, camera=self.camera, light=light, settings=self.render_settings, albedo=self.albedo(),
                       uv=self.uv, **kw)
+
+    def widen(self, fraction: float) -> None:
+        """Set the robust ranges for a step at ``fraction`` of the run: ``min(1, fraction / robust_widen)``
+        of their full size (full at once when ``robust_widen`` is 0; nothing to do without a robust
+        objective)."""
+        if self.robust is None:
+            return
+        w = self.settings.robust_widen
+        scale = 1.0 if w <= 0 else min(1.0, max(fraction, 0.0) / w)
+        if scale != self.widened:
+            self.robust = robust_turns(self.settings, self.robust[2].dtype, scale)
+            self.widened = scale
 
     def expected(self, responses: torch.Tensor) -> torch.Tensor:
         """The objective's response from the responses ``(K,)`` to :meth:`views`: the one response, or the
@@ -124,13 +137,14 @@ def _turns(degrees: float, points: int, dtype) -> tuple[torch.Tensor, torch.Tens
     return (Ry @ Rx).to(dtype), torch.outer(w1, w1).reshape(-1).to(dtype)
 
 
-def robust_turns(settings: MEISettings, dtype):
+def robust_turns(settings: MEISettings, dtype, scale: float = 1.0):
     """``(object turns, light turns, weights)`` for the robust objective: the quadrature of
     :func:`_turns` for each axis that is on (the other None), every (turn, light) pair with the product
-    of their weights when both are; None when neither is."""
+    of their weights when both are; None when neither is. ``scale`` shrinks both ranges (the widening of
+    ``robust_widen``; 0: every node at the plain view)."""
     k = settings.robust_points
-    turns = _turns(settings.robust_pose, k, dtype) if settings.robust_pose > 0 else None
-    lights = _turns(settings.robust_light, k, dtype) if settings.robust_light > 0 else None
+    turns = _turns(scale * settings.robust_pose, k, dtype) if settings.robust_pose > 0 else None
+    lights = _turns(scale * settings.robust_light, k, dtype) if settings.robust_light > 0 else None
     if turns is None and lights is None:
         return None
     if turns is None or lights is None:

@@ -100,6 +100,10 @@ class MEISettings:
         is the one in the plain scene.
     robust_points : int
         Quadrature nodes per angle (3: 0 and +-0.775 d, weights 8/18 and 5/18 each).
+    robust_widen : float
+        Share of the run over which the robust ranges widen linearly from 0 to full (in ``[0, 1)``; 0: full
+        from the start): the run finds the plain optimum first, then holds it over more views (docs/mei.md).
+        Keep-best considers only the iterates after the ranges are full.
     light : tuple of 3 floats or None
         Point light position; None puts it at the camera.
     camera_distance, fov_degrees : float
@@ -145,6 +149,7 @@ class MEISettings:
     robust_pose: float = 0.0
     robust_light: float = 0.0
     robust_points: int = 3
+    robust_widen: float = 0.5
     light: tuple | None = None
     camera_distance: float = DEFAULT_DISTANCE
     fov_degrees: float = DEFAULT_FOV_DEGREES
@@ -192,6 +197,9 @@ class MEISettings:
         if not isinstance(self.albedo, bool) or not 0 < self.albedo_init < 1:
             raise MEIError(f"albedo must be a bool and albedo_init lie in (0, 1), got {self.albedo!r}, "
                            f"{self.albedo_init!r}")
+        w = self.robust_widen
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w < 1:
+            raise MEIError(f"robust_widen must lie in [0, 1), got {w!r}")
         if self.keep not in ("best", "last"):
             raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
         if self.dtype not in ("float32", "float64"):
