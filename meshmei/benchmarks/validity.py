@@ -227,8 +227,8 @@ def run_reconstruction(seeds=(0, 1, 2)):
         f"{time.perf_counter() - t0:.0f} s in all.",
         "",
         "The CLI's default run (`meshmei reconstruct --init sphere --target bunny` and `--init torus --target "
-        "teapot`: 2,500 vertices, 500 steps, `--stages auto`), seeds " + ", ".join(map(str, seeds)) + "; and "
-        "the bunny at `--n-vertices 10000` (three levels), seed 0 only. "
+        "teapot`: 2,500 vertices, 500 steps, `--stages auto`, which gives rbf three levels), seeds " + ", ".join(map(str, seeds)) + "; and "
+        "the bunny at `--n-vertices 10000`, seed 0 only. "
         "Chamfer-L2 from 100,000 samples per surface; SI = self-intersecting face pairs of the result (the "
         "teapot target has 294 of its own); refused = candidate steps the guard refused, summed over stages; "
         "s = mean optimisation wall time.",

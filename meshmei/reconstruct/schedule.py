@@ -31,7 +31,7 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     Either way the last stage restarts on a fresh isotropic remesh of the shape, which clears folds and
     slivers left by the one before. At 10k vertices three levels helped rbf on all three benchmark problems
     and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
-    *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 8,000
+    *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 2,000
     vertices.
     """
     n = int(n_vertices)
@@ -42,10 +42,12 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     raise ReconstructionError(f"levels must be 2 or 3, got {levels!r}")
 
 
-# The smallest final count at which meshmei reconstruct's --stages auto gives rbf three levels. They were
-# measured at 10,000 (first stage 625, docs/reconstruction.md); the margin lets a mesh asked for at 10k
-# that comes out a little smaller (a 10k torus has 9,465 vertices) have them too (first stage at least 500).
-THREE_LEVEL_MIN_VERTICES = 8_000
+# The smallest final count at which meshmei reconstruct's --stages auto gives rbf three levels. Measured at
+# 10,000 (first stage 625) and at the CLI's default 2,500 (first stage about 150; guarded, seeds 0-2: bunny
+# 1.59e-6, 2.78e-6, 1.30e-6 against 1.82e-6, 2.30e-6 for seeds 0-1 with two levels; teapot through the handle
+# 2.00e-6, 2.13e-6, 2.19e-6 against 3.68e-6, 3.79e-6; docs/reconstruction.md). Below 2,000 the first stage
+# would fall under 125 vertices, where nothing was measured.
+THREE_LEVEL_MIN_VERTICES = 2_000
 
 
 def default_schedule(method: str, n_vertices: int, levels: int | None = None, *, n_samples: int = 10_000) -> tuple:
@@ -57,11 +59,12 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
     (``n_samples // 2``; 5,000 with the default 10,000) and the lighter fine stages. ``None``
     (``--stages auto``) picks as follows.
 
-    rbf at ``THREE_LEVEL_MIN_VERTICES`` (8,000) vertices or more: three levels with those overrides
+    rbf at ``THREE_LEVEL_MIN_VERTICES`` (2,000) vertices or more: three levels with those overrides
     (``default_stages(n, levels=3)``, the benchmark's rbf-3levels), measured against two levels at 10k on
-    the three benchmark problems (docs/reconstruction.md, *Coarse-to-fine* and *Fifth round*). Otherwise
-    two levels (``default_stages(n)``): three were measured at 10k only, and they hurt large steps
-    through the teapot's handle.
+    the three benchmark problems (docs/reconstruction.md, *Coarse-to-fine* and *Fifth round*) and at the
+    CLI's default 2,500 on the bunny and the teapot (guarded). Otherwise two levels
+    (``default_stages(n)``); large steps and vertex always get two: three hurt large steps through the
+    teapot's handle.
     """
     if method not in METHODS:
         raise ReconstructionError(f"method must be one of {METHODS}, got {method!r}")
