@@ -12,6 +12,10 @@ sum over pairs divided by the vertex count. A fold (two faces turned onto each o
 well-shaped mesh the nearest such face lies about 0.87 edge lengths away, so ``distance`` at a quarter or
 a third of the mean edge length leaves smooth parts alone (reconstruction uses a quarter).
 
+With ``edges=True`` every two edges that share no vertex are paired too (the segment distance), as
+incremental potential contact does: two edges crossing like an X come close while every vertex stays far
+from the other's faces.
+
 Cost. The candidate pairs come from KD-trees over the vertices and the face centroids, searched again only
 when some vertex has moved more than ``margin`` since the last search (candidates are kept out to ``distance + 2 margin``, so no
 pair can come within ``distance`` unseen); a step costs the point-triangle distances of the candidates,
@@ -28,7 +32,8 @@ from scipy.spatial import cKDTree
 
 from .mesh import check_mesh
 
-__all__ = ["ContactBarrier", "contact_energies", "log_barrier", "point_triangle_sqdist", "mean_edge_length"]
+__all__ = ["ContactBarrier", "contact_energies", "log_barrier", "point_triangle_sqdist", "segment_sqdist",
+           "mean_edge_length"]
 
 
 def point_triangle_sqdist(P: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
@@ -55,6 +60,28 @@ def point_triangle_sqdist(P: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: 
 
     edge = torch.minimum(torch.minimum(segment(A, B), segment(B, C)), segment(C, A))
     return torch.where(inside, plane, edge)
+
+
+def segment_sqdist(P1: torch.Tensor, Q1: torch.Tensor, P2: torch.Tensor, Q2: torch.Tensor) -> torch.Tensor:
+    """Squared distances ``(k,)`` between segments ``P1 Q1`` and ``P2 Q2`` (all ``(k, 3)``), differentiable.
+
+    The closest parameters ``s, t`` in ``[0, 1]`` minimise over one segment with the other's clamped (as in
+    Ericson's *Real-Time Collision Detection*, 5.1.9); parallel and zero-length segments fall back to an
+    endpoint, with no division by zero.
+    """
+    d1, d2, r = Q1 - P1, Q2 - P2, P1 - P2
+    a, e = (d1 * d1).sum(-1), (d2 * d2).sum(-1)
+    b, c, f = (d1 * d2).sum(-1), (d1 * r).sum(-1), (d2 * r).sum(-1)
+    tiny = torch.finfo(P1.dtype).tiny
+    den = a * e - b * b
+    skew = den > 1e-12 * a * e
+    s = torch.where(skew, (b * f - c * e) / torch.where(skew, den, torch.ones_like(den)), torch.zeros_like(den))
+    s = s.clamp(0, 1)
+    t = (b * s + f) / e.clamp_min(tiny)
+    # t outside [0, 1]: clamp it and take the best s for that end
+    s = torch.where(t < 0, (-c / a.clamp_min(tiny)).clamp(0, 1), torch.where(t > 1, ((b - c) / a.clamp_min(tiny)).clamp(0, 1), s))
+    t = t.clamp(0, 1)
+    return (r + d1 * s[..., None] - d2 * t[..., None]).square().sum(-1)
 
 
 def log_barrier(d: torch.Tensor, d_hat: float) -> torch.Tensor:
@@ -89,6 +116,11 @@ class ContactBarrier:
         How far a vertex may move before the candidates are found again (default ``distance / 2``: the
         candidates then reach ``2 distance``, which on a well-shaped mesh still leaves out the faces one
         ring away).
+    edges : bool
+        Also pair every edge with the edges it shares no vertex with (incremental potential contact's
+        edge-edge pairs): two edges crossing like an X come close with every vertex still far from the
+        other's faces, which vertex-face pairs alone do not see (a reconstruction stalled at such a contact,
+        every step refused by the intersection test; docs/reconstruction.md).
     min_interval : int
         Fewest calls between two searches (default 1: search whenever a vertex moved ``margin``). Above
         1, a pair may come within ``distance`` for up to that many calls before the barrier sees it; use it
@@ -103,7 +135,8 @@ class ContactBarrier:
         Candidate searches so far.
     """
 
-    def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1):
+    def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
+                 edges: bool = False):
         if not distance > 0:
             raise ValueError(f"distance must be positive, got {distance!r}")
         self.F = F
@@ -115,6 +148,8 @@ class ContactBarrier:
         if isinstance(min_interval, bool) or not isinstance(min_interval, int) or min_interval < 1:
             raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
         self.min_interval = min_interval
+        E = np.sort(self.Fn[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), 1)
+        self.E = torch.from_numpy(np.unique(E, axis=0)).to(F.device) if edges else None
         self.active, self.rebuilds, self._since = 0, 0, 0
         self._built_at = None
         self._pairs = None
@@ -158,11 +193,44 @@ class ContactBarrier:
         Fd = torch.from_numpy(self.Fn)
         d2 = point_triangle_sqdist(Vd[vt], Vd[Fd[ft, 0]], Vd[Fd[ft, 1]], Vd[Fd[ft, 2]])
         near = d2 < reach * reach
-        return vt[near], ft[near]
+        return (vt[near], ft[near], *self._edge_candidates(Vn, reach))
+
+    def _edge_candidates(self, Vn: np.ndarray, reach: float):
+        """(edge, edge) pairs, sharing no vertex, within ``reach`` now (indices into :attr:`E`); empty
+        without ``edges``."""
+        none = torch.zeros(0, dtype=torch.int64)
+        if self.E is None:
+            return none, none
+        En = self.E.cpu().numpy()
+        A, B = Vn[En[:, 0]], Vn[En[:, 1]]
+        mid, half = 0.5 * (A + B), 0.5 * np.sqrt(((B - A) ** 2).sum(1))
+        typical = float(np.quantile(half, 0.98))
+        tree = cKDTree(mid)
+        big = half > typical
+        ij = tree.query_pairs(reach + 2 * typical, output_type="ndarray")
+        ij = ij[~(big[ij[:, 0]] | big[ij[:, 1]])]  # long edges: searched below with their own radius
+        if big.any():
+            b = np.nonzero(big)[0]
+            lists = tree.query_ball_point(mid[b], reach + half[b] + half.max())
+            counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+            other = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(counts.sum()))
+            first = np.repeat(b, counts)
+            once = ~big[other] | (first < other)  # a pair of two long edges is found from both
+            ij = np.concatenate([ij, np.column_stack([first[once], other[once]])])
+        i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
+        keep = ((mid[i] - mid[j]) ** 2).sum(1) <= (reach + half[i] + half[j]) ** 2
+        i, j = i[keep], j[keep]
+        keep = (En[i][:, :, None] != En[j][:, None, :]).all((1, 2))
+        i, j = torch.from_numpy(i[keep]), torch.from_numpy(j[keep])
+        Vd, Et = torch.from_numpy(Vn), torch.from_numpy(En)
+        d2 = segment_sqdist(Vd[Et[i, 0]], Vd[Et[i, 1]], Vd[Et[j, 0]], Vd[Et[j, 1]])
+        near = d2 < reach * reach
+        return i[near], j[near]
 
     @torch.no_grad()
-    def candidates(self, V: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The cached (vertex, face) candidate pairs for ``V``, searched again when some vertex has moved
+    def candidates(self, V: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The cached candidate pairs for ``V``: (vertex, face) and, with ``edges``, (edge, edge) index
+        arrays, ``(vt, ft, ea, eb)``; searched again when some vertex has moved
         more than ``margin`` since the last search (and ``min_interval`` calls have passed)."""
         Vn = V.detach().cpu().double().numpy()
         self._since += 1
@@ -181,26 +249,32 @@ class ContactBarrier:
 
 def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     """The contact energies ``(B,)`` of a batch of meshes ``V (B, n, 3)``, one :class:`ContactBarrier` per
-    item (the same faces and ``distance``): each item's candidates as its barrier keeps them; their
-    distances are measured once without a gradient for all items, and the pairs within ``distance`` once
-    more with it (usually far fewer). Sets each barrier's ``active``."""
+    item (the same faces, ``distance`` and ``edges``): each item's candidates as its barrier keeps them;
+    their distances are measured once without a gradient for all items, and the pairs within ``distance``
+    once more with it (usually far fewer). Sets each barrier's ``active``."""
     B, n = V.shape[:2]
-    F, dh = barriers[0].F, barriers[0].distance
+    F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     found = [cb.candidates(V[b]) for b, cb in enumerate(barriers)]
-    item = torch.cat([torch.full((len(vt),), b, dtype=torch.long, device=V.device) for b, (vt, _) in enumerate(found)])
-    vt = torch.cat([vt for vt, _ in found]) + item * n
-    C = F[torch.cat([ft for _, ft in found])] + (item * n)[:, None]
     Vf = V.reshape(-1, 3)
-    with torch.no_grad():
-        if len(vt):  # most steps of a smooth mesh have no candidate at all
-            Vd = Vf.detach()
-            close = point_triangle_sqdist(Vd[vt], Vd[C[:, 0]], Vd[C[:, 1]], Vd[C[:, 2]]) < dh * dh
-            vt, C, item = vt[close], C[close], item[close]
-        counts = torch.bincount(item, minlength=B).tolist()
-    for cb, k in zip(barriers, counts):
+    kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
+    for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
+                                         (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist)):
+        parts = [(x[first], x[second]) for x in found]
+        item = torch.cat([torch.full((len(a),), b, dtype=torch.long, device=V.device) for b, (a, _) in enumerate(parts)])
+        if not len(item):
+            continue
+        rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
+        with torch.no_grad():  # most steps of a smooth mesh have no pair within reach
+            close = dist(*(Vf.detach()[rows[:, k]] for k in range(4))) < dh * dh
+        if bool(close.any()):
+            kinds.append((rows[close], item[close], dist))
+    counts = torch.zeros(B, dtype=torch.long)
+    for _, item, _ in kinds:
+        counts += torch.bincount(item.cpu(), minlength=B)
+    for cb, k in zip(barriers, counts.tolist()):
         cb.active = int(k)
-    if not len(vt):
-        return V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient
-    d2 = point_triangle_sqdist(Vf[vt], Vf[C[:, 0]], Vf[C[:, 1]], Vf[C[:, 2]])
-    d = d2.clamp_min(torch.finfo(V.dtype).tiny).sqrt()
-    return V.new_zeros(B).index_add(0, item, log_barrier(d, dh)) / n
+    total = V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient, where no pair is near
+    for rows, item, dist in kinds:
+        d = dist(*(Vf[rows[:, k]] for k in range(4))).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
+        total = total.index_add(0, item, log_barrier(d, dh))
+    return total / n

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from meshmei.contact import ContactBarrier, mean_edge_length, point_triangle_sqdist
+from meshmei.contact import ContactBarrier, mean_edge_length, point_triangle_sqdist, segment_sqdist
 from meshmei.shapes import initial_mesh
 
 
@@ -87,17 +87,18 @@ def test_the_barrier_rises_without_bound_and_pushes_close_surfaces_apart():
     assert energies[1] < energies[2] < energies[3] and math.isfinite(energies[3])
 
 
-def test_cached_candidates_give_the_energy_a_fresh_search_gives():
+@pytest.mark.parametrize("edges", [False, True])
+def test_cached_candidates_give_the_energy_a_fresh_search_gives(edges):
     V, F = _two_sheets(0.0)
     h = mean_edge_length(V, F)
     g = torch.Generator().manual_seed(1)
-    cached = ContactBarrier(F, distance=h / 3)
+    cached = ContactBarrier(F, distance=h / 3, edges=edges)
     for step in range(12):  # the sheets close in by small random steps
         V = V.clone()
         n = V.shape[0] // 2
         V[n:, 2] = 0.4 * h * (1 - step / 12) + 0.02 * h * torch.rand(n, generator=g, dtype=V.dtype)
         V[:, :2] += 0.005 * h * torch.randn(V.shape[0], 2, generator=g, dtype=V.dtype)
-        fresh = ContactBarrier(F, distance=h / 3)
+        fresh = ContactBarrier(F, distance=h / 3, edges=edges)
         assert float(cached(V)) == pytest.approx(float(fresh(V)), rel=1e-12, abs=0)
         assert cached.active == fresh.active
     assert 1 < cached.rebuilds < 12  # it did reuse candidates, and did search again
@@ -111,14 +112,15 @@ def test_bad_distances_are_refused():
         ContactBarrier(F, 0.1, margin=-1.0)
 
 
-def test_batched_energies_equal_each_items_own_with_their_gradients():
+@pytest.mark.parametrize("edges", [False, True])
+def test_batched_energies_equal_each_items_own_with_their_gradients(edges):
     from meshmei.contact import contact_energies
 
     V0, F = initial_mesh("sphere", n_vertices=150, dtype=torch.float64)
     g = torch.Generator().manual_seed(3)
     V = torch.stack([V0, V0 + 0.02 * torch.randn(V0.shape, generator=g, dtype=V0.dtype), 1.3 * V0])
-    alone = [ContactBarrier.for_mesh(V0, F, 1.5) for _ in range(3)]  # reach 1.5 edges: many active pairs
-    batch = [ContactBarrier.for_mesh(V0, F, 1.5) for _ in range(3)]
+    alone = [ContactBarrier.for_mesh(V0, F, 1.5, edges=edges) for _ in range(3)]  # reach 1.5 edges: many pairs
+    batch = [ContactBarrier.for_mesh(V0, F, 1.5, edges=edges) for _ in range(3)]
     X = V.clone().requires_grad_(True)
     e = contact_energies(batch, X)
     e.sum().backward()
@@ -129,3 +131,46 @@ def test_batched_energies_equal_each_items_own_with_their_gradients():
         assert one.item() > 0 and batch[b].active == alone[b].active > 0
         torch.testing.assert_close(e[b], one, rtol=1e-12, atol=0)
         torch.testing.assert_close(X.grad[b], Y.grad, rtol=1e-10, atol=1e-14)
+
+
+def test_segment_distance_is_the_closest_pair_of_points():
+    g = torch.Generator().manual_seed(0)
+    P1, Q1, P2, Q2 = (torch.randn(120, 3, generator=g, dtype=torch.float64) for _ in range(4))
+    Q2[:30] = P2[:30] + 2.0 * (Q1[:30] - P1[:30])  # parallel pairs
+    Q1[30:40] = P1[30:40]  # a segment that is a point
+    exact = segment_sqdist(P1, Q1, P2, Q2)
+    t = torch.linspace(0, 1, 201, dtype=torch.float64)
+    A = P1[:, None] + t[None, :, None] * (Q1 - P1)[:, None]
+    B = P2[:, None] + t[None, :, None] * (Q2 - P2)[:, None]
+    grid = ((A[:, :, None] - B[:, None]) ** 2).sum(-1).flatten(1).min(1).values
+    # the grid's points lie on the segments: never below the exact distance, and above it by at most the
+    # grid's spacing (the longer segment / 200)
+    assert bool((grid >= exact - 1e-12).all())
+    spacing = torch.maximum((Q1 - P1).norm(dim=1), (Q2 - P2).norm(dim=1)) / 200
+    assert bool((grid.sqrt() - exact.sqrt() <= spacing + 1e-12).all())
+    X = torch.stack([P1, Q1, P2, Q2]).requires_grad_()
+    segment_sqdist(*X).sum().backward()
+    assert bool(torch.isfinite(X.grad).all())
+
+
+def _crossing_edges(gap):
+    """Two triangles in perpendicular planes whose edges cross like an X ``gap`` apart, every vertex about
+    1 from the other triangle."""
+    V = torch.tensor([[-1.0, 0, 0], [1, 0, 0], [0, 0, -1], [0, -1, gap], [0, 1, gap], [0, 0, 1 + gap]],
+                     dtype=torch.float64)
+    return V, torch.tensor([[0, 1, 2], [3, 4, 5]])
+
+
+def test_edge_pairs_see_two_edges_crossing_that_vertex_face_pairs_miss():
+    V, F = _crossing_edges(0.05)
+    plain, both = ContactBarrier(F, 0.5), ContactBarrier(F, 0.5, edges=True)
+    assert float(plain(V)) == 0.0 and plain.active == 0
+    X = V.clone().requires_grad_()
+    e = both(X)
+    e.backward()
+    assert float(e.detach()) > 0 and both.active == 1
+    # descent lifts the upper edge (vertices 3, 4) and lowers the lower one (0, 1)
+    assert bool((X.grad[[3, 4], 2] < 0).all()) and bool((X.grad[[0, 1], 2] > 0).all())
+    Y, _ = _crossing_edges(0.005)
+    assert float(both(Y)) > float(e.detach())  # closer: more energy
+    assert float(both(_crossing_edges(0.6)[0])) == 0.0  # beyond reach: none

@@ -123,7 +123,8 @@ def test_coarse_kernels_move_the_shape_further_early(sphere, bunny):
     assert ReconstructionSettings(method="largesteps").resolved().coarse_ratio == 0
     for bad, says in [(dict(coarse_ratio=1), "coarse_ratio"), (dict(coarse_ratio=-3), "coarse_ratio"),
                       (dict(coarse_ratio=2.5), "coarse_ratio"), (dict(coarse_ratio=16, coarse_lr=0.0), "coarse_lr"),
-                      (dict(method="vertex", coarse_ratio=16), "rbf method only")]:
+                      (dict(method="vertex", coarse_ratio=16), "rbf method only"),
+                      (dict(contact_edges="yes"), "contact_edges")]:
         with pytest.raises(ValueError, match=says):
             ReconstructionSettings(**bad).resolved()
 

@@ -178,11 +178,12 @@ def test_minimize_halves_each_refused_item_on_its_own():
     assert checked[0] == [True, True, True] and checked[1] == [True, False, True]  # accepted items: not again
 
 
-def test_reconstruction_at_ten_times_the_learning_rate_is_clean_in_every_iterate():
+@pytest.mark.parametrize("edges", [False, True])
+def test_reconstruction_at_ten_times_the_learning_rate_is_clean_in_every_iterate(edges):
     src = initial_mesh("sphere", n_vertices=300)
     seen = []
     res = reconstruct(src, "bunny", "rbf", steps=40, lr=6e-2, n_samples=1000, target_pool=5000, eval_samples=2000,
-                      callback=lambda step, V, loss: seen.append(V), valid_steps=True)
+                      callback=lambda step, V, loss: seen.append(V), valid_steps=True, contact_edges=edges)
     assert len(seen) == 40 and all(count_self_intersections(V, res.F) == 0 for V in seen)
     assert res.final.self_intersections == 0
     assert res.info["stages"][0]["checks"] >= 40

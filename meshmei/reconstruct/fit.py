@@ -271,7 +271,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         sk = _guarded_step(s, sk, V.shape[0])
         param = _parameterisation(sk, V.detach(), F)
-        contact = ContactBarrier.for_mesh(V, F, s.contact_distance) if s.w_contact > 0 else None
+        contact = ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges) if s.w_contact > 0 else None
         max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
         guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
         trace.seconds += time.perf_counter() - t0

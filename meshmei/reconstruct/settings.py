@@ -135,6 +135,10 @@ class ReconstructionSettings:
         The barrier's reach as a multiple of each stage's mean edge length at its start (default 0.25: on
         the bunny's default run, seeds 0 and 1, it ended at 1.9e-6 and 2.6e-6 against 5.8e-6 and 3.7e-6
         with 1/3; docs/reconstruction.md, *Valid steps*).
+    contact_edges : bool
+        Also pair edges with edges (``ContactBarrier(edges=True)``): it ends the stalls where two edges
+        cross at a near-contact the vertex-face pairs do not see, at about 1.6 times the run's time
+        (docs/reconstruction.md, *Stalls at edge contacts*); off by default.
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
@@ -170,6 +174,7 @@ class ReconstructionSettings:
     min_quality: float = 0.01
     w_contact: float = 100.0
     contact_distance: float = 0.25
+    contact_edges: bool = False
 
     def resolved(self) -> "ReconstructionSettings":
         """A copy with the per-method defaults filled in and every value checked.
@@ -213,6 +218,8 @@ def _check_values(s: ReconstructionSettings) -> None:
     for name in ("lr", "n_samples", "target_pool", "eval_samples", "r_cut", "sigma_factor", "contact_distance"):
         if not getattr(s, name) > 0:
             raise ReconstructionError(f"{name} must be positive, got {getattr(s, name)!r}")
+    if not isinstance(s.contact_edges, bool):
+        raise ReconstructionError(f"contact_edges must be True or False, got {s.contact_edges!r}")
     cr = s.coarse_ratio
     if isinstance(cr, bool) or not isinstance(cr, (int, np.integer)) or cr < 0 or cr == 1:
         raise ReconstructionError(f"coarse_ratio must be 0 (off) or an integer of at least 2, got {cr!r}")
