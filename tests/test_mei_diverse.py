@@ -46,6 +46,18 @@ def test_bad_diverse_settings_are_refused():
         diverse_meis(GaborSimpleCell(), 0, k=1, steps=2)
     with pytest.raises(MEIError, match="floor"):
         diverse_meis(GaborSimpleCell(), 0, k=2, floor=1.5, steps=2)
+    for robust in (dict(robust_pose=10.0), dict(robust_light=5.0)):  # not silently dropped
+        with pytest.raises(MEIError, match="robust"):
+            diverse_meis(GaborSimpleCell(), 0, k=2, steps=2, **robust)
+
+
+def test_the_cli_refuses_diverse_and_robust_together_in_one_line(tmp_path, capsys):
+    from meshmei.cli import main
+
+    rc = main(["mei", "--encoder", "gabor-simple", "--diverse", "2", "--robust-pose", "10", "--steps", "2",
+               "--out", str(tmp_path / "x"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "robust" in err and len(err.splitlines()) == 1
 
 
 def test_the_cli_writes_the_members_and_tune_sweeps_each(tmp_path, capsys):

@@ -84,6 +84,9 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
         raise MEIError(f"k must be an integer >= 2, got {k!r}")
     if not (diversity >= 0 and 0 <= floor <= 1):
         raise MEIError(f"need diversity >= 0 and floor in [0, 1], got {diversity!r}, {floor!r}")
+    if settings.robust_pose > 0 or settings.robust_light > 0:  # the batch renders one view per member
+        raise MEIError("diverse 3D-MEIs take no robust objective (robust_pose, robust_light); make them "
+                       "without it, or make robust 3D-MEIs one seed at a time")
     V0, F, init_name = initial(init, settings)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
     seeds = [settings.seeds[0] + i for i in range(k)]
