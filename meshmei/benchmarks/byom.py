@@ -92,6 +92,11 @@ class V4Model(torch.nn.Module):
         return torch.nn.functional.elu(self.readout(self.core(x))) + 1
 
 
+# the same step with parts of valid steps off, measured in the same rounds: how much of meshmei's share they are
+VARIANTS = {"guard, no barriers": dict(barrier_weight=0.0, contact_weight=0.0),
+            "valid steps off": dict(valid_steps=False, contact_weight=0.0)}
+
+
 def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
     torch.manual_seed(0)
     model = V4Model().eval()
@@ -130,18 +135,24 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
         for name, fn in (("model forward + backward", model_only), ("RBF deformation", deform),
                          ("render 100 px", draw), ("regularizers", regularize), ("preprocessing", preprocess)):
             parts[name] = timings(fn, repeat=repeats)[0]
-    rounds = []
-    for _ in range(n_rounds):  # alternate, so that both see the same machine state
+    def step_times(s):
+        t = optimize_mei(enc, 7, "sheet", s).time_history
+        d = sorted([b - a for a, b in zip(t[:-1], t[1:])][3:])
+        return d[len(d) // 2], d[0]
+
+    rounds, variants = [], {name: [] for name in VARIANTS}
+    for _ in range(n_rounds):  # alternate, so that all see the same machine state
         with frozen_encoder(enc):
             m_med, m_best = timings(model_only, repeat=repeats)
-        res = optimize_mei(enc, 7, "sheet", settings)
-        t = res.time_history
-        d = sorted([b - a for a, b in zip(t[:-1], t[1:])][3:])
-        rounds.append((d[len(d) // 2], m_med, d[0], m_best))
+        s_med, s_best = step_times(settings)
+        rounds.append((s_med, m_med, s_best, m_best))
+        for name, kw in VARIANTS.items():
+            variants[name].append(step_times(MEISettings.with_overrides(settings, kw))[0] - m_med)
     shares = sorted((s - m) / m for s, m, _, _ in rounds)
     best_shares = sorted((s - m) / m for _, _, s, m in rounds)
     step, m = median([r[0] for r in rounds]), median([r[1] for r in rounds])
     return {"parts": parts, "step": step, "model": m, "shares": shares, "best_shares": best_shares,
+            "variants": {k: median(v) for k, v in variants.items()},
             "readout": model.readout_name, "shape": model.shape}
 
 
@@ -153,6 +164,8 @@ def run(steps: int):
     rows = [[name, f"{1000 * t:.1f}"] for name, t in r["parts"].items()]
     rows.append(["3D-MEI step (everything)", f"{1000 * r['step']:.1f}"])
     rows.append(["meshmei's share: step - model", f"{1000 * (r['step'] - r['model']):.1f}"])
+    for name, extra in r["variants"].items():
+        rows.append([f"meshmei's share, {name}", f"{1000 * extra:.1f} ({100 * extra / r['model']:.0f} %)"])
     body = "\n".join([
         "## Bring your own model (`python -m meshmei.benchmarks.byom`)",
         "",
@@ -163,7 +176,8 @@ def run(steps: int):
         "100 x 100 px with 3 channels, statistics in 0-255 units (`encoder_from_model`). Median milliseconds; "
         "each part on its own (forward and backward), then a whole 3D-MEI step (sheet, 400 vertices, "
         "default settings), the model's own cost measured alternately with it in rounds of "
-        f"{steps} steps.",
+        f"{steps} steps; in the same rounds, the step with the guard's and contact barriers off, and with "
+        "valid steps off (their share: step - model, median over rounds).",
         "",
         markdown_table(["part", "ms"], rows),
         "",
