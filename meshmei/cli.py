@@ -86,7 +86,8 @@ def _add_objective_options(p, d: MEISettings) -> None:
                    help="maximise the expected response over object turns uniform within +-DEG (3 x 3 Gauss-Legendre "
                         "quadrature; default 0: off)")
     p.add_argument("--robust-light", type=float, default=0.0, metavar="DEG",
-                   help="maximise the mean response over light positions turned within +-DEG (default 0: off)")
+                   help="maximise the expected response over light positions turned uniformly within +-DEG (3 x 3 "
+                        "Gauss-Legendre quadrature; default 0: off)")
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
                         f"(default {'on' if d.valid_steps else 'off'})")

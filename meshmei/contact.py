@@ -31,6 +31,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from .mesh import check_mesh
+from .operators import edges as mesh_edges
 
 __all__ = ["ContactBarrier", "contact_energies", "log_barrier", "point_triangle_sqdist", "segment_sqdist",
            "mean_edge_length"]
@@ -98,6 +99,14 @@ def mean_edge_length(V: torch.Tensor, F: torch.Tensor) -> float:
     return float((T - T.roll(1, dims=1)).norm(dim=-1).mean())
 
 
+def _ball_pairs(tree: cKDTree, centres: np.ndarray, radii: np.ndarray):
+    """``(q, j)``: every tree point ``j`` within ``radii[q]`` of ``centres[q]``, as two index arrays."""
+    lists = tree.query_ball_point(centres, radii)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    found = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
+    return np.repeat(np.arange(len(lists)), counts), found
+
+
 def _nearby(P: np.ndarray, C: np.ndarray, r: float):
     """All ``(i, j)`` with ``|P_i - C_j| <= r``, as two index arrays (two KD-trees traversed together, in C)."""
     found = cKDTree(P).sparse_distance_matrix(cKDTree(C), r, output_type="ndarray")
@@ -148,8 +157,8 @@ class ContactBarrier:
         if isinstance(min_interval, bool) or not isinstance(min_interval, int) or min_interval < 1:
             raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
         self.min_interval = min_interval
-        E = np.sort(self.Fn[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), 1)
-        self.E = torch.from_numpy(np.unique(E, axis=0)).to(F.device) if edges else None
+        self.E = mesh_edges(F) if edges else None  # (k, 2), i < j: the mesh's cached edge list
+        self.En = None if self.E is None else self.E.cpu().numpy()
         self.active, self.rebuilds, self._since = 0, 0, 0
         self._built_at = None
         self._pairs = None
@@ -179,10 +188,9 @@ class ContactBarrier:
             fi.append(small[ff])
         if big.any():
             faces = np.nonzero(big)[0]
-            lists = cKDTree(Vn).query_ball_point(cen[faces], reach + rad[faces])
-            counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-            vi.append(np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum())))
-            fi.append(np.repeat(faces, counts))
+            q, found = _ball_pairs(cKDTree(Vn), cen[faces], reach + rad[faces])
+            vi.append(found)
+            fi.append(faces[q])
         vi, fi = np.concatenate(vi), np.concatenate(fi)
         keep = (self.Fn[fi] != vi[:, None]).all(1)
         keep &= ((Vn[vi] - cen[fi]) ** 2).sum(-1) <= (reach + rad[fi]) ** 2
@@ -201,7 +209,7 @@ class ContactBarrier:
         none = torch.zeros(0, dtype=torch.int64)
         if self.E is None:
             return none, none
-        En = self.E.cpu().numpy()
+        En = self.En
         A, B = Vn[En[:, 0]], Vn[En[:, 1]]
         mid, half = 0.5 * (A + B), 0.5 * np.sqrt(((B - A) ** 2).sum(1))
         typical = float(np.quantile(half, 0.98))
@@ -211,10 +219,8 @@ class ContactBarrier:
         ij = ij[~(big[ij[:, 0]] | big[ij[:, 1]])]  # long edges: searched below with their own radius
         if big.any():
             b = np.nonzero(big)[0]
-            lists = tree.query_ball_point(mid[b], reach + half[b] + half.max())
-            counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-            other = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(counts.sum()))
-            first = np.repeat(b, counts)
+            q, other = _ball_pairs(tree, mid[b], reach + half[b] + half.max())
+            first = b[q]
             once = ~big[other] | (first < other)  # a pair of two long edges is found from both
             ij = np.concatenate([ij, np.column_stack([first[once], other[once]])])
         i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)

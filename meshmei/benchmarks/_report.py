@@ -10,7 +10,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["docs_dir", "write_section", "machine_line", "median", "timeit", "timings", "markdown_table"]
+__all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
+           "markdown_table"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
@@ -45,6 +46,12 @@ def write_section(name: str, body: str) -> Path:
 def median(xs) -> float:
     """The upper median of ``xs`` (an element of it: ``sorted(xs)[len(xs) // 2]``)."""
     return sorted(xs)[len(xs) // 2]
+
+
+def step_intervals(times, skip: int) -> list:
+    """The durations of the steps of a run from its cumulative ``times`` (a ``time_history``), the first
+    ``skip`` left out (warm-up)."""
+    return [b - a for a, b in zip(times[:-1], times[1:])][skip:]
 
 
 def timings(fn, *, repeat: int = 5, warmup: int = 1) -> tuple[float, float]:

@@ -23,7 +23,7 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, median, timings, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, median, step_intervals, timings, write_section
 from meshmei.encoders import encoder_from_model, frozen_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.mei.optimize import initial
@@ -136,9 +136,8 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
                          ("render 100 px", draw), ("regularizers", regularize), ("preprocessing", preprocess)):
             parts[name] = timings(fn, repeat=repeats)[0]
     def step_times(s):
-        t = optimize_mei(enc, 7, "sheet", s).time_history
-        d = sorted([b - a for a, b in zip(t[:-1], t[1:])][3:])
-        return d[len(d) // 2], d[0]
+        d = step_intervals(optimize_mei(enc, 7, "sheet", s).time_history, 3)
+        return median(d), min(d)
 
     rounds, variants = [], {name: [] for name in VARIANTS}
     for _ in range(n_rounds):  # alternate, so that all see the same machine state

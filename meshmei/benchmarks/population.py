@@ -19,7 +19,7 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, median, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, median, step_intervals, write_section
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, optimize_mei_batch
 
@@ -34,7 +34,7 @@ def _one(enc, B: int, steps: int, valid_steps: bool = True) -> tuple[float, floa
     else:
         th = optimize_mei_batch(enc, list(range(B)), "sheet", s, batch_size=B)[0].time_history
     wall = time.perf_counter() - t0
-    step = median([b - a for a, b in zip(th[:-1], th[1:])][3:])
+    step = median(step_intervals(th, 3))
     return step / B, wall / (steps * B)
 
 

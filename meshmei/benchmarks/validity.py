@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, median, write_section
+from meshmei.benchmarks._report import machine_line, markdown_table, median, step_intervals, write_section
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
@@ -34,19 +34,13 @@ from meshmei.reconstruct.sources import resolve_source, target_surface
 from meshmei.shapes import initial_mesh
 
 
-def _step_times(history, skip=5):
-    t = [h["time"] for h in history]
-    return [b - a for a, b in zip(t[:-1], t[1:])][skip:]
-
-
 def mei_cost(steps: int = 60) -> list:
     """Median ms per 3D-MEI step (64 px, 400 vertices, sphere, simple cell), guard on and off, alternating."""
     times = {True: [], False: []}
     for _ in range(3):
         for on in (False, True):
             res = optimize_mei(GaborSimpleCell(), 0, "sphere", steps=steps, seeds=(0,), valid_steps=on)
-            dt = [b - a for a, b in zip(res.time_history[:-1], res.time_history[1:])][5:]
-            times[on].append(median(dt))
+            times[on].append(median(step_intervals(res.time_history, 5)))
     off, on = median(times[False]), median(times[True])
     return ["3D-MEI, 64 px, 400 vertices", f"{1000 * off:.1f}", f"{1000 * on:.1f} ({on / off:.2f})", "-", "-"]
 
@@ -65,8 +59,7 @@ def mei_cost_split(steps: int = 60, rounds: int = 3) -> list:
         for _ in range(rounds):
             for mode, kw in MEI_MODES.items():
                 res = optimize_mei(GaborSimpleCell(), 0, init, steps=steps, seeds=(0,), **kw)
-                th = res.time_history
-                times[mode].append(median([b - a for a, b in zip(th[:-1], th[1:])][5:]))
+                times[mode].append(median(step_intervals(res.time_history, 5)))
                 act[mode] = res.activation
         off = median(times["off"])
         for mode in MEI_MODES:
@@ -103,7 +96,7 @@ def reconstruction_cost(n_vertices: int, steps: int = 40) -> list:
     for _ in range(2):
         for m, kw in modes.items():
             res = reconstruct(src, "bunny", "rbf", steps=steps, eval_samples=2000, **kw)
-            times[m].append(median(_step_times(res.history)))
+            times[m].append(median(step_intervals([h["time"] for h in res.history], 5)))
     t = {m: median(v) for m, v in times.items()}
     return [f"reconstruction rbf, {src[0].shape[0]} vertices", f"{1000 * t['off']:.1f}",
             f"{1000 * t['guard']:.1f} ({t['guard'] / t['off']:.2f})", f"{1000 * t['default']:.1f}",

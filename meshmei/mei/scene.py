@@ -147,9 +147,10 @@ def robust_turns(settings: MEISettings, dtype, scale: float = 1.0):
     lights = _turns(scale * settings.robust_light, k, dtype) if settings.robust_light > 0 else None
     if turns is None and lights is None:
         return None
-    if turns is None or lights is None:
-        (R, w), side = (lights, "light") if turns is None else (turns, "pose")
-        return (R, None, w) if side == "pose" else (None, R, w)
+    if lights is None:
+        return turns[0], None, turns[1]
+    if turns is None:
+        return None, lights[0], lights[1]
     (T, wt), (L, wl) = turns, lights
     K, J = T.shape[0], L.shape[0]  # every (turn, light) pair
     return T.repeat_interleave(J, 0), L.repeat(K, 1, 1), (wt[:, None] * wl[None, :]).reshape(-1)
