@@ -157,11 +157,21 @@ class ContactBarrier:
         if isinstance(min_interval, bool) or not isinstance(min_interval, int) or min_interval < 1:
             raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
         self.min_interval = min_interval
-        self.E = mesh_edges(F) if edges else None  # (k, 2), i < j: the mesh's cached edge list
-        self.En = None if self.E is None else self.E.cpu().numpy()
+        self.E = self.En = None
         self.active, self.rebuilds, self._since = 0, 0, 0
         self._built_at = None
         self._pairs = None
+        if edges:
+            self.use_edges()
+
+    def use_edges(self) -> None:
+        """Pair edges with edges from the next call on (as ``edges=True``; the candidates are searched
+        again then). A run that stalls at an edge contact turns them on where it needs them
+        (:func:`meshmei.reconstruct.reconstruct`, ``contact_edges="auto"``)."""
+        if self.E is None:
+            self.E = mesh_edges(self.F)  # (k, 2), i < j: the mesh's cached edge list
+            self.En = self.E.cpu().numpy()
+            self._built_at = None
 
     @classmethod
     def for_mesh(cls, V: torch.Tensor, F: torch.Tensor, factor: float = 1.0 / 3.0, **kwargs) -> "ContactBarrier":

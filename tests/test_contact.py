@@ -174,3 +174,14 @@ def test_edge_pairs_see_two_edges_crossing_that_vertex_face_pairs_miss():
     Y, _ = _crossing_edges(0.005)
     assert float(both(Y)) > float(e.detach())  # closer: more energy
     assert float(both(_crossing_edges(0.6)[0])) == 0.0  # beyond reach: none
+
+
+def test_edge_pairs_turned_on_later_give_the_energy_of_a_barrier_built_with_them():
+    V, F = _crossing_edges(0.05)
+    late, both = ContactBarrier(F, 0.5), ContactBarrier(F, 0.5, edges=True)
+    assert float(late(V)) == 0.0  # its vertex-face candidates are cached now
+    late.use_edges()
+    assert float(late(V)) == float(both(V)) > 0 and late.active == both.active == 1
+    rebuilds = late.rebuilds
+    late.use_edges()  # a second call changes nothing
+    assert float(late(V)) == float(both(V)) and late.rebuilds == rebuilds

@@ -124,7 +124,7 @@ def test_coarse_kernels_move_the_shape_further_early(sphere, bunny):
     for bad, says in [(dict(coarse_ratio=1), "coarse_ratio"), (dict(coarse_ratio=-3), "coarse_ratio"),
                       (dict(coarse_ratio=2.5), "coarse_ratio"), (dict(coarse_ratio=16, coarse_lr=0.0), "coarse_lr"),
                       (dict(method="vertex", coarse_ratio=16), "rbf method only"),
-                      (dict(contact_edges="yes"), "contact_edges")]:
+                      (dict(contact_edges="yes"), "contact_edges"), (dict(contact_edges=1), "contact_edges")]:
         with pytest.raises(ValueError, match=says):
             ReconstructionSettings(**bad).resolved()
 

@@ -12,6 +12,7 @@ from meshmei.mei import optimize_mei
 from meshmei.optim import Budget, Trace, minimize
 from meshmei.quality import count_flipped_faces, count_self_intersections, triangle_quality
 from meshmei.reconstruct import reconstruct
+from meshmei.reconstruct.settings import AUTO_EDGE_REFUSALS
 from meshmei.shapes import initial_mesh
 from meshmei.validity import StepGuard, ValidityRules
 
@@ -125,9 +126,11 @@ def test_mei_at_ten_times_the_learning_rate_is_clean_in_every_iterate(init, monk
     res = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2)
     assert len(seen) == 40 and all(_clean(V, res.F, res.V0) for V in seen)
     assert _clean(res.V, res.F, res.V0) and res.extra["guard"]["checks"] >= 40
+    seen.clear()
     off = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
                        valid_steps=False)
-    assert not _clean(off.V, off.F, off.V0)  # unguarded, the same run does fold or cross itself
+    # unguarded, the same run does fold or cross itself (in some iterate: its kept result may be clean)
+    assert len(seen) == 40 and not all(_clean(V, off.F, off.V0) for V in seen)
     assert max(res.history) > res.history[0] + 0.02  # and the guarded run still climbs
 
 
@@ -187,6 +190,25 @@ def test_reconstruction_at_ten_times_the_learning_rate_is_clean_in_every_iterate
     assert len(seen) == 40 and all(count_self_intersections(V, res.F) == 0 for V in seen)
     assert res.final.self_intersections == 0
     assert res.info["stages"][0]["checks"] >= 40
+
+
+def test_auto_edge_pairs_turn_on_in_a_stage_once_the_intersection_rule_refuses(monkeypatch):
+    import importlib
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    src = initial_mesh("sphere", n_vertices=300)
+    run = dict(steps=12, lr=6e-2, n_samples=1000, target_pool=5000, eval_samples=2000, valid_steps=True,
+               stages=(300, 300), stage_fractions=(0.5, 0.5))
+    res = reconstruct(src, "bunny", "rbf", **run)  # "auto" is the default: no refusal, no edge pairs
+    assert all(st["contact_edges_from"] is None and st["refused_by"]["intersection"] < AUTO_EDGE_REFUSALS
+               for st in res.info["stages"])
+    # with the threshold at zero every stage turns them on after its first step, and stays clean
+    monkeypatch.setattr(fit, "AUTO_EDGE_REFUSALS", 0)
+    res = reconstruct(src, "bunny", "rbf", **run)
+    assert [st["contact_edges_from"] for st in res.info["stages"]] == [1, 7]
+    res_on = reconstruct(src, "bunny", "rbf", **dict(run, contact_edges=True))
+    assert [st["contact_edges_from"] for st in res_on.info["stages"]] == [0, 6]
+    assert res.final.self_intersections == res_on.final.self_intersections == 0
 
 
 def test_a_diverging_learning_rate_is_refused_or_named():

@@ -24,7 +24,7 @@ from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss, scale
 from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
 from ..validity import StepGuard
-from .settings import ReconstructionResult, ReconstructionSettings
+from .settings import AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings
 from .sources import source_mesh, target_surface
 
 __all__ = ["reconstruct"]
@@ -235,10 +235,11 @@ def _guarded_step(s: ReconstructionSettings, sk: ReconstructionSettings, n_stage
     return replace(sk, lr=sk.lr * (s.reg_ref_vertices / n_stage) ** 0.5)
 
 
-def _contact_info(contact) -> dict:
+def _contact_info(contact, edges_from) -> dict:
     if contact is None:
         return {}
-    return {"contact_distance": contact.distance, "contact_rebuilds": contact.rebuilds}
+    return {"contact_distance": contact.distance, "contact_rebuilds": contact.rebuilds,
+            "contact_edges_from": edges_from}
 
 
 def _remesh_clean(V, F, n: int, clean: bool):
@@ -271,13 +272,18 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         sk = _guarded_step(s, sk, V.shape[0])
         param = _parameterisation(sk, V.detach(), F)
-        contact = ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges) if s.w_contact > 0 else None
+        contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
+                   if s.w_contact > 0 else None)
         max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
         guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
         trace.seconds += time.perf_counter() - t0
-        latest = [None]
+        latest, edges_from = [None], [trace.step if s.contact_edges is True else None]
 
-        def after_step(rec, param=param, F=F, latest=latest):
+        def after_step(rec, param=param, F=F, latest=latest, contact=contact, guard=guard):
+            if (s.contact_edges == "auto" and contact is not None and contact.E is None and guard is not None
+                    and guard.reasons["intersection"] >= AUTO_EDGE_REFUSALS):
+                contact.use_edges()  # a stall at an edge contact: pair edges from here on
+                edges_from[0] = rec["step"]
             if callback is not None:
                 callback(rec["step"], latest[0].detach(), rec["loss"])
             if evaluation.due(rec["step"]):
@@ -293,7 +299,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
             V = param.vertices().detach()
         info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
                                "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
-                               **_guard_info(guard), **_contact_info(contact), **remeshed, **param.info()})
+                               **_guard_info(guard), **_contact_info(contact, edges_from[0]), **remeshed, **param.info()})
         if outcome.budget_spent:
             break
     return V, F
