@@ -142,6 +142,7 @@ def test_the_stored_json_reads_and_writes_back_unchanged(tmp_path):
 
 def test_variants_take_their_schedule_from_default_schedule():
     from meshmei.benchmarks.reconstruct import RESOLUTIONS, VARIANTS, variant_settings
+    from meshmei.benchmarks.reconstruct.problems import UNGUARDED
     from meshmei.reconstruct import RBF_THREE_LEVEL_OVERRIDES, default_schedule, default_stages
 
     for name, variant in VARIANTS.items():
@@ -150,12 +151,18 @@ def test_variants_take_their_schedule_from_default_schedule():
             stages, fractions, overrides = default_schedule(variant.method, n, variant.levels)
             assert (settings["stages"], settings["stage_fractions"], settings["stage_overrides"]) == (stages, fractions,
                                                                                                     overrides)
-            assert (settings["stages"], settings["stage_fractions"]) == default_stages(n, variant.levels)
+            levels = variant.levels or len(stages) - 1  # None: the CLI's choice
+            assert (settings["stages"], settings["stage_fractions"]) == default_stages(n, levels)
     # what the benchmark ran before its variants came from default_schedule
     assert variant_settings("rbf-3levels", 10000)["stage_overrides"] == RBF_THREE_LEVEL_OVERRIDES
     assert variant_settings("largesteps-3levels", 10000)["stage_overrides"] is None
-    assert variant_settings("rbf", 10000) == dict(zip(("stages", "stage_fractions"), default_stages(10000)),
-                                                  stage_overrides=None)
+    assert variant_settings("rbf-unguarded", 10000) == dict(UNGUARDED, stage_overrides=None,
+                                                            **dict(zip(("stages", "stage_fractions"), default_stages(10000))))
+    # the guarded default runs the CLI's schedule: three levels at the benchmark's resolutions
+    for n in (2500, 10000):
+        assert variant_settings("rbf", n) == dict(zip(("stages", "stage_fractions", "stage_overrides"),
+                                                      default_schedule("rbf", n)))
+        assert len(variant_settings("rbf", n)["stages"]) == 4
     assert variant_settings("rbf-nolap", 2500)["w_laplacian"] == 0.0
 
 
