@@ -218,6 +218,9 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--contact-weight", type=float, default=d.w_contact,
                    help="weight of the contact barrier that keeps the surface from touching itself (0: off; "
                         f"default {d.w_contact:g})")
+    p.add_argument("--contact-edges", choices=("auto", "on", "off"), default="auto",
+                   help="pair edges with edges in the contact barrier: 'auto' (default) in a stage once the guard "
+                        "has refused a few steps at an edge contact, 'on' in every stage (slower), 'off' never")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_reconstruct)
 
@@ -232,7 +235,9 @@ def _run_reconstruct(args) -> int:
     res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
                       n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
                       eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
-                      valid_steps=args.valid_steps, w_contact=args.contact_weight, progress=not args.no_progress)
+                      valid_steps=args.valid_steps, w_contact=args.contact_weight,
+                      contact_edges={"auto": "auto", "on": True, "off": False}[args.contact_edges],
+                      progress=not args.no_progress)
     out = save_reconstruction(res, args.out, init=str(args.init), target=str(args.target))
     f = res.final
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "

@@ -478,3 +478,17 @@ def test_a_method_given_in_settings_is_honoured(sphere, method):
     # an explicit method still replaces the settings' one
     res = reconstruct(sphere, "bunny", "rbf", settings=ReconstructionSettings(method=method, **small))
     assert res.settings.method == "rbf"
+
+
+def test_cli_contact_edges_choice_reaches_the_settings(tmp_path, capsys):
+    for choice, value in (("auto", "auto"), ("on", True), ("off", False)):
+        out_dir = tmp_path / choice
+        rc, out = _cli(["--init", "sphere", "--n-vertices", 100, "--target", "bunny", "--out", out_dir, "--steps", 3,
+                        "--samples", 300, "--eval-samples", 1000, "--stages", "none", "--contact-edges", choice,
+                        "--no-progress"], capsys)
+        assert rc == 0, out.err
+        rec = json.loads((out_dir / "history.json").read_text())
+        assert rec["settings"]["contact_edges"] == value
+    with pytest.raises(SystemExit) as exc:
+        main(["reconstruct", "--contact-edges", "sometimes"])
+    assert exc.value.code == 2 and "--contact-edges" in capsys.readouterr().err
