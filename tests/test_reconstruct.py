@@ -10,8 +10,8 @@ import torch
 from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
-from meshmei.reconstruct import (RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages, reconstruct,
-                                 source_mesh, target_surface)
+from meshmei.reconstruct import (DEFAULT_STEPS, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
+                                 reconstruct, source_mesh, target_surface)
 from meshmei.shapes import initial_mesh, target_mesh
 
 from conftest import icosphere
@@ -216,7 +216,7 @@ def test_other_bad_input(sphere, bunny, tmp_path):
     with pytest.raises(ValueError, match="lr_decay"):
         ReconstructionSettings(lr_decay=0.0).resolved()
     s = ReconstructionSettings(method="rbf", lr=1e-3).resolved()
-    assert s.lr == 1e-3 and s.reg_decay is True and s.optimizer == "uniform" and s.steps == 500
+    assert s.lr == 1e-3 and s.reg_decay is True and s.optimizer == "uniform" and s.steps == DEFAULT_STEPS
     with pytest.raises(ValueError, match="source"):
         source_mesh(42)
 

@@ -9,7 +9,7 @@ Run: ``python -m meshmei.benchmarks.validity [--steps 300] [--cells 8]``; writes
   phases that no test uses, from sheet, sphere and torus: the fraction of the bound (best of the default
   seeds) and the result's health, with the guard on and off.
 - Reconstruction (``--parts reconstruction``, its own section "validity-reconstruction"): the CLI's default
-  run (2,500 vertices, 500 steps, ``--stages auto``) on the bunny and through the teapot's handle over three
+  run (2,500 vertices, 1,000 steps, ``--stages auto``) on the bunny and through the teapot's handle over three
   seeds, with meshmei's defaults (step guard and contact barrier), without them, and large steps as
   published.
 """
@@ -29,7 +29,7 @@ from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.quality import health_report
-from meshmei.reconstruct import default_schedule, reconstruct
+from meshmei.reconstruct import DEFAULT_STEPS, default_schedule, reconstruct
 from meshmei.reconstruct.sources import resolve_source, target_surface
 from meshmei.shapes import initial_mesh
 
@@ -167,8 +167,9 @@ def mei_outcomes(n_cells: int, steps: int) -> list:
 
 
 def thin_outcomes(names=("dumbbell", "fin", "cup"), seed: int = 0) -> list:
-    """The thin-part targets (none used for tuning): meshmei's default run (sphere start, 2,500 vertices, 500
-    steps), the same without guard and barrier, and large steps as published given the default run's time."""
+    """The thin-part targets (none used for tuning): meshmei's default run (sphere start, 2,500 vertices,
+    ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as published given the
+    default run's time."""
     rows = []
     for name in names:
         target = target_surface(name)
@@ -200,7 +201,7 @@ def run_thin():
         "Targets `dumbbell` (two balls joined by a rod of radius 0.05), `fin` (a disc 0.06 thick through a ball) "
         "and `cup` (walls 0.05 thick), unit diagonal, watertight, made for this and used to tune nothing "
         "(`meshmei.shapes.targets.THIN_TARGETS`). From a 2,500-vertex sphere, seed 0: meshmei's default run "
-        "(500 steps), the same without guard and barrier, and large steps as published with the default "
+        f"({DEFAULT_STEPS:,} steps), the same without guard and barrier, and large steps as published with the default "
         "run's wall time as its budget. SI = self-intersecting face pairs; refused = candidates the guard "
         "refused; s = optimisation wall time.",
         "",
@@ -220,7 +221,7 @@ def run_reconstruction(seeds=(0, 1, 2)):
         f"{time.perf_counter() - t0:.0f} s in all.",
         "",
         "The CLI's default run (`meshmei reconstruct --init sphere --target bunny` and `--init torus --target "
-        "teapot`: 2,500 vertices, 500 steps, `--stages auto`, which gives rbf three levels), seeds " + ", ".join(map(str, seeds)) + "; and "
+        f"teapot`: 2,500 vertices, {DEFAULT_STEPS:,} steps, `--stages auto`, which gives rbf three levels), seeds " + ", ".join(map(str, seeds)) + "; and "
         "the bunny at `--n-vertices 10000`, seed 0 only. "
         "Chamfer-L2 from 100,000 samples per surface; SI = self-intersecting face pairs of the result (the "
         "teapot target has 294 of its own); refused = candidate steps the guard refused, summed over stages; "

@@ -17,8 +17,12 @@ __all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_RE
            "ReconstructionResult"]
 
 METHODS = ("rbf", "vertex", "largesteps")
-# The step count of a run given neither steps nor a time budget.
-DEFAULT_STEPS = 500
+# The step count of a run given neither steps nor a time budget. 1,000 since 2026-11-24 (it was 500): the
+# CLI's default rbf run at 2,500 vertices (three levels, guarded, one torch thread) then ends at 1.18-1.25e-6
+# on the bunny over seeds 0-5 (500 steps: 1.27-8.25e-6, 3 of 6 below 2e-6) and 1.87-1.92e-6 through the
+# teapot's handle over seeds 0-2 (500: 2.13-2.40e-6), clean, in about 47 s against 25 s
+# (docs/reconstruction.md, *How many steps*).
+DEFAULT_STEPS = 1000
 
 # contact_edges="auto": a stage turns edge-edge contact pairs on after this many candidates refused by the
 # intersection rule (a stage that does not stall refuses 0-5 in all; a stall, hundreds)
