@@ -59,7 +59,8 @@ def _add_mei(sub) -> None:
     p.add_argument("--neuron", type=int, default=0)
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--out", required=True, help="run directory to write (must not exist unless --overwrite)")
-    p.add_argument("--steps", type=int, default=d.steps)
+    p.add_argument("--steps", type=int, default=None,
+                   help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}, or the model's own size with --model)")
@@ -307,7 +308,8 @@ def _add_population(sub) -> None:
     _add_model_options(p, "--encoder")
     p.add_argument("--neurons", required=True, help="ranges and lists, e.g. 0-99 or 0-9,20,30-32")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
-    p.add_argument("--steps", type=int, default=d.steps)
+    p.add_argument("--steps", type=int, default=None,
+                   help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}, or the model's own size with --model)")

@@ -10,7 +10,7 @@ import torch
 
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
-from meshmei.mei import MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.mei import DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
 
 from conftest import demo_or_skip
 
@@ -97,6 +97,20 @@ def test_custom_initial_mesh_and_float64():
     res = optimize_mei(GaborComplexCell(), 0, (V, F), **TINY, dtype="float64")
     assert res.init == "custom" and res.V.dtype == torch.float64 and torch.isfinite(res.V).all()
 
+
+
+def test_steps_default_by_start():
+    # None: the start decides (a closed start has farther to travel); a given count is kept as it is
+    assert MEISettings().steps is None
+    assert {k: MEISettings().for_start(k).steps for k in DEFAULT_STEPS} == DEFAULT_STEPS
+    assert DEFAULT_STEPS["sphere"] > DEFAULT_STEPS["sheet"] and DEFAULT_STEPS["torus"] > DEFAULT_STEPS["sheet"]
+    assert MEISettings(steps=7).for_start("torus").steps == 7
+    # a run records the count it used, and its history has that many steps
+    V = torch.tensor([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    F = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    res = optimize_mei(GaborSimpleCell(), 0, (V, F), image_size=16, seeds=(0,), valid_steps=False)
+    assert res.settings.steps == DEFAULT_STEPS["custom"] == len(res.history)
+    assert res.settings.to_dict()["steps"] == DEFAULT_STEPS["custom"]  # what summary.json stores
 
 def test_save_and_load_run_exactly(tmp_path, tiny_run):
     out = save_run(tiny_run, tmp_path / "run")

@@ -23,7 +23,7 @@ from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
 from .optimize import (check_neuron, contact_barriers, initial, objective_weights, optimize_mei, result_from_seeds,
-                       settings_for_encoder, validity_barriers)
+                       settings_for_encoder, start_name, validity_barriers)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -222,6 +222,7 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
             yield n, optimize_mei(encoder, n, init, settings)
         return
     V0, F, init_name = initial(init, settings)
+    settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
     items = [(n, s) for n in neurons for s in settings.seeds]
     done: dict[int, dict] = {}
@@ -253,7 +254,7 @@ def optimize_mei_batch(encoder: Encoder, neurons, init="sheet", settings: MEISet
     >>> sorted(res[0].seed_activations)
     [0, 1]
     """
-    s = MEISettings.with_overrides(settings, overrides)
+    s = MEISettings.with_overrides(settings, overrides).for_start(start_name(init))
     _check_batch_size(batch_size)
     neurons = list(neurons)
     bar = Progress(s.steps * -(-len(neurons) * len(s.seeds) // batch_size), "3D-MEI batches", enabled=progress)

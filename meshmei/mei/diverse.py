@@ -88,6 +88,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
         raise MEIError("diverse 3D-MEIs take no robust objective (robust_pose, robust_light); make them "
                        "without it, or make robust 3D-MEIs one seed at a time")
     V0, F, init_name = initial(init, settings)
+    settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
     seeds = [settings.seeds[0] + i for i in range(k)]
     t0 = time.perf_counter()

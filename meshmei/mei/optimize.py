@@ -54,6 +54,12 @@ def settings_for_encoder(settings: MEISettings, encoder) -> MEISettings:
     return settings
 
 
+def start_name(init) -> str:
+    """The start's name for :data:`~meshmei.mei.settings.DEFAULT_STEPS`: a built-in start's own, else
+    ``"custom"`` (checked by :func:`initial`)."""
+    return init if isinstance(init, str) else "custom"
+
+
 def initial(init, settings: MEISettings):
     """``(V0, F, name)``: a built-in starting mesh by name (``settings.n_vertices``) or a given ``(V, F)``."""
     if isinstance(init, str):
@@ -186,6 +192,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     neuron = check_neuron(encoder, neuron)
     settings = settings_for_encoder(settings, encoder)
     V0, F, init_name = initial(init, settings)
+    settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]  # the count weights scale to
     bar = Progress(settings.steps * len(settings.seeds), f"3D-MEI neuron {neuron}", enabled=progress,
                    postfix=lambda rec: {"act": f"{rec['response']:.4f}"})

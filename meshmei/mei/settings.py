@@ -17,7 +17,12 @@ from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
 from ..validity import ValidityRules
 
-__all__ = ["MEISettings", "MEIResult", "make_deformer", "rebuild_deformer"]
+__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "make_deformer", "rebuild_deformer"]
+
+# Steps per seed when ``MEISettings.steps`` is None, by start. A closed start has farther to travel to a
+# relief than the sheet: from the sphere and the torus, 300 steps left Gabor cells at 0.88-0.95 of their
+# bound and 800 reach 0.95 (docs/mei.md, *How many steps*). A mesh of your own gets the sheet's count.
+DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 800, "custom": 300}
 
 def _default_weights():
     return {"laplacian": 30.0, "edge": 30.0, "area": 1000.0, "arap": 0.0}
@@ -36,8 +41,9 @@ class MEISettings:
         Rendered image size in pixels (square).
     n_vertices : int
         Approximate vertex count of a built-in initial mesh (ignored for a given mesh).
-    steps : int
-        Adam steps per seed.
+    steps : int or None
+        Adam steps per seed; None (default): by start, :data:`DEFAULT_STEPS` (300 from the sheet or a mesh
+        of your own, 800 from the sphere or the torus). A run records the count it used.
     lr : float
         Learning rate of the RBF offsets (world units; the initial meshes span 1).
     lr_scales : float
@@ -119,7 +125,7 @@ class MEISettings:
 
     image_size: int = 64
     n_vertices: int = 400
-    steps: int = 300
+    steps: int | None = None
     lr: float = 3e-3
     lr_scales: float = 1e-2
     lr_decay: float = 0.05
@@ -159,6 +165,8 @@ class MEISettings:
     def __post_init__(self):
         for name in ("image_size", "n_vertices", "steps", "robust_points"):
             v = getattr(self, name)
+            if name == "steps" and v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise MEIError(f"{name} must be a positive integer, got {v!r}")
         for name in ("lr", "lr_scales", "lr_decay", "init_noise", "sigma_factor", "r_cut", "lr_light", "lr_pose",
@@ -213,6 +221,13 @@ class MEISettings:
                                          or self.centers < 1):
             raise MEIError(f"centers must be None or a positive integer, got {self.centers!r}")
         object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
+
+    def for_start(self, init_name: str) -> "MEISettings":
+        """These settings with ``steps`` set for the start ``init_name`` (a key of :data:`DEFAULT_STEPS`)
+        where it is None; unchanged otherwise."""
+        if self.steps is not None:
+            return self
+        return replace(self, steps=DEFAULT_STEPS.get(init_name, DEFAULT_STEPS["custom"]))
 
     def render_settings(self) -> RenderSettings:
         """The :class:`~meshmei.render.RenderSettings` of the run (``render``, at ``image_size``)."""

@@ -15,7 +15,7 @@ import torch
 from ..encoders import Encoder, encoder_spec
 from ..errors import MEIError
 from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
-from ..mei.optimize import check_neuron, settings_for_encoder
+from ..mei.optimize import check_neuron, settings_for_encoder, start_name
 from ..optim import Progress
 from .store import CONFIG_FORMAT, finished_neurons, neuron_dir, prepare_folder, table_row, write_table
 
@@ -126,7 +126,7 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
         The table's rows (``population.csv``), by neuron, finished ones from earlier runs included.
     """
     check_device(device)
-    settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
+    settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder).for_start(start_name(init))
     neurons = [check_neuron(encoder, n) for n in neurons]
     if isinstance(pixel_steps, bool) or not isinstance(pixel_steps, int) or pixel_steps < 0:
         raise MEIError(f"pixel_steps must be a non-negative integer, got {pixel_steps!r}")
