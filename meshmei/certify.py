@@ -1,0 +1,197 @@
+"""A proof, cheaper than the exact test, that a disc-shaped mesh does not intersect itself: it is the graph
+of a function over a plane.
+
+Project the mesh along a direction ``d`` onto the plane perpendicular to it. If
+
+1. every face projects with positive orientation (its unit normal has ``n . d > 0``),
+2. at every interior vertex the projected corner angles sum to one full turn (the fan wraps once), and at
+   every boundary vertex to less than one,
+3. the projected boundary loop is a simple polygon (boundary edges that share no vertex keep apart),
+
+then the projection is a local homeomorphism of the disc that is one-to-one on its boundary, hence one-to-one
+everywhere (the number of preimages of a point is the winding number of the boundary's image around it, 0
+or 1). Two faces that shared a point other than their common vertices and edges would project to the same
+point twice, so the mesh has no self-intersection, and libigl's exact test would find none.
+
+Each rule is checked in float64 with a margin far above rounding (orientation ``n . d > 1e-9``, boundary
+edges further apart than ``1e-9`` of the projected extent), so a case too close to call fails the
+certificate and goes to the exact test. A failed certificate says nothing: the mesh may still be clean.
+
+Cost: one projection, an angle per corner and the distances between pairs of boundary edges, O(m + b^2)
+for b boundary edges (about 0.3 ms for the 3D-MEI's 400-vertex sheet, against about 1.4 ms for libigl's
+test). :class:`~meshmei.validity.StepGuard` uses it for starts it applies to (the 3D-MEI's sheet) and
+falls back to libigl when it fails.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .quality import edge_use
+from .topology import mesh_topology
+
+__all__ = ["GraphCertificate"]
+
+ORIENTATION_MARGIN = 1e-9  # smallest n . d of a face counted as facing along d
+SEPARATION_MARGIN = 1e-9  # smallest distance of two boundary edges, as a share of the projected extent
+
+
+class GraphCertificate:
+    """Checks that a mesh with the faces ``F`` of a disc is the graph of a function over the plane
+    perpendicular to ``direction`` (see the module docstring for the proof).
+
+    Parameters
+    ----------
+    F : (m, 3) int64 tensor
+        Faces of a topological disc, consistently oriented (use :meth:`for_start`, which checks).
+    direction : (3,) float tensor
+        The projection direction ``d``.
+    n_vertices : int
+
+    Attributes
+    ----------
+    direction : (3,) float64 tensor
+        ``d``, unit length.
+    """
+
+    def __init__(self, F: torch.Tensor, direction: torch.Tensor, n_vertices: int):
+        d = torch.as_tensor(direction, dtype=torch.float64)
+        d = d / d.norm()
+        a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64)
+        u = a - (a @ d) * d
+        u = u / u.norm()
+        self.direction = d
+        self.basis = torch.stack([u, torch.linalg.cross(d, u)])  # (2, 3): u x w = d, so n . d > 0 is counter-clockwise
+        self.corner = F.reshape(-1)
+        self.next, self.prev = F.roll(-1, 1).reshape(-1), F.roll(1, 1).reshape(-1)
+        topo = mesh_topology(F, n_vertices)
+        used = torch.zeros(n_vertices, dtype=torch.bool)
+        used[self.corner] = True
+        self.interior = used & ~topo.boundary_vertex
+        self.boundary = used & topo.boundary_vertex
+        half = (topo.twins == -1).reshape(-1)  # half-edge (f, k) runs from F[f, k + 1] to F[f, k + 2]
+        seg = torch.stack([self.next, self.prev], 1)[half]  # (b, 2) boundary edges
+        i, j = torch.triu_indices(len(seg), len(seg), 1)
+        apart = (seg[i][:, :, None] != seg[j][:, None, :]).all(-1).all(-1)  # share no vertex
+        i, j = i[apart], j[apart]
+        self.seg = seg
+        # numpy copies for holds()
+        self._d, self._basis_t = self.direction.numpy(), self.basis.T.numpy()
+        self._corner, self._next, self._prev = self.corner.numpy(), self.next.numpy(), self.prev.numpy()
+        self._interior, self._boundary = self.interior.numpy(), self.boundary.numpy()
+        sn = seg.numpy()
+        self._pairs = (sn[i.numpy(), 0], sn[i.numpy(), 1], sn[j.numpy(), 0], sn[j.numpy(), 1])
+
+    @classmethod
+    def for_start(cls, V0: torch.Tensor, F: torch.Tensor, normals: torch.Tensor, *,
+                  min_cos: float = 0.5) -> "GraphCertificate | None":
+        """A certificate for the start ``(V0, F)`` with unit face ``normals``, or None when it does not apply:
+        the mesh is not a consistently oriented topological disc (connected, one boundary loop, Euler
+        characteristic 1, no edge used by more than two faces), or some face turns more than
+        ``acos(min_cos)`` from the faces' mean normal, the projection direction."""
+        n = V0.shape[0]
+        boundary_edges, nonmanifold = edge_use(F)
+        if nonmanifold or not boundary_edges:
+            return None
+        directed = torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        if len(torch.unique(directed, dim=0)) != len(directed):  # a directed edge twice: not consistently oriented
+            return None
+        topo = mesh_topology(F, n)
+        used = int(torch.unique(F).numel())
+        if used - topo.n_edges + F.shape[0] != 1 or not _one_boundary_loop(F, topo) or not _connected(F, n):
+            return None
+        d = normals.sum(0)
+        if not float(d.norm()) > 0:
+            return None
+        d = d / d.norm()
+        if float((normals.to(d.dtype) @ d).min()) < min_cos:
+            return None
+        return cls(F, d, n)
+
+    def holds(self, V: torch.Tensor, normals: torch.Tensor) -> bool:
+        """Whether ``V`` (float64, ``(n, 3)``) with its unit face ``normals`` ``(m, 3)`` is proven free of
+        self-intersections (False: not proven; the mesh may still be clean). In numpy: on arrays this size
+        its per-operation cost is a fraction of torch's."""
+        if float((normals.numpy() @ self._d).min()) <= ORIENTATION_MARGIN:
+            return False
+        P = V.numpy() @ self._basis_t  # (n, 2)
+        x, y = np.ascontiguousarray(P[:, 0]), np.ascontiguousarray(P[:, 1])
+        xc, yc = x[self._corner], y[self._corner]
+        x1, y1, x2, y2 = x[self._next] - xc, y[self._next] - yc, x[self._prev] - xc, y[self._prev] - yc
+        angle = np.arctan2(x1 * y2 - y1 * x2, x1 * x2 + y1 * y2)
+        turn = np.bincount(self._corner, weights=angle, minlength=P.shape[0])
+        if (np.abs(turn[self._interior] - 2 * math.pi) > 1e-6).any():
+            return False  # an interior fan that wraps twice (or rounding we do not trust)
+        if (turn[self._boundary] >= 2 * math.pi - 1e-9).any():
+            return False
+        if len(self._pairs[0]):
+            tol = SEPARATION_MARGIN * float(np.hypot(x.max() - x.min(), y.max() - y.min()))
+            if _segments_closer_than(x, y, *self._pairs, tol):
+                return False
+        return True
+
+
+def _segments_closer_than(x: np.ndarray, y: np.ndarray, a0, a1, b0, b1, tol: float) -> bool:
+    """Whether some pair of 2D segments ``(a0, a1)``, ``(b0, b1)`` (indices into the coordinates ``x, y``)
+    crosses or comes within ``tol``. Pairs whose boxes are more than ``tol`` apart are dropped first."""
+    xa0, xa1, xb0, xb1 = x[a0], x[a1], x[b0], x[b1]
+    ya0, ya1, yb0, yb1 = y[a0], y[a1], y[b0], y[b1]
+    near = ((np.minimum(xa0, xa1) <= np.maximum(xb0, xb1) + tol) & (np.minimum(xb0, xb1) <= np.maximum(xa0, xa1) + tol)
+            & (np.minimum(ya0, ya1) <= np.maximum(yb0, yb1) + tol) & (np.minimum(yb0, yb1) <= np.maximum(ya0, ya1) + tol))
+    if not near.any():
+        return False
+    A0 = np.stack([xa0[near], ya0[near]], 1)
+    A1 = np.stack([xa1[near], ya1[near]], 1)
+    B0 = np.stack([xb0[near], yb0[near]], 1)
+    B1 = np.stack([xb1[near], yb1[near]], 1)
+
+    def orient(p, q, r):
+        return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
+
+    if ((orient(A0, A1, B0) * orient(A0, A1, B1) < 0) & (orient(B0, B1, A0) * orient(B0, B1, A1) < 0)).any():
+        return True  # a proper crossing
+
+    def point_segment_sq(p, q, r):  # from p to segment q r
+        d = r - q
+        t = np.clip(((p - q) * d).sum(1) / np.maximum((d * d).sum(1), np.finfo(float).tiny), 0.0, 1.0)
+        e = q + d * t[:, None] - p
+        return (e * e).sum(1)
+
+    closest = min(point_segment_sq(A0, B0, B1).min(), point_segment_sq(A1, B0, B1).min(),
+                  point_segment_sq(B0, A0, A1).min(), point_segment_sq(B1, A0, A1).min())
+    return bool(closest <= tol * tol)
+
+
+def _one_boundary_loop(F: torch.Tensor, topo) -> bool:
+    """Whether the boundary edges form a single cycle (every boundary vertex on exactly two of them)."""
+    half = (topo.twins == -1).reshape(-1)
+    seg = torch.stack([F.roll(-1, 1).reshape(-1), F.roll(1, 1).reshape(-1)], 1)[half]
+    if not len(seg):
+        return False
+    deg = torch.bincount(seg.reshape(-1), minlength=topo.n_vertices)
+    if bool((deg[deg > 0] != 2).any()):
+        return False
+    succ = dict(zip(seg[:, 0].tolist(), seg[:, 1].tolist()))  # consistently oriented: each vertex starts one edge
+    if len(succ) != len(seg):
+        return False
+    start = next(iter(succ))
+    v, steps = succ[start], 1
+    while v != start and steps <= len(seg):
+        v, steps = succ[v], steps + 1
+    return steps == len(seg)
+
+
+def _connected(F: torch.Tensor, n: int) -> bool:
+    """Whether the faces form one connected piece (over shared vertices)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    Fn = F.numpy()
+    rows = Fn[:, [0, 1, 2]].reshape(-1)
+    cols = Fn[:, [1, 2, 0]].reshape(-1)
+    count, labels = connected_components(coo_matrix((torch.ones(len(rows)).numpy(), (rows, cols)), shape=(n, n)),
+                                         directed=False)
+    return len(set(labels[torch.unique(F).numpy()].tolist())) == 1

@@ -1,0 +1,156 @@
+"""GraphCertificate: a proof that a disc facing one way does not intersect itself, checked against libigl."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meshmei.certify import GraphCertificate
+from meshmei.quality import count_self_intersections
+from meshmei.shapes import initial_mesh
+from meshmei.validity import StepGuard, ValidityRules, face_frame
+
+
+def grid(k=12):
+    """A (k x k)-vertex flat sheet in the xy plane, faces facing +z."""
+    u = torch.linspace(-0.5, 0.5, k, dtype=torch.float64)
+    x, y = torch.meshgrid(u, u, indexing="ij")
+    V = torch.stack([x.reshape(-1), y.reshape(-1), torch.zeros(k * k, dtype=torch.float64)], 1)
+    idx = torch.arange(k * k).reshape(k, k)
+    a, b, c, d = idx[:-1, :-1].reshape(-1), idx[1:, :-1].reshape(-1), idx[1:, 1:].reshape(-1), idx[:-1, 1:].reshape(-1)
+    F = torch.cat([torch.stack([a, b, c], 1), torch.stack([a, c, d], 1)])
+    return V, F
+
+
+def certificate(V, F):
+    return GraphCertificate.for_start(V, F, face_frame(V, F)[0])
+
+
+def holds(cert, V, F):
+    return cert.holds(V, face_frame(V, F)[0])
+
+
+def test_it_applies_to_discs_facing_one_way_and_to_nothing_else():
+    V, F = grid()
+    assert certificate(V, F) is not None
+    Vs, Fs = initial_mesh("sheet")
+    assert certificate(Vs.double(), Fs) is not None  # the 3D-MEI's start
+    for name in ("sphere", "torus"):  # closed: no boundary loop
+        Vc, Fc = initial_mesh(name)
+        assert certificate(Vc.double(), Fc) is None
+    assert certificate(V, F[:, [0, 2, 1]]) is not None  # all flipped: still one way
+    mixed = F.clone()
+    mixed[::2] = mixed[::2][:, [0, 2, 1]]  # inconsistent orientation
+    assert certificate(V, mixed) is None
+    two = torch.cat([F, F + len(V)])  # two discs
+    assert certificate(torch.cat([V, V + 2.0]), two) is None
+    bent = V.clone()
+    bent[:, 2] = 2.0 * bent[:, 0] ** 2 * 8  # a trough whose sides turn more than 60 degrees from the mean
+    assert certificate(bent, F) is None
+
+
+def test_whenever_it_holds_libigl_finds_no_intersection():
+    """Soundness over many deformations of the sheet, from smooth to wild: a certified mesh is clean."""
+    V, F = grid(14)
+    cert = certificate(V, F)
+    gen = torch.Generator().manual_seed(0)
+    certified = smooth_certified = smooth = intersecting = 0
+    for trial in range(120):
+        W = V.clone()
+        kind = trial % 4
+        for _ in range(4):  # Gaussian bumps in z
+            c = torch.rand(2, generator=gen, dtype=torch.float64) - 0.5
+            r2 = ((W[:, :2] - c) ** 2).sum(1)
+            W[:, 2] += (torch.rand(1, generator=gen, dtype=torch.float64) - 0.5) * 2.0 * math.exp(trial % 5) * 0.1 * \
+                torch.exp(-r2 / 0.05)
+        if kind >= 1:  # an in-plane shear that grows with height: may fold the projection
+            W[:, 0] += (0.5 + trial % 3) * W[:, 2]
+        if kind >= 2:  # in-plane noise: may flip faces in the projection
+            W[:, :2] += 0.006 * (1 + trial % 6) * torch.randn(len(W), 2, generator=gen, dtype=torch.float64)
+        if kind == 3:  # fold a strip back over the rest
+            strip = W[:, 0] > 0.2
+            W[strip, 0] = 0.4 - W[strip, 0]
+            W[strip, 2] += 0.05 * (trial % 2 * 2 - 1)
+        ok = holds(cert, W, F)
+        pairs = count_self_intersections(W, F)
+        intersecting += pairs > 0
+        if ok:
+            certified += 1
+            assert pairs == 0, f"trial {trial}: certified, but libigl finds {pairs} pairs"
+        if kind == 0:
+            smooth += 1
+            smooth_certified += ok
+    assert smooth_certified == smooth  # smooth height fields are always proven
+    assert intersecting >= 30 and certified > smooth  # the trials do reach both sides
+
+
+def test_a_ramp_that_overlaps_itself_in_projection_is_not_certified():
+    """A strip wound 1.5 turns up a helix: clean in 3D, but its projection overlaps itself, so no proof;
+    flattened it intersects itself and is refused too."""
+    k, turns = 60, 1.5
+    t = torch.linspace(0.0, 2 * math.pi * turns, k, dtype=torch.float64)
+    inner = torch.stack([torch.cos(t), torch.sin(t), 0.15 * t], 1)
+    outer = torch.stack([2 * torch.cos(t), 2 * torch.sin(t), 0.15 * t], 1)
+    V = torch.cat([inner, outer])
+    i = torch.arange(k - 1)
+    F = torch.cat([torch.stack([i, i + k, i + k + 1], 1), torch.stack([i, i + k + 1, i + 1], 1)])
+    n = face_frame(V, F)[0]
+    assert float((n @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).min()) > 0.9  # faces point up
+    cert = GraphCertificate(F, torch.tensor([0.0, 0.0, 1.0]), len(V))
+    assert count_self_intersections(V, F) == 0
+    assert not holds(cert, V, F)
+    flat = V.clone()
+    flat[:, 2] = 0.0
+    assert count_self_intersections(flat, F) > 0
+    assert not holds(cert, flat, F)
+
+
+def test_a_fan_that_wraps_twice_is_not_certified():
+    """Every face of a fan that wraps twice round its centre faces up, and the boundary pairs that share no
+    vertex can be kept apart, yet two of its faces cross: the angle-sum rule catches it."""
+    ring = torch.stack([torch.tensor([math.cos(k * math.pi / 2), math.sin(k * math.pi / 2), 0.1 * k]) for k in range(8)])
+    V = torch.cat([torch.zeros(1, 3), ring]).double()
+    V[0, 2] = 0.35
+    F = torch.tensor([[0, 1 + k, 1 + (k + 1) % 8] for k in range(8)])
+    cert = GraphCertificate(F, torch.tensor([0.0, 0.0, 1.0]), len(V))
+    assert count_self_intersections(V, F) > 0
+    assert not holds(cert, V, F)
+
+
+def test_a_sheet_folded_over_itself_is_not_certified():
+    V, F = grid(12)
+    cert = certificate(V, F)
+    taco = V.clone()
+    s = taco[:, 0] > 0.0
+    taco[s, 0] = -taco[s, 0] * 0.9  # the right half laid back over the left, slightly apart
+    taco[s, 2] = 0.05 + 0.1 * taco[s, 0].abs()
+    assert not holds(cert, taco, F)
+
+
+def test_the_guard_with_the_certificate_gives_the_verdicts_of_libigl_alone():
+    V, F = grid(12)
+    rules = ValidityRules()
+    with_cert, plain = StepGuard(V, F, rules), StepGuard(V, F, rules)
+    plain.certificate = None
+    assert with_cert.certificate is not None
+    gen = torch.Generator().manual_seed(1)
+    for step in range(40):
+        W = V.clone()
+        W[:, 2] += 0.02 * step * torch.sin(3 * W[:, 0] + step) * torch.cos(2 * W[:, 1])
+        W += 0.004 * (step % 5) * torch.randn(W.shape, generator=gen, dtype=torch.float64)
+        assert with_cert.accept(W) == plain.accept(W), f"step {step}"
+    assert with_cert.reasons == plain.reasons
+    assert with_cert.report()["certified"] > 0 and plain.report()["certified"] == 0
+    assert with_cert.certified <= with_cert.checks - with_cert.failures
+
+
+@pytest.mark.parametrize("init, expect", [("sheet", True), ("sphere", False)])
+def test_an_mei_run_uses_the_certificate_only_from_the_sheet(init, expect):
+    from meshmei.encoders import GaborSimpleCell
+    from meshmei.mei import optimize_mei
+
+    result = optimize_mei(GaborSimpleCell(), 0, init, steps=15, seeds=(0,), image_size=32, n_vertices=100)
+    assert (result.extra["guard"]["certified"] > 0) == expect
+    assert count_self_intersections(result.V.double(), result.F) == 0
