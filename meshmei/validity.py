@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .certify import GraphCertificate
+from .certify import GraphCertificate, StarCertificate
 from .contact import log_barrier
 from .errors import MeshError
 from .mesh import check_mesh
@@ -121,10 +121,11 @@ class StepGuard:
         ``"non-finite"``).
     seconds : float
         Time spent checking.
-    certificate : GraphCertificate or None
-        For a start that is a disc facing one way (the 3D-MEI's sheet, no intersecting pair allowed): a
-        candidate it proves to be the graph of a function over a plane skips libigl's exact test, which it
-        would pass (:mod:`meshmei.certify`); one it does not prove goes to the exact test.
+    certificate : GraphCertificate, StarCertificate or None
+        For a start that is a disc facing one way (the 3D-MEI's sheet) or closed and star-shaped about its
+        centroid (its sphere), with no intersecting pair allowed: a candidate it proves to be a graph over a
+        plane, or star-shaped, skips libigl's exact test, which it would pass (:mod:`meshmei.certify`); one
+        it does not prove goes to the exact test.
     certified : int
         Candidates that passed the intersection rule by the certificate alone.
     """
@@ -137,9 +138,12 @@ class StepGuard:
         self.cos_bound = math.cos(math.radians(rules.max_turn_degrees))
         self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
         self.quality_floor = min(rules.min_quality, 0.5 * float(q.min()))
-        # a disc start facing one way (the 3D-MEI's sheet): most candidates are proven clean without libigl
-        self.certificate = (GraphCertificate.for_start(ref, F, self.normals)
-                            if rules.self_intersections and self.allowed_pairs == 0 else None)
+        # a disc start facing one way (the 3D-MEI's sheet) or a closed star-shaped one (its sphere): most
+        # candidates are proven clean without libigl
+        self.certificate = None
+        if rules.self_intersections and self.allowed_pairs == 0:
+            self.certificate = (GraphCertificate.for_start(ref, F, self.normals)
+                                or StarCertificate.for_start(ref, F, self.normals))
         self.certified = 0
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
@@ -198,7 +202,7 @@ class StepGuard:
 
     def report(self) -> dict:
         """What the guard did, JSON-able: candidates checked, refused, refusals by rule, seconds, and how
-        many passed the intersection rule by :class:`~meshmei.certify.GraphCertificate` alone."""
+        many passed the intersection rule by their :mod:`~meshmei.certify` certificate alone."""
         return {"checks": self.checks, "refused": self.failures, "reasons": dict(self.reasons),
                 "seconds": round(self.seconds, 4), "certified": self.certified}
 

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from meshmei.certify import GraphCertificate
+from meshmei.certify import GraphCertificate, StarCertificate
 from meshmei.quality import count_self_intersections
 from meshmei.shapes import initial_mesh
 from meshmei.validity import StepGuard, ValidityRules, face_frame
@@ -38,7 +38,7 @@ def test_it_applies_to_discs_facing_one_way_and_to_nothing_else():
     Vs, Fs = initial_mesh("sheet")
     assert certificate(Vs.double(), Fs) is not None  # the 3D-MEI's start
     for name in ("sphere", "torus"):  # closed: no boundary loop
-        Vc, Fc = initial_mesh(name)
+        Vc, Fc = initial_mesh(name, n_vertices=200)
         assert certificate(Vc.double(), Fc) is None
     assert certificate(V, F[:, [0, 2, 1]]) is not None  # all flipped: still one way
     mixed = F.clone()
@@ -146,8 +146,71 @@ def test_the_guard_with_the_certificate_gives_the_verdicts_of_libigl_alone():
     assert with_cert.certified <= with_cert.checks - with_cert.failures
 
 
-@pytest.mark.parametrize("init, expect", [("sheet", True), ("sphere", False)])
-def test_an_mei_run_uses_the_certificate_only_from_the_sheet(init, expect):
+def sphere(n=300):
+    V, F = initial_mesh("sphere", n_vertices=n)
+    return V.double(), F
+
+
+def star(V, F):
+    return StarCertificate.for_start(V, F, face_frame(V, F)[0])
+
+
+def test_the_star_certificate_applies_to_closed_star_shaped_starts_only():
+    V, F = sphere()
+    assert star(V, F) is not None
+    Vt, Ft = initial_mesh("torus", n_vertices=300)
+    assert star(Vt.double(), Ft) is None  # closed, but its hole's faces face away from the centroid
+    assert star(*grid()) is None  # not closed
+    mixed = F.clone()
+    mixed[0] = mixed[0, [0, 2, 1]]
+    assert star(V, mixed) is None
+    assert star(V, F[:, [0, 2, 1]]) is None  # every normal points inwards: c is outside every face's plane
+
+
+def test_whenever_the_star_certificate_holds_libigl_finds_no_intersection():
+    """Soundness over deformations of the sphere, from radial relief to dents pushed through the centre."""
+    V, F = sphere()
+    cert = star(V, F)
+    gen = torch.Generator().manual_seed(2)
+    certified = radial = radial_certified = intersecting = 0
+    for trial in range(120):
+        kind = trial % 4
+        dirs = torch.nn.functional.normalize(torch.randn(4, 3, generator=gen, dtype=torch.float64), dim=1)
+        r = torch.ones(len(V), dtype=torch.float64)
+        unit = V / V.norm(dim=1, keepdim=True)
+        for d in dirs:  # radial bumps and dents, up to pushing a cap through the centre
+            amp = (torch.rand(1, generator=gen, dtype=torch.float64) - 0.5) * 0.6 * (1 + trial % 6)
+            r = r + amp * torch.exp(-((unit @ d) - 1) ** 2 / 0.05)
+        W = unit * (0.5 * r)[:, None]
+        if kind >= 1:  # tangential noise: may fold the fans
+            W = W + 0.01 * (1 + trial % 5) * torch.randn(W.shape, generator=gen, dtype=torch.float64)
+        if kind == 3:  # a shear that grows with height: overhangs as seen from the centre
+            W[:, 0] = W[:, 0] + 0.6 * (trial % 3) * W[:, 2] ** 2
+        ok = cert.holds(W, face_frame(W, F)[0])
+        pairs = count_self_intersections(W, F)
+        intersecting += pairs > 0
+        if ok:
+            certified += 1
+            assert pairs == 0, f"trial {trial}: certified, but libigl finds {pairs} pairs"
+        if kind == 0 and bool((r > 0.05).all()):
+            radial += 1
+            radial_certified += ok
+    assert radial_certified == radial > 0  # relief that keeps every radius positive is always proven
+    assert intersecting >= 10 and certified > radial  # the trials do reach both sides
+
+
+def test_a_cap_pushed_through_the_centre_is_not_certified():
+    V, F = sphere()
+    cert = star(V, F)
+    W = V.clone()
+    cap = W[:, 2] > 0.3
+    W[cap, 2] = -W[cap, 2] - 0.1  # the top cap pushed down through the centre and out below the bottom
+    assert count_self_intersections(W, F) > 0
+    assert not cert.holds(W, face_frame(W, F)[0])
+
+
+@pytest.mark.parametrize("init, expect", [("sheet", True), ("sphere", True), ("torus", False)])
+def test_an_mei_run_uses_a_certificate_from_the_sheet_and_the_sphere_only(init, expect):
     from meshmei.encoders import GaborSimpleCell
     from meshmei.mei import optimize_mei
 
