@@ -221,12 +221,27 @@ class StepGuard:
         face at its bound is felt whatever the mesh size. A batch ``V (B, n, 3)`` (meshes of this guard's
         start) gives the ``(B,)`` energies.
         """
-        n, q = face_frame(V, self.F)
-        total = log_barrier(q - self.quality_floor, quality_band * self.quality_floor).sum(-1)
-        if self.rules.max_turn_degrees < 180:
+        q_band = quality_band * self.quality_floor
+        turn = self.rules.max_turn_degrees < 180
+        if turn:
             T = math.radians(self.rules.max_turn_degrees)
             band = math.cos(max(T - math.radians(turn_band_degrees), 0.0)) - self.cos_bound
-            cos = (n * self.normals.to(n.dtype)).sum(-1)
+        # Most faces of most iterates lie outside both bands, where the energy is exactly zero with zero
+        # slope: find the faces inside (the same comparisons as log_barrier's) without a graph, then build
+        # the graph over those alone (a batch: faces inside for some item).
+        with torch.no_grad():
+            n, q = face_frame(V.detach(), self.F)
+            inside = q - self.quality_floor < q_band
+            if turn:
+                inside |= (n * self.normals.to(n.dtype)).sum(-1) - self.cos_bound < band
+            faces = inside.reshape(-1, self.F.shape[0]).any(0).nonzero().squeeze(1)
+        total = V.sum((-2, -1)) * 0.0  # zero, with a (zero) gradient, where no face is near a bound
+        if not len(faces):
+            return total
+        n, q = face_frame(V, self.F.index_select(0, faces))
+        total = total + log_barrier(q - self.quality_floor, q_band).sum(-1)
+        if turn:
+            cos = (n * self.normals.index_select(-2, faces).to(n.dtype)).sum(-1)
             total = total + log_barrier(cos - self.cos_bound, band).sum(-1)
         return total
 

@@ -10,7 +10,7 @@ import torch
 
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
-from meshmei.mei import DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.mei import DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
 
 from conftest import demo_or_skip
 
@@ -99,17 +99,23 @@ def test_custom_initial_mesh_and_float64():
 
 
 
-def test_steps_default_by_start():
+def test_steps_and_contact_weight_default_by_start():
     # None: the start decides (a closed start has farther to travel); a given count is kept as it is
-    assert MEISettings().steps is None
+    assert MEISettings().steps is None and MEISettings().contact_weight is None
     assert {k: MEISettings().for_start(k).steps for k in DEFAULT_STEPS} == DEFAULT_STEPS
+    assert {k: MEISettings().for_start(k).contact_weight for k in DEFAULT_CONTACT_WEIGHT} == DEFAULT_CONTACT_WEIGHT
     assert DEFAULT_STEPS["sphere"] > DEFAULT_STEPS["sheet"] and DEFAULT_STEPS["torus"] > DEFAULT_STEPS["sheet"]
     assert MEISettings(steps=7).for_start("torus").steps == 7
+    # the sheet alone goes without the contact barrier (it stays a graph); an explicit weight is kept
+    assert MEISettings().for_start("sheet").contact_weight == 0 < MEISettings().for_start("torus").contact_weight
+    assert MEISettings(contact_weight=5.0).for_start("sheet").contact_weight == 5.0
+    assert MEISettings().for_start("my_mesh").contact_weight == DEFAULT_CONTACT_WEIGHT["custom"] > 0
     # a run records the count it used, and its history has that many steps
     V = torch.tensor([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
     F = torch.tensor([[0, 1, 2], [0, 2, 3]])
     res = optimize_mei(GaborSimpleCell(), 0, (V, F), image_size=16, seeds=(0,), valid_steps=False)
     assert res.settings.steps == DEFAULT_STEPS["custom"] == len(res.history)
+    assert res.settings.contact_weight == DEFAULT_CONTACT_WEIGHT["custom"]
     assert res.settings.to_dict()["steps"] == DEFAULT_STEPS["custom"]  # what summary.json stores
 
 def test_save_and_load_run_exactly(tmp_path, tiny_run):

@@ -164,6 +164,37 @@ def test_the_guard_barrier_is_zero_inside_its_band_and_grows_without_bound_at_th
     assert guard.why_not(V @ R.T) is None and float(guard.barrier(V @ R.T)) > 0
 
 
+def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_faces(ball):
+    """The barrier builds its graph over the faces inside a band only; value and gradient must be those of
+    the sum over every face (alone and in a batch)."""
+    import math
+
+    from meshmei.contact import log_barrier
+    from meshmei.validity import face_frame
+
+    V, F = ball
+    guard = StepGuard(V, F, ValidityRules(min_quality=0.02))
+
+    def every_face(W):
+        n, q = face_frame(W, F)
+        band = math.cos(math.radians(70.0)) - guard.cos_bound
+        return (log_barrier(q - guard.quality_floor, 2.0 * guard.quality_floor).sum(-1)
+                + log_barrier((n * guard.normals).sum(-1) - guard.cos_bound, band).sum(-1))
+
+    gen = torch.Generator().manual_seed(0)
+    batch = torch.stack([V + s * torch.randn(V.shape, generator=gen, dtype=V.dtype) for s in (0.0, 0.01, 0.04, 0.08)])
+    nonzero = 0
+    for W in [*batch, batch]:
+        W = W.clone().requires_grad_(True)
+        mine, = torch.autograd.grad(guard.barrier(W).sum(), W)
+        ref, = torch.autograd.grad(every_face(W).sum(), W)
+        # the same terms, summed in another order: equal to rounding
+        assert torch.allclose(guard.barrier(W), every_face(W), rtol=1e-12, atol=0)
+        assert torch.allclose(mine, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()))
+        nonzero += int((guard.barrier(W) > 0).sum())
+    assert nonzero >= 2 and float(guard.barrier(batch)[0]) == 0.0  # both sides of the bands are reached
+
+
 def test_minimize_halves_each_refused_item_on_its_own():
     x = torch.zeros(3, 1, dtype=torch.float64, requires_grad=True)  # three items, one parameter each
     objective = lambda point: (((x - 1.0) ** 2).sum(1), {})  # noqa: E731

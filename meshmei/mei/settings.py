@@ -17,12 +17,19 @@ from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
 from ..validity import ValidityRules
 
-__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "make_deformer", "rebuild_deformer"]
+__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer", "rebuild_deformer"]
 
 # Steps per seed when ``MEISettings.steps`` is None, by start. A closed start has farther to travel to a
 # relief than the sheet: from the sphere and the torus, 300 steps left Gabor cells at 0.88-0.95 of their
 # bound and 800 reach 0.95 (docs/mei.md, *How many steps*). A mesh of your own gets the sheet's count.
 DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 800, "custom": 300}
+
+# Contact-barrier weight when ``MEISettings.contact_weight`` is None, by start. The sheet starts as a graph
+# over the image plane and the guard's turn barrier keeps its faces facing the camera, so no two distant
+# parts of it can come close: over six Gabor cells its response was the same without the contact barrier
+# (0.964-0.992 against 0.971-0.991) and its step 14 % cheaper. From the sphere two of six cells lost 0.02-0.04
+# without it, and the torus stalls (docs/mei.md, *Valid objects*). A mesh of your own keeps the barrier.
+DEFAULT_CONTACT_WEIGHT = {"sheet": 0.0, "sphere": 100.0, "torus": 100.0, "custom": 100.0}
 
 def _default_weights():
     return {"laplacian": 30.0, "edge": 30.0, "area": 1000.0, "arap": 0.0}
@@ -79,10 +86,13 @@ class MEISettings:
         Weight of the guard's own barrier (:meth:`~meshmei.validity.StepGuard.barrier`, summed over faces)
         with ``valid_steps``: it turns the run away from the turn and quality bounds before a step reaches
         them, so that few steps are refused.
-    contact_weight, contact_distance : float
-        With ``valid_steps``, weight and reach (as a share of the start's mean edge length) of the contact
-        barrier (:class:`~meshmei.contact.ContactBarrier`), which keeps the surface from touching itself
-        (0: no barrier; the guard alone then stalls a run whose optimum presses parts together).
+    contact_weight : float or None
+        With ``valid_steps``, weight of the contact barrier (:class:`~meshmei.contact.ContactBarrier`),
+        which keeps the surface from touching itself (0: no barrier; the guard alone then stalls a run whose
+        optimum presses parts together). None (default): by start, :data:`DEFAULT_CONTACT_WEIGHT` (100, but
+        0 from the sheet, which stays a graph over the image plane). A run records the weight it used.
+    contact_distance : float
+        The contact barrier's reach, as a share of the start's mean edge length.
     keep : str
         ``"best"``: return the iterate with the lowest loss seen; ``"last"``: the final iterate.
     optimize_light, optimize_pose : bool
@@ -139,7 +149,7 @@ class MEISettings:
     valid_steps: bool = True
     min_quality: float = 0.01
     barrier_weight: float = 0.1
-    contact_weight: float = 100.0
+    contact_weight: float | None = None
     contact_distance: float = 0.25
     keep: str = "best"
     optimize_light: bool = False
@@ -195,6 +205,8 @@ class MEISettings:
             raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
         for name in ("barrier_weight", "contact_weight", "contact_distance"):
             v = getattr(self, name)
+            if v is None and name == "contact_weight":
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
         if not self.contact_distance > 0:
@@ -223,11 +235,14 @@ class MEISettings:
         object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
 
     def for_start(self, init_name: str) -> "MEISettings":
-        """These settings with ``steps`` set for the start ``init_name`` (a key of :data:`DEFAULT_STEPS`)
-        where it is None; unchanged otherwise."""
-        if self.steps is not None:
+        """These settings with ``steps`` and ``contact_weight`` set for the start ``init_name`` (a key of
+        :data:`DEFAULT_STEPS` and :data:`DEFAULT_CONTACT_WEIGHT`, else ``"custom"``) where they are None."""
+        known = init_name if init_name in DEFAULT_STEPS else "custom"
+        steps = DEFAULT_STEPS[known] if self.steps is None else self.steps
+        contact = DEFAULT_CONTACT_WEIGHT[known] if self.contact_weight is None else self.contact_weight
+        if steps == self.steps and contact == self.contact_weight:
             return self
-        return replace(self, steps=DEFAULT_STEPS.get(init_name, DEFAULT_STEPS["custom"]))
+        return replace(self, steps=steps, contact_weight=contact)
 
     def render_settings(self) -> RenderSettings:
         """The :class:`~meshmei.render.RenderSettings` of the run (``render``, at ``image_size``)."""

@@ -221,7 +221,7 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
 def _guard_info(guard) -> dict:
     if guard is None:
         return {}
-    return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds,
+    return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds, "certified": guard.certified,
             "refused_by": dict(guard.reasons)}
 
 
