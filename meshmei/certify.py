@@ -72,7 +72,8 @@ class GraphCertificate:
     """
 
     def __init__(self, F: torch.Tensor, direction: torch.Tensor, n_vertices: int):
-        d = torch.as_tensor(direction, dtype=torch.float64)
+        F = F.cpu()
+        d = torch.as_tensor(direction, dtype=torch.float64).cpu()
         d = d / d.norm()
         a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64)
         u = a - (a @ d) * d
@@ -106,6 +107,7 @@ class GraphCertificate:
         the mesh is not a consistently oriented topological disc (connected, one boundary loop, Euler
         characteristic 1, no edge used by more than two faces), or some face turns more than
         ``acos(min_cos)`` from the faces' mean normal, the projection direction."""
+        V0, F, normals = V0.detach().cpu().double(), F.cpu(), normals.detach().cpu().double()
         n = V0.shape[0]
         boundary_edges, nonmanifold = edge_use(F)
         if nonmanifold or not boundary_edges:
@@ -125,9 +127,11 @@ class GraphCertificate:
         return cls(F, d, n)
 
     def holds(self, V: torch.Tensor, normals: torch.Tensor) -> bool:
-        """Whether ``V`` (float64, ``(n, 3)``) with its unit face ``normals`` ``(m, 3)`` is proven free of
-        self-intersections (False: not proven; the mesh may still be clean). In numpy: on arrays this size
-        its per-operation cost is a fraction of torch's."""
+        """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
+        self-intersections (False: not proven; the mesh may still be clean). Checked in float64 numpy on the
+        CPU, whatever the inputs' device (on arrays this size numpy's per-operation cost is a fraction of
+        torch's); pass float64 normals, or the margins may fail on rounding."""
+        normals, V = normals.detach().cpu().double(), V.detach().cpu().double()
         if float((normals.numpy() @ self._d).min()) <= ORIENTATION_MARGIN:
             return False
         P = V.numpy() @ self._basis_t  # (n, 2)
@@ -158,6 +162,7 @@ class StarCertificate:
     """
 
     def __init__(self, F: torch.Tensor):
+        F = F.cpu()
         self._first = F[:, 0].numpy()
         self._corner = F.reshape(-1).numpy()
         self._next, self._prev = F.roll(-1, 1).reshape(-1).numpy(), F.roll(1, 1).reshape(-1).numpy()
@@ -168,6 +173,7 @@ class StarCertificate:
         """A certificate for the start ``(V0, F)`` with unit face ``normals``, or None when it does not apply:
         the mesh is not connected, closed (every edge used by two faces) and consistently oriented with
         outward normals, or the start itself is not star-shaped about its centroid."""
+        V0, F, normals = V0.detach().cpu().double(), F.cpu(), normals.detach().cpu().double()
         boundary_edges, nonmanifold = edge_use(F)
         if boundary_edges or nonmanifold or not _consistently_oriented(F) or not _connected(F, V0.shape[0]):
             return None
@@ -175,12 +181,12 @@ class StarCertificate:
         return cert if cert.holds(V0.double(), normals.double()) else None
 
     def holds(self, V: torch.Tensor, normals: torch.Tensor) -> bool:
-        """Whether ``V`` (float64, ``(n, 3)``) with its unit face ``normals`` ``(m, 3)`` is proven free of
-        self-intersections (False: not proven; the mesh may still be clean). In numpy, coordinate by
-        coordinate: on arrays this size its per-operation cost is a fraction of torch's."""
-        Vn = V.numpy()
+        """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
+        self-intersections (False: not proven; the mesh may still be clean). Checked coordinate by
+        coordinate in float64 numpy on the CPU, whatever the inputs' device."""
+        Vn = V.detach().cpu().double().numpy()
         x, y, z = (np.ascontiguousarray(Vn[:, k] - Vn[self._used, k].mean()) for k in range(3))  # from c
-        N = normals.numpy()
+        N = normals.detach().cpu().double().numpy()
         f = self._first
         ax, ay, az = x[f], y[f], z[f]
         if not (N[:, 0] * ax + N[:, 1] * ay + N[:, 2] * az > ORIENTATION_MARGIN * np.sqrt(ax * ax + ay * ay + az * az)).all():
