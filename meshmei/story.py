@@ -76,6 +76,7 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     summary = {
         "neuron": neuron,
         "mei_activation": res.activation,
+        "mei_health": res.health(),
         "pixel_mei_activation": float(pix.activation),
         "pose_best": best_pose,
         "pose_best_response": float(pose.of(neuron).max()),
@@ -126,7 +127,9 @@ def _report(summary, pose, out, run_dir, log):
     """The closing lines: responses, tuning maxima and where the files went."""
     best_pose, best_light = summary["pose_best"], summary["light_best"]
     log("")
-    log(f"neuron {summary['neuron']}: 3D-MEI response {summary['mei_activation']:.4f}, "
+    h = summary["mei_health"]
+    log(f"neuron {summary['neuron']}: 3D-MEI response {summary['mei_activation']:.4f} ({h['self_intersections']} "
+        f"self-intersecting pairs, {h['flipped_faces']} flipped faces, min triangle quality {h['min_quality']:.3f}), "
         f"pixel MEI {summary['pixel_mei_activation']:.4f}")
     log(f"pose tuning: best {summary['pose_best_response']:.4f} at azimuth {best_pose['azimuth']:.0f}, "
         f"elevation {best_pose['elevation']:.0f} (original view {pose.reference['responses'][0]:.4f}); "

@@ -33,6 +33,10 @@ def test_story_writes_every_artifact_and_they_reload(tmp_path, cell):
     assert s["mei_activation"] > 0.6 and s["pixel_mei_activation"] > s["mei_activation"]
     assert json.loads((out / "story.json").read_text())["neuron"] == 0
     assert any("files:" in line for line in lines)
+    # the result's health, in story.json and in the closing line, is the saved mesh's
+    h = json.loads((out / "story.json").read_text())["mei_health"]
+    assert h == run.health() and h["self_intersections"] == 0 and h["flipped_faces"] == 0
+    assert any(f"{h['self_intersections']} self-intersecting pairs, 0 flipped faces" in line for line in lines)
 
 
 def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
