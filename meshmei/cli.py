@@ -175,9 +175,12 @@ def _run_diverse(args, encoder, settings, out: Path) -> int:
                                                      "dissimilarity": d.dissimilarity.tolist()}, indent=1))
     diverse_figure(d, out / "diverse.png")
     off = d.dissimilarity[~torch.eye(len(d.results), dtype=torch.bool)]
+    health = [r.health() for r in d.results]
+    clean = sum(1 for h in health if h["self_intersections"] == 0 and h["flipped_faces"] == 0)
     print(f"{len(d.results)} diverse 3D-MEIs of neuron {args.neuron}: responses "
           f"{', '.join(f'{r:.4f}' for r in d.responses)}; mean pairwise dissimilarity {float(off.mean()):.3f}; "
-          f"wrote {out}/member_*, diversity.json, diverse.png")
+          f"{clean} of {len(health)} free of self-intersections and flipped faces (min triangle quality "
+          f"{min(h['min_quality'] for h in health):.3f}); wrote {out}/member_*, diversity.json, diverse.png")
     return 0
 
 

@@ -72,9 +72,12 @@ def test_the_cli_writes_the_members_and_tune_sweeps_each(tmp_path, capsys):
                  "--n-vertices", "40", "--out", str(out), "--quiet"]) == 0
     d = json.loads((out / "diversity.json").read_text())
     assert len(d["responses"]) == 2 and (out / "diverse.png").is_file()
+    clean = 0
     for i, r in enumerate(d["responses"]):
         summary = json.loads((out / f"member_{i}" / "summary.json").read_text())
         assert summary["activation"] == pytest.approx(r, rel=1e-6)
+        clean += summary["quality"]["self_intersections"] == 0 and summary["quality"]["flipped_faces"] == 0
+    assert f"{clean} of 2 free of self-intersections and flipped faces" in capsys.readouterr().out  # its health
     assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth=-10:10:3"]) == 0
     for i in range(2):
         assert (out / f"member_{i}" / "tuning_pose").is_dir()
