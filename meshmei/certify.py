@@ -44,6 +44,7 @@ import math
 import numpy as np
 import torch
 
+from .metrics import face_components
 from .quality import edge_use
 from .topology import mesh_topology
 
@@ -79,24 +80,19 @@ class GraphCertificate:
         u = a - (a @ d) * d
         u = u / u.norm()
         self.direction = d
-        self.basis = torch.stack([u, torch.linalg.cross(d, u)])  # (2, 3): u x w = d, so n . d > 0 is counter-clockwise
-        self.corner = F.reshape(-1)
-        self.next, self.prev = F.roll(-1, 1).reshape(-1), F.roll(1, 1).reshape(-1)
+        basis = torch.stack([u, torch.linalg.cross(d, u)])  # (2, 3): u x w = d, so n . d > 0 is counter-clockwise
         topo = mesh_topology(F, n_vertices)
         used = torch.zeros(n_vertices, dtype=torch.bool)
-        used[self.corner] = True
-        self.interior = used & ~topo.boundary_vertex
-        self.boundary = used & topo.boundary_vertex
-        half = (topo.twins == -1).reshape(-1)  # half-edge (f, k) runs from F[f, k + 1] to F[f, k + 2]
-        seg = torch.stack([self.next, self.prev], 1)[half]  # (b, 2) boundary edges
+        used[F.reshape(-1)] = True
+        seg = _boundary_segments(F, topo)  # (b, 2)
         i, j = torch.triu_indices(len(seg), len(seg), 1)
         apart = (seg[i][:, :, None] != seg[j][:, None, :]).all(-1).all(-1)  # share no vertex
         i, j = i[apart], j[apart]
-        self.seg = seg
-        # numpy copies for holds()
-        self._d, self._basis_t = self.direction.numpy(), self.basis.T.numpy()
-        self._corner, self._next, self._prev = self.corner.numpy(), self.next.numpy(), self.prev.numpy()
-        self._interior, self._boundary = self.interior.numpy(), self.boundary.numpy()
+        # numpy arrays for holds()
+        self._d, self._basis_t = d.numpy(), basis.T.numpy()
+        self._corner = F.reshape(-1).numpy()
+        self._next, self._prev = F.roll(-1, 1).reshape(-1).numpy(), F.roll(1, 1).reshape(-1).numpy()
+        self._interior, self._boundary = (used & ~topo.boundary_vertex).numpy(), (used & topo.boundary_vertex).numpy()
         sn = seg.numpy()
         self._pairs = (sn[i.numpy(), 0], sn[i.numpy(), 1], sn[j.numpy(), 0], sn[j.numpy(), 1])
 
@@ -178,7 +174,7 @@ class StarCertificate:
         if boundary_edges or nonmanifold or not _consistently_oriented(F) or not _connected(F, V0.shape[0]):
             return None
         cert = cls(F)
-        return cert if cert.holds(V0.double(), normals.double()) else None
+        return cert if cert.holds(V0, normals) else None
 
     def holds(self, V: torch.Tensor, normals: torch.Tensor) -> bool:
         """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
@@ -240,10 +236,16 @@ def _consistently_oriented(F: torch.Tensor) -> bool:
     return len(torch.unique(directed, dim=0)) == len(directed)
 
 
+def _boundary_segments(F: torch.Tensor, topo) -> torch.Tensor:
+    """``(b, 2)``: the boundary edges as directed in their faces (half-edge ``(f, k)`` runs from
+    ``F[f, k + 1]`` to ``F[f, k + 2]``)."""
+    half = (topo.twins == -1).reshape(-1)
+    return torch.stack([F.roll(-1, 1).reshape(-1), F.roll(1, 1).reshape(-1)], 1)[half]
+
+
 def _one_boundary_loop(F: torch.Tensor, topo) -> bool:
     """Whether the boundary edges form a single cycle (every boundary vertex on exactly two of them)."""
-    half = (topo.twins == -1).reshape(-1)
-    seg = torch.stack([F.roll(-1, 1).reshape(-1), F.roll(1, 1).reshape(-1)], 1)[half]
+    seg = _boundary_segments(F, topo)
     if not len(seg):
         return False
     deg = torch.bincount(seg.reshape(-1), minlength=topo.n_vertices)
@@ -261,12 +263,5 @@ def _one_boundary_loop(F: torch.Tensor, topo) -> bool:
 
 def _connected(F: torch.Tensor, n: int) -> bool:
     """Whether the faces form one connected piece (over shared vertices)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    Fn = F.numpy()
-    rows = Fn[:, [0, 1, 2]].reshape(-1)
-    cols = Fn[:, [1, 2, 0]].reshape(-1)
-    count, labels = connected_components(coo_matrix((torch.ones(len(rows)).numpy(), (rows, cols)), shape=(n, n)),
-                                         directed=False)
-    return len(set(labels[torch.unique(F).numpy()].tolist())) == 1
+    labels = face_components(F, n)
+    return len(labels) > 0 and int(labels.max()) == 0

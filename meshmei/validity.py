@@ -172,7 +172,7 @@ class StepGuard:
             return "turn", f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees", n
         if self.rules.self_intersections:
             if self.certificate is not None and self.certificate.holds(Vd, n):
-                self.certified += 1  # the graph of a function over a plane: no pair can intersect
+                self.certified += 1  # proven a graph over a plane, or star-shaped: no pair can intersect
                 return None, None, n
             pairs = count_self_intersections(Vd, self.F)
             if pairs > self.allowed_pairs:
