@@ -11,7 +11,7 @@ from .._checks import check_positive
 from ..errors import MeshError
 from ..mesh import check_mesh
 
-__all__ = ["edge_length_for_count", "count_for_edge_length", "isotropic_remesh", "remesh"]
+__all__ = ["edge_length_for_count", "count_for_edge_length", "isotropic_remesh", "remesh", "mesh_arrays"]
 
 
 def edge_length_for_count(area, n_vertices):
@@ -31,6 +31,18 @@ def edge_length_for_count(area, n_vertices):
 def count_for_edge_length(area, h):
     """The vertex count of :func:`edge_length_for_count` turned round: about ``2 area / (sqrt(3) h^2)``."""
     return 2.0 * area / (math.sqrt(3.0) * h * h)
+
+
+def mesh_arrays(m):
+    """The vertices and faces of the pymeshlab mesh ``m`` as C-ordered float64 and int64 arrays.
+
+    pymeshlab hands its matrices out in Fortran order. A vertex tensor made from that has its rows
+    strided, and ``index_select`` over rows, the gather behind every corner tensor, reads it about 18
+    times slower (2.8 against 0.15 ms for the corners of a 10k-vertex mesh); a strided face array is
+    copied by every ``reshape(-1)``.
+    """
+    V = np.ascontiguousarray(m.vertex_matrix(), dtype=np.float64)
+    return V, np.ascontiguousarray(m.face_matrix(), dtype=np.int64)
 
 
 def isotropic_remesh(ms, h, *, iterations, feature_degrees):
@@ -54,14 +66,14 @@ def isotropic_remesh(ms, h, *, iterations, feature_degrees):
     -------
     V : (n, 3) float64 array
     F : (m, 3) int64 array
+        Both C-ordered (:func:`mesh_arrays`).
     """
     import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
 
     ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PureValue(h), iterations=iterations,
                                             featuredeg=feature_degrees, reprojectflag=True)
     ms.meshing_remove_unreferenced_vertices()
-    m = ms.current_mesh()
-    return np.asarray(m.vertex_matrix(), dtype=np.float64), np.asarray(m.face_matrix(), dtype=np.int64)
+    return mesh_arrays(ms.current_mesh())
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):

@@ -14,6 +14,7 @@ import torch
 from ...metrics import error_by_part, surface_metrics
 from ...reconstruct import reconstruct, source_mesh
 from ...shapes import initial_mesh, target_mesh
+from ...shapes.remeshing import mesh_arrays
 from .._report import docs_dir, write_section
 from .curves import CHECKPOINTS
 from .figures import plot
@@ -43,9 +44,7 @@ def decimation_floor(Vt, Ft, n_faces, *, n_samples=100_000):
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vt.double().numpy(), face_matrix=Ft.numpy().astype(np.int32)))
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(n_faces), preservenormal=True,
                                                 preserveboundary=True, optimalplacement=True, qualitythr=0.3)
-    m = ms.current_mesh()
-    V = torch.as_tensor(m.vertex_matrix())
-    F = torch.as_tensor(m.face_matrix().astype(np.int64))
+    V, F = (torch.as_tensor(x) for x in mesh_arrays(ms.current_mesh()))
     return surface_metrics(V, F, Vt.double(), Ft, n_samples=n_samples), int(V.shape[0]), int(F.shape[0])
 
 
