@@ -18,13 +18,21 @@ from the other's faces.
 
 Cost. The candidate pairs come from KD-trees over the vertices and the face centroids, searched again only
 when some vertex has moved more than ``margin`` since the last search (candidates are kept out to ``distance + 2 margin``, so no
-pair can come within ``distance`` unseen); a step costs the point-triangle distances of the candidates,
-O(n) with a small constant, and a rebuild O(n log n).
+pair can come within ``distance`` unseen). A search is O(n log n): the trees' pairs, most of them a vertex
+and the faces of its own ring or the next, are cut by a cheap lower bound (the distance to the half-plane
+beyond the face's farthest edge) before the exact distances, about 50 ms at 10k vertices. Between
+searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's distance
+shrinks at most by how far its vertices moved since the search) and costs their point-triangle distances,
+O(n) with a small constant. A larger ``margin`` would search less often, but beyond ``distance / 2`` (with
+``distance`` a third of an edge) the candidates reach the faces one ring away: at ``margin = distance``
+a search of the 10k bunny keeps 103,000 pairs instead of 3,600 and costs 2.4 times as much, for 40 % fewer
+searches.
 """
 
 from __future__ import annotations
 
 import itertools
+import time
 
 import numpy as np
 import torch
@@ -99,6 +107,38 @@ def mean_edge_length(V: torch.Tensor, F: torch.Tensor) -> float:
     return float((T - T.roll(1, dims=1)).norm(dim=-1).mean())
 
 
+def _rowdot(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of two ``(k, 3)`` arrays."""
+    return np.einsum("ij,ij->i", X, Y)
+
+
+def _halfplanes(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """The four planes ``(m, 4, 4)`` that bound each triangle of the corner arrays ``A, B, C``: its own
+    (unit normal and offset: signed distance ``n . p - n . a``) and, for each edge, the plane through the
+    edge perpendicular to the triangle, its unit normal pointing into the (counter-clockwise) triangle. A
+    face whose area is below ``1e-12`` of its squared edge lengths gets zero planes (a zero bound)."""
+    n = np.cross(B - A, C - A)
+    size = sum(_rowdot(Y - X, Y - X) for X, Y in ((A, B), (B, C), (C, A)))
+    length = np.sqrt(_rowdot(n, n))
+    flat = length <= 1e-12 * size  # a (near-)collinear face: its rounded normal points anywhere
+    n *= np.where(flat, 0.0, 1.0 / np.where(flat, 1.0, length))[:, None]
+    planes = [(n, A)]
+    for X, Y in ((A, B), (B, C), (C, A)):
+        m = np.cross(n, Y - X)
+        planes.append((m / np.maximum(np.sqrt(_rowdot(m, m)), np.finfo(m.dtype).tiny)[:, None], X))
+    return np.stack([np.concatenate([u, -_rowdot(u, X)[:, None]], 1) for u, X in planes], 1)
+
+
+def _halfplane_sqdist(P: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """A lower bound on the squared distance from each point ``P[k]`` to the triangle whose
+    :func:`_halfplanes` are ``planes[k]``: the squared distance to the farthest of the three half-planes
+    that hold the triangle (its plane, cut by the line through one edge), that is the squared distance to
+    the plane plus the square of how far the point lies beyond the edge that puts it farthest."""
+    s = np.einsum("kij,kj->ki", planes[:, :, :3], P) + planes[:, :, 3]  # (k, 4) signed distances
+    beyond = np.maximum(-s[:, 1:].min(1), 0.0)
+    return s[:, 0] ** 2 + beyond ** 2
+
+
 def _ball_pairs(tree: cKDTree, centres: np.ndarray, radii: np.ndarray):
     """``(q, j)``: every tree point ``j`` within ``radii[q]`` of ``centres[q]``, as two index arrays."""
     lists = tree.query_ball_point(centres, radii)
@@ -108,8 +148,10 @@ def _ball_pairs(tree: cKDTree, centres: np.ndarray, radii: np.ndarray):
 
 
 def _nearby(P: np.ndarray, C: np.ndarray, r: float):
-    """All ``(i, j)`` with ``|P_i - C_j| <= r``, as two index arrays (two KD-trees traversed together, in C)."""
-    found = cKDTree(P).sparse_distance_matrix(cKDTree(C), r, output_type="ndarray")
+    """All ``(i, j)`` with ``|P_i - C_j| <= r``, as two index arrays (two KD-trees traversed together, in C;
+    built unbalanced, by midpoint splits, which halves their build for the same pairs)."""
+    found = cKDTree(P, balanced_tree=False).sparse_distance_matrix(cKDTree(C, balanced_tree=False), r,
+                                                                   output_type="ndarray")
     return found["i"].astype(np.int64), found["j"].astype(np.int64)
 
 
@@ -142,6 +184,8 @@ class ContactBarrier:
         Pairs within ``distance`` at the last call.
     rebuilds : int
         Candidate searches so far.
+    seconds : float
+        Time spent finding candidates (the searches, and handing out the cached pairs between them).
     """
 
     def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
@@ -149,7 +193,8 @@ class ContactBarrier:
         if not distance > 0:
             raise ValueError(f"distance must be positive, got {distance!r}")
         self.F = F
-        self.Fn = F.detach().cpu().numpy()
+        self.Fn = np.ascontiguousarray(F.detach().cpu().numpy())
+        self._Ft = torch.from_numpy(self.Fn)
         self.distance = float(distance)
         self.margin = float(0.5 * distance if margin is None else margin)
         if not self.margin > 0:
@@ -159,6 +204,7 @@ class ContactBarrier:
         self.min_interval = min_interval
         self.E = self.En = None
         self.active, self.rebuilds, self._since = 0, 0, 0
+        self.seconds = 0.0
         self._built_at = None
         self._pairs = None
         if edges:
@@ -171,6 +217,7 @@ class ContactBarrier:
         if self.E is None:
             self.E = mesh_edges(self.F)  # (k, 2), i < j: the mesh's cached edge list
             self.En = self.E.cpu().numpy()
+            self._Et = torch.from_numpy(self.En)
             self._built_at = None
 
     @classmethod
@@ -181,10 +228,12 @@ class ContactBarrier:
         return cls(F, factor * mean_edge_length(V, F), **kwargs)
 
     def _candidates(self, Vn: np.ndarray):
-        """(vertex, face) pairs, the vertex not in the face, that may be within ``distance + 2 margin``."""
+        """(vertex, face) pairs, the vertex not in the face, within ``distance + 2 margin`` (by face, then
+        vertex), then the edge pairs of :meth:`_edge_candidates`, then the two kinds' distances."""
         T = Vn[self.Fn]
-        cen = T.mean(1)
-        rad = np.sqrt(((T - cen[:, None]) ** 2).sum(-1).max(1))  # each face lies in this ball about cen
+        A, B, C = T[:, 0], T[:, 1], T[:, 2]
+        cen = (A + B + C) / 3.0
+        rad = np.sqrt(np.maximum.reduce([_rowdot(X - cen, X - cen) for X in (A, B, C)]))  # each face lies in this ball
         reach = self.distance + 2.0 * self.margin
         # most faces: a KD-tree over centroids, searched to reach + the 98th-percentile radius; the few
         # faces larger than that (stretched while the shape moves) are searched with their own radius
@@ -198,12 +247,18 @@ class ContactBarrier:
             fi.append(small[ff])
         if big.any():
             faces = np.nonzero(big)[0]
-            q, found = _ball_pairs(cKDTree(Vn), cen[faces], reach + rad[faces])
+            q, found = _ball_pairs(cKDTree(Vn, balanced_tree=False), cen[faces], reach + rad[faces])
             vi.append(found)
             fi.append(faces[q])
         vi, fi = np.concatenate(vi), np.concatenate(fi)
-        keep = (self.Fn[fi] != vi[:, None]).all(1)
-        keep &= ((Vn[vi] - cen[fi]) ** 2).sum(-1) <= (reach + rad[fi]) ** 2
+        Fv = self.Fn[fi]
+        keep = (Fv[:, 0] != vi) & (Fv[:, 1] != vi) & (Fv[:, 2] != vi)
+        vi, fi = vi[keep], fi[keep]
+        keep = _rowdot(Vn[vi] - cen[fi], Vn[vi] - cen[fi]) <= (reach + rad[fi]) ** 2
+        vi, fi = vi[keep], fi[keep]
+        # most pairs left lie an edge's height beside the face, in its plane (a smooth patch): drop those
+        # whose distance to the half-plane beyond one of the face's edges is already beyond reach
+        keep = _halfplane_sqdist(Vn[vi], _halfplanes(A, B, C)[fi]) < reach * reach
         vi, fi = vi[keep], fi[keep]
         # keep the pairs whose exact distance is within reach now
         Vd = torch.from_numpy(Vn)
@@ -211,14 +266,17 @@ class ContactBarrier:
         Fd = torch.from_numpy(self.Fn)
         d2 = point_triangle_sqdist(Vd[vt], Vd[Fd[ft, 0]], Vd[Fd[ft, 1]], Vd[Fd[ft, 2]])
         near = d2 < reach * reach
-        return (vt[near], ft[near], *self._edge_candidates(Vn, reach))
+        vt, ft, d2 = vt[near], ft[near], d2[near]
+        order = np.lexsort((vt.numpy(), ft.numpy()))  # by face, then vertex: not the KD-trees' order
+        ea, eb, de = self._edge_candidates(Vn, reach)
+        return vt[order], ft[order], ea, eb, d2[order].sqrt(), de
 
     def _edge_candidates(self, Vn: np.ndarray, reach: float):
-        """(edge, edge) pairs, sharing no vertex, within ``reach`` now (indices into :attr:`E`); empty
-        without ``edges``."""
+        """(edge, edge) pairs, sharing no vertex, within ``reach`` now (indices into :attr:`E`, by first
+        edge, then second), and their distances; empty without ``edges``."""
         none = torch.zeros(0, dtype=torch.int64)
         if self.E is None:
-            return none, none
+            return none, none, torch.zeros(0, dtype=torch.float64)
         En = self.En
         A, B = Vn[En[:, 0]], Vn[En[:, 1]]
         mid, half = 0.5 * (A + B), 0.5 * np.sqrt(((B - A) ** 2).sum(1))
@@ -241,22 +299,43 @@ class ContactBarrier:
         Vd, Et = torch.from_numpy(Vn), torch.from_numpy(En)
         d2 = segment_sqdist(Vd[Et[i, 0]], Vd[Et[i, 1]], Vd[Et[j, 0]], Vd[Et[j, 1]])
         near = d2 < reach * reach
-        return i[near], j[near]
+        i, j, d2 = i[near], j[near], d2[near]
+        order = np.lexsort((j.numpy(), i.numpy()))
+        return i[order], j[order], d2[order].sqrt()
 
     @torch.no_grad()
     def candidates(self, V: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The cached candidate pairs for ``V``: (vertex, face) and, with ``edges``, (edge, edge) index
-        arrays, ``(vt, ft, ea, eb)``; searched again when some vertex has moved
-        more than ``margin`` since the last search (and ``min_interval`` calls have passed)."""
+        """The candidate pairs for ``V`` that may lie within ``distance``: (vertex, face) and, with
+        ``edges``, (edge, edge) index arrays, ``(vt, ft, ea, eb)``.
+
+        The pairs within ``distance + 2 margin`` are searched again when some vertex has moved more than
+        ``margin`` since the last search (and ``min_interval`` calls have passed). Between searches a
+        cached pair is handed out only while it may lie within ``distance``: a pair's distance shrinks at
+        most by how far its vertices moved since the search (the farthest of each side's), so a pair that
+        was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
+        ``d - a - b >= distance``."""
+        t0 = time.perf_counter()
         Vn = V.detach().cpu().double().numpy()
         self._since += 1
-        if self._built_at is None or (self._since >= self.min_interval and
-                                      np.sqrt(((Vn - self._built_at) ** 2).sum(1).max()) > self.margin):
+        moved = None if self._built_at is None else np.sqrt(_rowdot(Vn - self._built_at, Vn - self._built_at))
+        if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
             self._pairs = self._candidates(Vn)
             self._built_at = Vn.copy()
             self.rebuilds += 1
             self._since = 0
-        return tuple(x.to(V.device) for x in self._pairs)
+            moved = np.zeros(len(Vn))
+        vt, ft, ea, eb, dvf, dee = self._pairs
+        moved = torch.from_numpy(moved)
+        keep_vf = dvf - moved[vt] - moved[self._Ft[ft]].amax(1) < self.distance
+        out = [vt[keep_vf], ft[keep_vf]]
+        if len(ea):
+            side = lambda e: moved[self._Et[e]].amax(1)  # noqa: E731
+            keep_ee = dee - side(ea) - side(eb) < self.distance
+            out += [ea[keep_ee], eb[keep_ee]]
+        else:
+            out += [ea, eb]
+        self.seconds += time.perf_counter() - t0
+        return tuple(x.to(V.device) for x in out)
 
     def __call__(self, V: torch.Tensor) -> torch.Tensor:
         """The contact energy of ``V`` (a scalar with a graph to ``V`` where some pair is within reach)."""

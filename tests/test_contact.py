@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -185,3 +186,49 @@ def test_edge_pairs_turned_on_later_give_the_energy_of_a_barrier_built_with_them
     rebuilds = late.rebuilds
     late.use_edges()  # a second call changes nothing
     assert float(late(V)) == float(both(V)) and late.rebuilds == rebuilds
+
+
+def test_the_half_plane_bound_is_a_lower_bound_exact_over_the_face():
+    from meshmei.contact import _halfplane_sqdist, _halfplanes
+
+    g = torch.Generator().manual_seed(2)
+    P, A, B, C = (torch.randn(2000, 3, generator=g, dtype=torch.float64) for _ in range(4))
+    C[:100] = A[:100] + 0.5 * (B[:100] - A[:100])  # degenerate (collinear) faces
+    exact = point_triangle_sqdist(P, A, B, C).numpy()
+    An, Bn, Cn = A.numpy(), B.numpy(), C.numpy()
+    bound = _halfplane_sqdist(P.numpy(), _halfplanes(An, Bn, Cn))
+    assert (bound <= exact * (1 + 1e-12) + 1e-15).all()
+    # a point above the face's interior: the bound is the exact (plane) distance
+    Q = torch.from_numpy((An + Bn + Cn) / 3 + 0.3 * _halfplanes(An, Bn, Cn)[:, 0, :3])
+    inside = point_triangle_sqdist(Q, A, B, C).numpy()
+    assert bound.shape == inside.shape
+    assert np.allclose(_halfplane_sqdist(Q.numpy(), _halfplanes(An, Bn, Cn))[100:], inside[100:], rtol=1e-9)
+    # and it is far from trivial: most random pairs are bounded to within a factor of two
+    assert np.median(bound[100:] / exact[100:]) > 0.5
+
+
+@pytest.mark.parametrize("kind", ["sphere", "sheet"])
+def test_candidates_are_exactly_the_pairs_within_reach(kind):
+    """Against every (vertex, face) pair of a crumpled mesh, with a few faces stretched long (searched with
+    their own radius): the cached search finds exactly the pairs, the vertex not in the face, within reach."""
+    V, F = initial_mesh(kind, n_vertices=500, dtype=torch.float64)
+    h = mean_edge_length(V, F)
+    g = torch.Generator().manual_seed(3)
+    V = V + 0.35 * h * torch.randn(V.shape, generator=g, dtype=V.dtype)
+    V[:6] *= 1.3  # six vertices pulled out: their faces are long
+    barrier = ContactBarrier(F, distance=h / 3)
+    n, m = V.shape[0], F.shape[0]
+    vi, fi = torch.arange(n).repeat_interleave(m), torch.arange(m).repeat(n)
+    d2 = point_triangle_sqdist(V[vi], V[F[fi, 0]], V[F[fi, 1]], V[F[fi, 2]])
+    apart = (F[fi] != vi[:, None]).all(1)
+    reach = barrier.distance + 2 * barrier.margin
+    vt, ft, _, _, d, _ = barrier._candidates(V.numpy())  # the search: every pair within reach
+    want = (d2 < reach * reach) & apart
+    expected = set(zip(vi[want].tolist(), fi[want].tolist()))
+    assert len(expected) > 50  # crumpled enough that the test means something
+    assert set(zip(vt.tolist(), ft.tolist())) == expected
+    assert torch.allclose(d, d2[want].sqrt()[torch.argsort(fi[want] * n + vi[want])], rtol=1e-12)
+    # handed out right after a search: the pairs within distance
+    vt, ft, _, _ = barrier.candidates(V)
+    want = (d2 < barrier.distance ** 2) & apart
+    assert set(zip(vt.tolist(), ft.tolist())) == set(zip(vi[want].tolist(), fi[want].tolist()))

@@ -239,6 +239,7 @@ def _contact_info(contact, edges_from) -> dict:
     if contact is None:
         return {}
     return {"contact_distance": contact.distance, "contact_rebuilds": contact.rebuilds,
+            "contact_seconds": round(contact.seconds, 4),
             "contact_edges_from": edges_from}
 
 
