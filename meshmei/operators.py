@@ -39,6 +39,7 @@ __all__ = [
     "resolve_eps",
     "EPS",
     "gather",
+    "index_add",
     "corners",
     "FaceTerms",
     "face_terms",
@@ -78,15 +79,35 @@ def _normalize(x: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:
     return torch.where(ok.unsqueeze(-1), x / torch.where(ok, den, torch.ones_like(den)).unsqueeze(-1), torch.zeros_like(x))
 
 
+def _leading_unit(X: torch.Tensor, dim: int) -> bool:
+    """Whether every axis of ``X`` before ``dim`` (``0 < dim``) has length 1: a batch of one."""
+    return dim > 0 and all(k == 1 for k in X.shape[:dim])
+
+
 def gather(X: torch.Tensor, idx: torch.Tensor, dim: int = -2) -> torch.Tensor:
     """``X`` indexed by ``idx`` along ``dim`` (``idx`` of any shape replaces that axis).
 
     Uses ``index_select``, whose backward is an ``index_add``: about 4x faster than advanced indexing,
-    whose backward is a sorting ``index_put``, at a million vertices on the CPU.
+    whose backward is a sorting ``index_put``, at a million vertices on the CPU. A batch of one (``X`` of
+    shape ``(1, n, k)``) is indexed as ``(n, k)``: along the first axis both run 3 times faster, forward
+    and backward together, than along the second axis of the 3-D tensor (0.16 against 0.05 ms for the
+    2,220 corners of a 409-vertex mesh).
     """
     dim = dim % X.ndim
-    out = X.index_select(dim, idx.reshape(-1))
+    if _leading_unit(X, dim):
+        out = X.reshape(X.shape[dim:]).index_select(0, idx.reshape(-1))
+    else:
+        out = X.index_select(dim, idx.reshape(-1))
     return out.reshape(*X.shape[:dim], *idx.shape, *X.shape[dim + 1:])
+
+
+def index_add(X: torch.Tensor, dim: int, idx: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+    """``X.index_add(dim, idx, src)``, out of place; a batch of one is summed along the first axis of the
+    unbatched tensor (about 7 times faster on the CPU than along the second axis of ``(1, n, k)``)."""
+    dim = dim % X.ndim
+    if _leading_unit(X, dim) and src.shape[:dim] == X.shape[:dim]:
+        return X.reshape(X.shape[dim:]).index_add(0, idx, src.reshape(src.shape[dim:])).reshape(X.shape)
+    return X.index_add(dim, idx, src)
 
 
 def _edges_opposite(T: torch.Tensor):
@@ -218,7 +239,7 @@ def vertex_normals_from_corners(T: torch.Tensor, F: torch.Tensor, n_vertices: in
     c = cross_from_corners(T)  # (..., m, 3)
     cw = torch.cat([c, safe_norm(c).unsqueeze(-1)], -1)  # cross product and double area, summed in one pass
     cw3 = cw.unsqueeze(-2).expand(*cw.shape[:-1], 3, 4).reshape(*cw.shape[:-2], -1, 4)  # (..., 3m, 4)
-    acc = torch.zeros(*T.shape[:-3], n_vertices, 4, dtype=T.dtype, device=T.device).index_add_(-2, F.reshape(-1), cw3)
+    acc = index_add(torch.zeros(*T.shape[:-3], n_vertices, 4, dtype=T.dtype, device=T.device), -2, F.reshape(-1), cw3)
     return _normalize(acc[..., :3], resolve_eps(eps, T.dtype) * acc[..., 3])
 
 
@@ -230,7 +251,7 @@ def uniform_laplacian(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
 
 def uniform_laplacian_from_topology(V: torch.Tensor, topo: MeshTopology) -> torch.Tensor:
     """:func:`uniform_laplacian` of ``V`` (..., n, 3) over the 1-rings of ``topo``; no validation."""
-    nb = torch.zeros_like(V).index_add_(-2, topo.nbr_src, gather(V, topo.nbr_idx))
+    nb = index_add(torch.zeros_like(V), -2, topo.nbr_src, gather(V, topo.nbr_idx))
     deg = topo.degree.to(V.dtype).clamp_min(1).unsqueeze(-1)
     mean = torch.where(topo.degree.unsqueeze(-1) > 0, nb / deg, V)
     return V - mean
@@ -257,8 +278,8 @@ def cot_laplacian_from_cot(X: torch.Tensor, F: torch.Tensor, C: torch.Tensor) ->
     w = 0.5 * C.reshape(*C.shape[:-2], -1, 1)  # (..., 3m, 1)
     d = gather(X, b) - gather(X, a)
     out = torch.zeros_like(X)
-    out = out.index_add(-2, a, w * d)
-    return out.index_add(-2, b, -w * d)
+    out = index_add(out, -2, a, w * d)
+    return index_add(out, -2, b, -w * d)
 
 
 def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = None, *, eps: float | None = EPS):
@@ -307,4 +328,4 @@ def massmatrix_from_terms(F: torch.Tensor, n: int, terms: FaceTerms) -> torch.Te
     mixed = torch.where(obtuse, dbl / 4.0, dbl / 8.0)
     area = torch.where(obtuse.any(-1, keepdim=True), mixed, vor)
     out = torch.zeros(*area.shape[:-2], n, dtype=area.dtype, device=area.device)
-    return out.index_add(-1, F.reshape(-1), area.reshape(*area.shape[:-2], -1))
+    return index_add(out, -1, F.reshape(-1), area.reshape(*area.shape[:-2], -1))

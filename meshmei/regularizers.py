@@ -33,6 +33,7 @@ from .operators import (
     doublearea_from_corners,
     face_terms,
     gather,
+    index_add,
     massmatrix_from_terms,
     resolve_eps,
     safe_norm,
@@ -202,7 +203,7 @@ def _rotations(V, V0, F, C0):
         e0 = e0.expand_as(e)
         w = w.expand(e.shape[:-1])
     S = (w[..., None, None] * e0.unsqueeze(-1) * e.unsqueeze(-2))  # (..., 6m, 3, 3)
-    S = torch.zeros(*e.shape[:-2], V.shape[-2], 3, 3, dtype=V.dtype, device=V.device).index_add_(-3, i, S)
+    S = index_add(torch.zeros(*e.shape[:-2], V.shape[-2], 3, 3, dtype=V.dtype, device=V.device), -3, i, S)
     U, _, Vh = torch.linalg.svd(S)
     R = Vh.transpose(-1, -2) @ U.transpose(-1, -2)
     flip = torch.linalg.det(R) < 0

@@ -239,3 +239,26 @@ def test_topology_twins_pair_the_two_half_edges_of_each_interior_edge():
     Vs, Fs = grid_sheet(3, 3)
     tws = mesh_topology(Fs, Vs.shape[0]).twins
     assert int((tws < 0).sum()) == 8  # the 2 x 2 grid's boundary has 8 edges
+
+
+@pytest.mark.parametrize("shape", [(7, 2), (1, 7, 2), (3, 7, 2), (1, 1, 7, 2)])
+def test_gather_and_index_add_equal_torchs_with_their_gradients(shape):
+    """The batch-of-one shortcut (indexing the unbatched rows) changes the speed, not the values."""
+    g = torch.Generator().manual_seed(0)
+    dim = len(shape) - 2
+    X = torch.randn(shape, generator=g, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(0, 7, (4, 3), generator=g)
+    out = ops.gather(X, idx, dim)
+    ref = X.index_select(dim, idx.reshape(-1)).reshape(*shape[:dim], 4, 3, shape[-1])
+    assert torch.equal(out, ref)
+    w = torch.randn(out.shape, generator=g, dtype=torch.float64)
+    (gx,) = torch.autograd.grad((out * w).sum(), X)
+    (gr,) = torch.autograd.grad((ref * w).sum(), X)
+    assert torch.equal(gx, gr)
+    src = torch.randn(*shape[:dim], 12, shape[-1], generator=g, dtype=torch.float64, requires_grad=True)
+    base = torch.zeros(shape, dtype=torch.float64)
+    got = ops.index_add(base, dim, idx.reshape(-1), src)
+    want = base.index_add(dim, idx.reshape(-1), src)
+    assert torch.allclose(got, want, rtol=0, atol=1e-15) and got.shape == want.shape
+    (gs,) = torch.autograd.grad((got * X.detach()).sum(), src)
+    assert torch.equal(gs, ops.gather(X.detach(), idx.reshape(-1), dim))

@@ -114,13 +114,16 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     elif albedo is not None:
         a = _vertex_albedo(albedo, n, B, V.dtype, V.device)
         parts.append(a.index_select(0, r.corner_index.reshape(-1)).view(3, -1, 1))
-    table = torch.cat(parts, 2).permute(0, 2, 1)  # (corner, 6 or 7, used face)
+    # (corner * channel, used face), contiguous: a 2-D gather along its last axis is 4 times faster, forward
+    # and backward, than the same gather along the last axis of the (corner, channel, face) view
+    C = sum(p.shape[2] for p in parts)
+    table = torch.cat(parts, 2).permute(0, 2, 1).contiguous().view(3 * C, -1)
     Lt = L.t()
 
     def shade(samples):
         N = samples.pix.shape[0]
         Lb = Lt.expand(3, N) if B == 1 else Lt.index_select(1, samples.b)
-        corners = table.index_select(2, samples.slot)
+        corners = table.index_select(1, samples.slot).view(3, C, N)
         if texture is not None:  # the texel under the surface point, as a seventh channel equal at the corners
             bary, _ = r.perspective_correct(samples)
             uv_c = uv.index_select(0, (r.corner_index.index_select(1, samples.slot) % n).reshape(-1)).view(3, N, 2)
