@@ -329,8 +329,8 @@ class ContactBarrier:
         keep_vf = dvf - moved[vt] - moved[self._Ft[ft]].amax(1) < self.distance
         out = [vt[keep_vf], ft[keep_vf]]
         if len(ea):
-            side = lambda e: moved[self._Et[e]].amax(1)  # noqa: E731
-            keep_ee = dee - side(ea) - side(eb) < self.distance
+            side_a, side_b = (moved[self._Et[e]].amax(1) for e in (ea, eb))
+            keep_ee = dee - side_a - side_b < self.distance
             out += [ea[keep_ee], eb[keep_ee]]
         else:
             out += [ea, eb]
