@@ -112,20 +112,25 @@ def _rowdot(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", X, Y)
 
 
+def _sqlen(X: np.ndarray) -> np.ndarray:
+    """Row-wise squared lengths of a ``(k, 3)`` array."""
+    return _rowdot(X, X)
+
+
 def _halfplanes(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
     """The four planes ``(m, 4, 4)`` that bound each triangle of the corner arrays ``A, B, C``: its own
     (unit normal and offset: signed distance ``n . p - n . a``) and, for each edge, the plane through the
     edge perpendicular to the triangle, its unit normal pointing into the (counter-clockwise) triangle. A
     face whose area is below ``1e-12`` of its squared edge lengths gets zero planes (a zero bound)."""
     n = np.cross(B - A, C - A)
-    size = sum(_rowdot(Y - X, Y - X) for X, Y in ((A, B), (B, C), (C, A)))
-    length = np.sqrt(_rowdot(n, n))
+    size = sum(_sqlen(Y - X) for X, Y in ((A, B), (B, C), (C, A)))
+    length = np.sqrt(_sqlen(n))
     flat = length <= 1e-12 * size  # a (near-)collinear face: its rounded normal points anywhere
     n *= np.where(flat, 0.0, 1.0 / np.where(flat, 1.0, length))[:, None]
     planes = [(n, A)]
     for X, Y in ((A, B), (B, C), (C, A)):
         m = np.cross(n, Y - X)
-        planes.append((m / np.maximum(np.sqrt(_rowdot(m, m)), np.finfo(m.dtype).tiny)[:, None], X))
+        planes.append((m / np.maximum(np.sqrt(_sqlen(m)), np.finfo(m.dtype).tiny)[:, None], X))
     return np.stack([np.concatenate([u, -_rowdot(u, X)[:, None]], 1) for u, X in planes], 1)
 
 
@@ -233,7 +238,7 @@ class ContactBarrier:
         T = Vn[self.Fn]
         A, B, C = T[:, 0], T[:, 1], T[:, 2]
         cen = (A + B + C) / 3.0
-        rad = np.sqrt(np.maximum.reduce([_rowdot(X - cen, X - cen) for X in (A, B, C)]))  # each face lies in this ball
+        rad = np.sqrt(np.maximum.reduce([_sqlen(X - cen) for X in (A, B, C)]))  # each face lies in this ball
         reach = self.distance + 2.0 * self.margin
         # most faces: a KD-tree over centroids, searched to reach + the 98th-percentile radius; the few
         # faces larger than that (stretched while the shape moves) are searched with their own radius
@@ -254,7 +259,7 @@ class ContactBarrier:
         Fv = self.Fn[fi]
         keep = (Fv[:, 0] != vi) & (Fv[:, 1] != vi) & (Fv[:, 2] != vi)
         vi, fi = vi[keep], fi[keep]
-        keep = _rowdot(Vn[vi] - cen[fi], Vn[vi] - cen[fi]) <= (reach + rad[fi]) ** 2
+        keep = _sqlen(Vn[vi] - cen[fi]) <= (reach + rad[fi]) ** 2
         vi, fi = vi[keep], fi[keep]
         # most pairs left lie an edge's height beside the face, in its plane (a smooth patch): drop those
         # whose distance to the half-plane beyond one of the face's edges is already beyond reach
@@ -317,7 +322,7 @@ class ContactBarrier:
         t0 = time.perf_counter()
         Vn = V.detach().cpu().double().numpy()
         self._since += 1
-        moved = None if self._built_at is None else np.sqrt(_rowdot(Vn - self._built_at, Vn - self._built_at))
+        moved = None if self._built_at is None else np.sqrt(_sqlen(Vn - self._built_at))
         if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
             self._pairs = self._candidates(Vn)
             self._built_at = Vn.copy()

@@ -116,8 +116,9 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
         parts.append(a.index_select(0, r.corner_index.reshape(-1)).view(3, -1, 1))
     # (corner * channel, used face), contiguous: a 2-D gather along its last axis is 4 times faster, forward
     # and backward, than the same gather along the last axis of the (corner, channel, face) view
-    C = sum(p.shape[2] for p in parts)
-    table = torch.cat(parts, 2).permute(0, 2, 1).contiguous().view(3 * C, -1)
+    table = torch.cat(parts, 2)  # (corner, used face, channel)
+    C = table.shape[2]
+    table = table.permute(0, 2, 1).contiguous().view(3 * C, -1)
     Lt = L.t()
 
     def shade(samples):
