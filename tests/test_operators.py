@@ -241,6 +241,27 @@ def test_topology_twins_pair_the_two_half_edges_of_each_interior_edge():
     assert int((tws < 0).sum()) == 8  # the 2 x 2 grid's boundary has 8 edges
 
 
+def test_topology_edge_table_and_corner_cycle_agree_with_the_faces_and_twins():
+    """The rasterizer's per-half-edge table, checked against its definition on a sheet (with boundary)."""
+    V, F = grid_sheet(4, 3)
+    topo = mesh_topology(F, V.shape[0])
+    cyc = topo.corner_cycle
+    k = torch.arange(3)
+    assert torch.equal(cyc[:, :3], F) and torch.equal(cyc[:, 3:6], F[:, (k + 1) % 3])
+    assert torch.equal(cyc[:, 6:], F[:, (k + 2) % 3])
+    lo, hi, opp, tf, flip = topo.edge_table.view(-1, 5, 3).unbind(1)
+    a, b = F[:, (k + 1) % 3], F[:, (k + 2) % 3]
+    assert torch.equal(lo, torch.minimum(a, b)) and torch.equal(hi, torch.maximum(a, b)) and bool((lo < hi).all())
+    assert torch.equal(flip.bool(), a > b)
+    tw = topo.twins
+    assert torch.equal(tf, torch.where(tw >= 0, tw // 3, -1))
+    inner = tw >= 0
+    # the twin face's third corner: on that face, and off the shared edge
+    assert bool(((F[tf[inner]] == opp[inner].unsqueeze(1)).any(1)).all())
+    assert bool(((opp[inner] != lo[inner]) & (opp[inner] != hi[inner])).all())
+    assert torch.equal(opp[~inner], lo[~inner]) and int((~inner).sum()) == 2 * (4 - 1) + 2 * (3 - 1)
+
+
 @pytest.mark.parametrize("shape", [(7, 2), (1, 7, 2), (3, 7, 2), (1, 1, 7, 2)])
 def test_gather_and_index_add_equal_torchs_with_their_gradients(shape):
     """The batch-of-one shortcut (indexing the unbatched rows) changes the speed, not the values."""

@@ -133,6 +133,10 @@ class _Screen(NamedTuple):
     ku: torch.Tensor  # (K, 3) corner u
     kv: torch.Tensor  # (K, 3) corner v
     box: torch.Tensor  # (K, 4) umin, umax, vmin, vmax
+    u1: torch.Tensor  # (K, 3) u of corner k + 1: half-edge k runs from it ...
+    u2: torch.Tensor  # (K, 3) ... to corner k + 2
+    v1: torch.Tensor  # (K, 3)
+    v2: torch.Tensor  # (K, 3)
 
 
 def _project(Vw, eye, R, cam: Camera, S):
@@ -150,31 +154,31 @@ def _project(Vw, eye, R, cam: Camera, S):
 def _cull(U, Vv, ok, F, S, margin) -> _Screen:
     """Keep the faces whose corners all lie in the depth range and whose box reaches the (grown) image."""
     B, m = U.shape[0], F.shape[0]
-    fu, fv = U[:, F], Vv[:, F]  # (B, m, 3)
-    umin, umax = fu.amin(-1), fu.amax(-1)
-    vmin, vmax = fv.amin(-1), fv.amax(-1)
+    cyc = mesh_topology(F, U.shape[1]).corner_cycle  # (m, 9): corners k, k + 1, k + 2
+    fu, fv = U[:, cyc], Vv[:, cyc]  # (B, m, 9)
+    umin, umax = fu[..., :3].amin(-1), fu[..., :3].amax(-1)
+    vmin, vmax = fv[..., :3].amin(-1), fv[..., :3].amax(-1)
     keep = ok[:, F].all(-1) & (umax >= -margin) & (umin <= S + margin) & (vmax >= -margin) & (vmin <= S + margin)
     area2 = _edge_fn(fu[..., 0], fv[..., 0], fu[..., 1], fv[..., 1], fu[..., 2], fv[..., 2])  # (B, m)
     front = area2 < 0  # outward (counter-clockwise) faces turn clockwise in (u, v) with v down
     kept = keep.view(-1).nonzero().squeeze(1)  # kb * m + kf
-    rows = torch.cat([fu, fv, torch.stack([umin, umax, vmin, vmax], -1)], -1).view(B * m, 10).index_select(0, kept)
-    ku, kv, box = rows.split((3, 3, 4), 1)
-    return _Screen(keep, front, kept // m, kept % m, ku, kv, box)
+    rows = torch.cat([fu, fv, torch.stack([umin, umax, vmin, vmax], -1)], -1).view(B * m, 22).index_select(0, kept)
+    ku, u1, u2, kv, v1, v2, box = rows.split((3, 3, 3, 3, 3, 3, 4), 1)
+    return _Screen(keep, front, kept // m, kept % m, ku, kv, box, u1, u2, v1, v2)
 
 
-def _zbuffer(sc: _Screen, Z, F, B, S, chunk) -> torch.Tensor:
-    """Pass 1: per pixel the smallest ``(depth bits << 32) | kept-face slot`` key, ``(B * S * S,)`` int64."""
-    kb, kf, ku, kv = sc.kb, sc.kf, sc.ku, sc.kv
+def _zbuffer(sc: _Screen, Z, F, B, S, chunk, flip) -> torch.Tensor:
+    """Pass 1: per pixel the smallest ``(depth bits << 32) | kept-face slot`` key, ``(B * S * S,)`` int64.
+    ``flip``: ``(K, 3)`` bool, the kept faces' half-edges that run from the higher vertex id to the lower."""
+    kb, kf = sc.kb, sc.kf
     zkey = torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Z.device)
     if not kb.shape[0]:
         return zkey
-    dt = ku.dtype
-    Fk = F.index_select(0, kf)  # (K, 3)
-    kiz = 1.0 / torch.take(Z, (kb * Z.shape[1]).unsqueeze(1) + Fk)
+    dt = sc.ku.dtype
+    kiz = 1.0 / torch.take(Z, (kb * Z.shape[1]).unsqueeze(1) + F.index_select(0, kf))
     # canonical edge direction (lower vertex id first) so that a shared edge gives bitwise
     # opposite edge functions in its two faces: no cracks, no double-free pixels
-    flip = Fk.roll(-1, 1) > Fk.roll(1, 1)  # edge k runs from corner k + 1 to corner k + 2
-    u1, u2, v1, v2 = ku.roll(-1, 1), ku.roll(1, 1), kv.roll(-1, 1), kv.roll(1, 1)
+    u1, u2, v1, v2 = sc.u1, sc.u2, sc.v1, sc.v2  # edge k runs from corner k + 1 to corner k + 2
     ax, ay = torch.where(flip, u2, u1), torch.where(flip, v2, v1)
     sg = torch.where(flip, -1.0, 1.0).to(dt)
     dx = sg * (torch.where(flip, u1, u2) - ax)
@@ -199,26 +203,24 @@ def _zbuffer(sc: _Screen, Z, F, B, S, chunk) -> torch.Tensor:
     return zkey
 
 
-def _contour_segments(sc: _Screen, U, Vv, F, n_vertices):
+def _contour_segments(sc: _Screen, U, Vv, F, edges):
     """The silhouette's candidate segments: ``(Q, 2)`` (kept-face slot, edge k) and their endpoints.
+    ``edges``: the kept faces' rows of :attr:`~meshmei.topology.MeshTopology.edge_table`.
 
     An edge is a contour segment when its two faces project to the same side of it, when it is a
     boundary edge, or when its neighbour was culled; of two half-edges, one owns the segment.
     """
     kb, kf, ku, kv = sc.kb, sc.kf, sc.ku, sc.kv
     B, n, m = U.shape[0], U.shape[1], F.shape[0]
-    Fk = F.index_select(0, kf)  # (K, 3)
-    twin = mesh_topology(F, n_vertices).twins.index_select(0, kf)  # (K, 3)
-    tf = twin.clamp_min(0) // 3
-    tk = twin.clamp_min(0) % 3
+    lo, hi, opp, tf = edges[:, :12].view(-1, 4, 3).unbind(1)  # (K, 3) each
+    has_twin = tf >= 0
+    tf = tf.clamp_min(0)
     bm = (kb * m).unsqueeze(1)
-    tkeep = (twin >= 0) & torch.take(sc.keep, bm + tf)
-    ea, eb = Fk.roll(-1, 1), Fk.roll(1, 1)  # edge k runs from corner k + 1 to corner k + 2
-    opp = torch.take(F, tf * 3 + tk)  # (K, 3): the twin face's corner off the edge
+    tkeep = has_twin & torch.take(sc.keep, bm + tf)
     # side tests with the edge in canonical order, so both half-edges classify it identically
     bn = (kb * n).unsqueeze(1)
     uv = torch.stack([U, Vv], -1).view(B * n, 2)
-    pts = uv.index_select(0, torch.cat([bn + torch.minimum(ea, eb), bn + torch.maximum(ea, eb), bn + opp], 1).view(-1))
+    pts = uv.index_select(0, (bn.unsqueeze(1) + edges[:, :9].view(-1, 3, 3)).view(-1))
     Lu, Lv, Hu, Hv, Ou, Ov = pts.view(-1, 3, 3, 2).permute(1, 3, 0, 2).reshape(6, -1, 3)
     side_f = _edge_fn(Lu, Lv, Hu, Hv, ku, kv)  # opposite corner k of this face
     side_g = _edge_fn(Lu, Lv, Hu, Hv, Ou, Ov)
@@ -227,9 +229,8 @@ def _contour_segments(sc: _Screen, U, Vv, F, n_vertices):
     owner = ~tkeep | (fr & ~gfr) | ((fr == gfr) & (kf.unsqueeze(1) < tf))
     sel = (contour & owner).nonzero()  # (Q, 2): kept-face slot, edge k
     s_, k_ = sel.unbind(1)
-    flat = s_ * 3
-    ends = (torch.take(ku.roll(-1, 1), flat + k_), torch.take(kv.roll(-1, 1), flat + k_),
-            torch.take(ku.roll(1, 1), flat + k_), torch.take(kv.roll(1, 1), flat + k_))
+    flat = s_ * 3 + k_
+    ends = (torch.take(sc.u1, flat), torch.take(sc.v1, flat), torch.take(sc.u2, flat), torch.take(sc.v2, flat))
     return sel, ends
 
 
@@ -300,13 +301,14 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
     with torch.no_grad():
         U, Vv = u.detach(), v.detach()
         sc = _cull(U, Vv, ok, F, S, st.soft_margin)
-        zkey = _zbuffer(sc, z.detach(), F, B, S, st.chunk_size)
+        edges = mesh_topology(F, n_vertices).edge_table.index_select(0, sc.kf)  # (K, 15)
+        zkey = _zbuffer(sc, z.detach(), F, B, S, st.chunk_size, edges[:, 12:].bool())
         hit = zkey != _NONE
         slot = (zkey & 0xFFFFFFFF).masked_fill(~hit, 0)
         face_id = torch.full((B * S * S,), -1, dtype=torch.int64, device=Vw.device)
         if sc.kb.shape[0]:
             face_id[hit] = sc.kf[slot[hit]]
-            seg, ends = _contour_segments(sc, U, Vv, F, n_vertices)
+            seg, ends = _contour_segments(sc, U, Vv, F, edges)
             skey = _segment_buffer(sc, seg, ends, B, S, st)
         else:
             seg, skey = None, torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Vw.device)

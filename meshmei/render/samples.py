@@ -62,6 +62,12 @@ class PixelSamples:
         return PixelSamples(self.pix[mask], self.b[mask], self.f[mask], self.l[:, mask], self.iz[:, mask],
                             self.slot[mask])
 
+    def join(self, other: "PixelSamples") -> "PixelSamples":
+        """These samples followed by ``other``'s."""
+        return PixelSamples(torch.cat([self.pix, other.pix]), torch.cat([self.b, other.b]),
+                            torch.cat([self.f, other.f]), torch.cat([self.l, other.l], 1),
+                            torch.cat([self.iz, other.iz], 1), torch.cat([self.slot, other.slot]))
+
 
 _TABLE = (1, 1, 3, 3, 3, 3, 3, 3)  # rows of the face table, see face_table
 
