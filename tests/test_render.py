@@ -10,6 +10,7 @@ from meshmei.render import (Camera, RenderError, RenderSettings, axis_angle_to_m
                             rasterize, render)
 from meshmei.render.passes import run_passes
 from meshmei.render.raster import prepare_inputs
+from meshmei.render.samples import _SampleGeometry, face_table, seg_dist
 from meshmei.render.shading import shade_samples
 from meshmei.shapes import initial_mesh, target_mesh
 
@@ -345,7 +346,7 @@ def test_run_passes_pairs_every_covered_pixel_with_its_face():
     assert int(r.hit.sum()) == r.inside.pix.numel() == int((r.face_id >= 0).sum()) > 0
     assert torch.equal(r.face_id.view(-1)[r.inside.pix], r.inside.f)
     torch.testing.assert_close(r.inside.l.sum(0), torch.ones(r.inside.pix.numel()))
-    assert r.fringe.pix.numel() > 0 and bool((r.coverage[r.fringe.pix] < 1).all())
+    assert r.fringe_pix.numel() > 0 and bool((r.coverage[r.fringe_pix] < 1).all())
     frags = rasterize(V, F, settings=st)
     torch.testing.assert_close(frags.coverage.view(-1), r.coverage, rtol=0, atol=0)
 
@@ -391,6 +392,59 @@ def test_shade_samples_gradient_matches_autograd_and_finite_differences():
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     smooth = [x.clone().requires_grad_() for x in _shade_inputs(N=12, seed=1)]
     assert torch.autograd.gradcheck(f, smooth, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def _sample_reference(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, sign, out, S, sigma, eps):
+    """sample_geometry's values written with autograd: barycentrics affine in the pixel centre, and the
+    fringe's nearest segment point with its coverage."""
+    table = face_table(u, v, z, corner_index, eps)
+    u0, v0, du, dv, a, bu, bv, iz, _ = table.index_select(1, in_slot).split((1, 1, 3, 3, 3, 3, 3, 3, 1), 0)
+    pu, pv = (in_pix % S).double() + 0.5, (in_pix // S % S).double() + 0.5
+    l_in = a + bu * (pu - u0) + bv * (pv - v0)
+    f_u0, f_v0, f_du, f_dv, _, _, _, iz_fr, _ = table.index_select(1, fr_slot).split((1, 1, 3, 3, 3, 3, 3, 3, 1), 0)
+    ends = torch.stack([(fr_k + 1) % 3, (fr_k + 2) % 3])
+    au, bu_ = f_du.gather(0, ends)
+    av, bv_ = f_dv.gather(0, ends)
+    qu, qv = (fr_pix % S).double() + 0.5 - f_u0[0], (fr_pix // S % S).double() + 0.5 - f_v0[0]
+    ex, ey, t = seg_dist(au, av, bu_, bv_, qu, qv, eps)
+    cov = torch.sigmoid(sign * torch.sqrt((ex * ex + ey * ey).clamp_min(eps * eps)) / sigma)
+    corners = torch.arange(3).unsqueeze(1)
+    l_fr = (corners == ends[:1]).double() * (1 - t) + (corners == ends[1:]).double() * t
+    return torch.cat([l_in, l_fr[:, out]], 1), torch.cat([iz, iz_fr[:, out]], 1), cov
+
+
+def test_sample_geometry_gradient_matches_autograd_and_finite_differences():
+    """The hand-written backward of the per-pixel geometry against the autograd composition and gradcheck:
+    covered pixels, and fringe pixels whose foot lies inside the segment or is clamped to an end."""
+    g = torch.Generator().manual_seed(0)
+    B, n, U, S = 2, 9, 7, 16
+    u = (S * torch.rand(B, n, generator=g, dtype=torch.float64)).requires_grad_()
+    v = (S * torch.rand(B, n, generator=g, dtype=torch.float64)).requires_grad_()
+    z = (1 + torch.rand(B, n, generator=g, dtype=torch.float64)).requires_grad_()
+    corner_index = torch.stack([torch.randperm(B * n, generator=g)[:3] for _ in range(U)], 1)  # (3, U)
+    in_slot = torch.randint(0, U, (40,), generator=g)
+    in_pix = torch.randint(0, B * S * S, (40,), generator=g)
+    fr_slot = torch.randint(0, U, (30,), generator=g)
+    fr_pix = torch.randint(0, B * S * S, (30,), generator=g)
+    fr_k = torch.randint(0, 3, (30,), generator=g)
+    sign = torch.where(torch.rand(30, generator=g) < 0.5, 1.0, -1.0).double()
+    out = (sign < 0).nonzero().squeeze(1)
+    rest = (in_pix, in_slot, fr_pix, fr_slot, fr_k, sign, out, S, 0.7, 1e-9)
+    mine = _SampleGeometry.apply(u, v, z, corner_index, *rest)
+    ref = _sample_reference(u, v, z, corner_index, *rest)
+    for a, b in zip(mine, ref):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)  # the same arithmetic
+    # the fringe feet: some inside their segment, some clamped to an end
+    l_out = mine[0][:, 40:]
+    inner = ((l_out > 0) & (l_out < 1)).any(0)
+    assert bool(inner.any()) and bool((~inner).any())
+    w = [torch.randn(x.shape, generator=g, dtype=torch.float64) for x in mine]
+    gm = torch.autograd.grad(sum((x * y).sum() for x, y in zip(mine, w)), (u, v, z))
+    gr = torch.autograd.grad(sum((x * y).sum() for x, y in zip(ref, w)), (u, v, z))
+    for a, b in zip(gm, gr):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+    assert torch.autograd.gradcheck(lambda *x: _SampleGeometry.apply(*x, corner_index, *rest), (u, v, z),
+                                    eps=1e-7, atol=1e-6, rtol=1e-5)
 
 
 def test_vertex_albedo_scales_the_shade_and_has_exact_gradients():

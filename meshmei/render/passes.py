@@ -26,7 +26,7 @@ import torch.nn.functional as nnf
 
 from ..topology import mesh_topology
 from .camera import Camera
-from .samples import PixelSamples, face_table, fringe_samples, inside_samples, seg_dist, used_faces
+from .samples import PixelSamples, sample_geometry, seg_dist, used_faces
 from .settings import RenderSettings
 
 __all__ = ["PixelSamples", "RasterPasses", "run_passes"]
@@ -85,11 +85,15 @@ class RasterPasses:
         Nearest face at each pixel centre, -1 for background.
     hit : (B * S * S,) bool tensor
         Covered pixels.
-    inside : PixelSamples
-        Every covered pixel with its visible face.
-    fringe : PixelSamples
-        Every pixel within the soft margin of the silhouette (outside, or inside next to the background),
-        with the nearest point of the nearest contour segment.
+    shaded : PixelSamples
+        What the image shades: every covered pixel with the point of its visible face under the pixel
+        centre (the first :attr:`n_inside` samples, :attr:`inside`), then every fringe pixel outside the
+        surface with the nearest point of the nearest contour segment.
+    n_inside : int
+        Covered pixels.
+    fringe_pix : (Q,) int64 tensor
+        Every pixel within the soft margin of the silhouette (outside, or inside next to the background):
+        those with a soft coverage.
     coverage : (B * S * S,) float tensor
         Soft coverage (differentiable).
     used : (U,) int64 tensor
@@ -106,11 +110,17 @@ class RasterPasses:
     front: torch.Tensor
     face_id: torch.Tensor
     hit: torch.Tensor
-    inside: PixelSamples
-    fringe: PixelSamples
+    shaded: PixelSamples
+    n_inside: int
+    fringe_pix: torch.Tensor
     coverage: torch.Tensor
     used: torch.Tensor
     corner_index: torch.Tensor
+
+    @property
+    def inside(self) -> PixelSamples:
+        """Every covered pixel with its visible face."""
+        return self.shaded.head(self.n_inside)
 
     def perspective_correct(self, samples: PixelSamples):
         """Perspective-correct barycentrics ``(N, 3)`` and view depth ``(N,)`` of ``samples``."""
@@ -322,12 +332,10 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
         else:
             fr_b = fr_f = k_ = fr_pix
         used, corner_index, in_slot, fr_slot = used_faces(in_b, in_f, fr_b, fr_f, F, B, Vw.shape[1])
-    table = face_table(u, v, z, corner_index, st.eps)
-    inside = inside_samples(in_pix, in_b, in_f, in_slot, table, S)
-    fringe, cov_s = fringe_samples(fr_pix, fr_b, fr_f, fr_slot, k_, hit, table, S, st)
-    cov = torch.zeros(B * S * S, dtype=dt, device=Vw.device).index_put((inside.pix,), torch.ones_like(inside.pix, dtype=dt))
-    return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=sc.front, face_id=face_id.view(B, S, S), hit=hit, inside=inside,
-                        fringe=fringe, coverage=cov.index_put((fringe.pix,), cov_s), used=used,
-                        corner_index=corner_index)
+    shaded, cov_s = sample_geometry(in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_slot, k_, hit, u, v, z,
+                                    corner_index, S, st)
+    cov = hit.to(dt).index_put((fr_pix,), cov_s)
+    return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=sc.front, face_id=face_id.view(B, S, S), hit=hit, shaded=shaded,
+                        n_inside=in_pix.shape[0], fringe_pix=fr_pix, coverage=cov, used=used, corner_index=corner_index)
 
 

@@ -134,9 +134,7 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
                              albedo=st.albedo, eps=st.eps)
 
     dt, dev = V.dtype, V.device
-    # covered pixels and the fringe just outside (disjoint) shaded in one call: half the operations
-    shaded = r.inside.join(r.fringe[~r.hit[r.fringe.pix]])
-    sh = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((shaded.pix,), shade(shaded))
+    sh = torch.zeros(B * S * S, dtype=dt, device=dev).index_put((r.shaded.pix,), shade(r.shaded))
     c = r.coverage
     # zero-weight anchor: an empty image still depends (with zero gradient) on every differentiable input
     anchor = r.Vc.sum() + L.sum()
