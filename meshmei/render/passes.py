@@ -42,15 +42,17 @@ def _ranges(lo, hi, S):
     return lo, hi
 
 
-def _pairs(x0, x1, y0, y1, chunk):
-    """Yield ``(item, row, col)`` for every pixel of every item's box, at most ``chunk`` at a time."""
-    nx = (x1 - x0 + 1).clamp_min(0)
-    cnt = nx * (y1 - y0 + 1).clamp_min(0)
+def _pairs(lo, hi, chunk):
+    """Yield ``(item, row, col)`` for every pixel of every item's box, at most ``chunk`` at a time; ``lo`` and
+    ``hi`` are ``(K, 2)`` inclusive (column, row) ranges (:func:`_ranges` of the box corners)."""
+    n = (hi - lo + 1).clamp_min(0)
+    nx = n[:, 0]
+    cnt = nx * n[:, 1]
     if cnt.numel() == 0:
         return
     cum = torch.cumsum(cnt, 0)
     total = int(cum[-1])
-    per_item = torch.stack([cum - cnt, nx, y0, x0], 1)  # one gather per chunk instead of four
+    per_item = torch.stack([cum - cnt, nx, lo[:, 1], lo[:, 0]], 1)  # one gather per chunk instead of four
     for s in range(0, total, chunk):
         p = torch.arange(s, min(s + chunk, total), device=cnt.device)
         if total <= chunk:
@@ -59,7 +61,10 @@ def _pairs(x0, x1, y0, y1, chunk):
             item = torch.searchsorted(cum, p, right=True)
         first, w, row0, col0 = per_item.index_select(0, item).unbind(1)
         local = p - first
-        yield item, row0 + local // w, col0 + local % w
+        # local // w in float64, exact for any image (the fraction is at least 0.5 / w from an integer), and
+        # local % w as the rest: CPU int64 division and remainder cost several times more
+        row = ((local.double() + 0.5) / w.double()).long()
+        yield item, row0 + row, col0 + (local - row * w)
 
 
 def _edge_fn(ax, ay, bx, by, px, py):
@@ -193,18 +198,18 @@ def _zbuffer(sc: _Screen, Z, F, B, S, chunk, flip) -> torch.Tensor:
     sg = torch.where(flip, -1.0, 1.0).to(dt)
     dx = sg * (torch.where(flip, u1, u2) - ax)
     dy = sg * (torch.where(flip, v1, v2) - ay)
-    x0, x1 = _ranges(sc.box[:, 0], sc.box[:, 1], S)
-    y0, y1 = _ranges(sc.box[:, 2], sc.box[:, 3], S)
+    lo, hi = _ranges(sc.box[:, 0::2], sc.box[:, 1::2], S)  # (K, 2): columns, rows
     table = torch.cat([ax, ay, dx, dy, kiz], 1).t().contiguous()  # (15, K): one gather per chunk
     pix0 = kb * (S * S)
-    for it, ii, jj in _pairs(x0, x1, y0, y1, chunk):
+    for it, ii, jj in _pairs(lo, hi, chunk):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         t_ax, t_ay, t_dx, t_dy, t_iz = table.index_select(1, it).view(5, 3, -1).unbind(0)  # (3, P) each
         w = t_dx * (py - t_ay) - t_dy * (px - t_ax)
         w0, w1, w2 = w.unbind(0)
         tot = w0 + w1 + w2
-        lo, hi = torch.minimum(torch.minimum(w0, w1), w2), torch.maximum(torch.maximum(w0, w1), w2)
-        inside = ((lo >= 0) & (tot > 0)) | ((hi <= 0) & (tot < 0))
+        # inside: every w_k on the side of their (non-zero) sum, i.e. all >= 0 with tot > 0 or all <= 0 with
+        # tot < 0 (multiplying by the sign is exact)
+        inside = ((w * torch.sign(tot)).amin(0) >= 0) & (tot != 0)
         wz = w * t_iz
         depth = tot / (wz[0] + wz[1] + wz[2])
         bits = depth.float().clamp_min(0).view(torch.int32).long()
@@ -252,11 +257,11 @@ def _segment_buffer(sc: _Screen, seg, ends, B, S, st: RenderSettings) -> torch.T
         return skey
     s_ = seg[:, 0]
     sa_u, sa_v, sb_u, sb_v = ends
-    x0, x1 = _ranges(torch.minimum(sa_u, sb_u) - margin, torch.maximum(sa_u, sb_u) + margin, S)
-    y0, y1 = _ranges(torch.minimum(sa_v, sb_v) - margin, torch.maximum(sa_v, sb_v) + margin, S)
-    table = torch.stack([sa_u, sa_v, sb_u, sb_v], 1)  # (Q, 4): one gather per chunk
+    a, b = torch.stack([sa_u, sa_v], 1), torch.stack([sb_u, sb_v], 1)
+    lo, hi = _ranges(torch.minimum(a, b) - margin, torch.maximum(a, b) + margin, S)  # (Q, 2): columns, rows
+    table = torch.cat([a, b], 1)  # (Q, 4): one gather per chunk
     pix0 = sc.kb.index_select(0, s_) * (S * S)
-    for it, ii, jj in _pairs(x0, x1, y0, y1, st.chunk_size):
+    for it, ii, jj in _pairs(lo, hi, st.chunk_size):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         ax, ay, bx, by = table.index_select(0, it).unbind(1)
         ex, ey, _ = seg_dist(ax, ay, bx, by, px, py, eps)
