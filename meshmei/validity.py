@@ -148,6 +148,9 @@ class StepGuard:
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
         self.accepted = ref if rules.max_step is not None else None  # the last accepted vertices, for max_step
+        # the float64 face frame of the last accepted candidate: the next objective's barrier screens its faces
+        # with it (the same vertices) instead of computing the frame again
+        self._frame = self._accepted_frame = None
 
     def _verdict(self, V: torch.Tensor, frame=None) -> tuple:
         """``(rule, message, normals)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
@@ -163,6 +166,7 @@ class StepGuard:
             if moved > self.rules.max_step:
                 return "step", f"a vertex moved {moved:.3g}, more than {self.rules.max_step:.3g}, in one step", None
         n, quality = face_frame(Vd, self.F) if frame is None else frame
+        self._frame = (Vd, n, quality)
         q = float(quality.min())
         if q < self.quality_floor:
             return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", n
@@ -187,12 +191,15 @@ class StepGuard:
         """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``.
         ``frame``: :func:`face_frame` of ``V`` in float64, when already computed."""
         t0 = time.perf_counter()
+        self._frame = None
         rule, _, normals = self._verdict(V, frame)
         self.checks += 1
+        self._accepted_frame = None
         if rule is not None:
             self.failures += 1
             self.reasons[rule] += 1
         else:
+            self._accepted_frame = self._frame
             if self.accepted is not None:
                 self.accepted = V.detach().double()
             if self.rules.turn_from == "step":
@@ -230,10 +237,17 @@ class StepGuard:
         # slope: find the faces inside (the same comparisons as log_barrier's) without a graph, then build
         # the graph over those alone (a batch: faces inside for some item).
         with torch.no_grad():
-            n, q = face_frame(V.detach(), self.F)
-            inside = q - self.quality_floor < q_band
+            known = self._accepted_frame
+            if V.ndim == 2 and known is not None and torch.equal(known[0], V.detach().double()):
+                # the accepted candidate's float64 frame, with a margin over float32's rounding: a face it adds
+                # lies outside both bands, where the energy below is exactly zero
+                _, n, q = known
+                tol = 1e-5
+            else:
+                (n, q), tol = face_frame(V.detach(), self.F), 0.0
+            inside = q - self.quality_floor < q_band + tol
             if turn:
-                inside |= (n * self.normals.to(n.dtype)).sum(-1) - self.cos_bound < band
+                inside |= (n * self.normals.to(n.dtype)).sum(-1) - self.cos_bound < band + tol
             faces = inside.reshape(-1, self.F.shape[0]).any(0).nonzero().squeeze(1)
         total = V.sum((-2, -1)) * 0.0  # zero, with a (zero) gradient, where no face is near a bound
         if not len(faces):

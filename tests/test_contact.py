@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from meshmei.contact import ContactBarrier, mean_edge_length, point_triangle_sqdist, segment_sqdist
+from meshmei.contact import (ContactBarrier, _closest_weights, _point_triangle, _segment_segment, mean_edge_length, point_triangle_sqdist,
+                             segment_sqdist)
 from meshmei.shapes import initial_mesh
 
 
@@ -152,6 +153,28 @@ def test_segment_distance_is_the_closest_pair_of_points():
     X = torch.stack([P1, Q1, P2, Q2]).requires_grad_()
     segment_sqdist(*X).sum().backward()
     assert bool(torch.isfinite(X.grad).all())
+
+
+def test_distance_gradients_are_the_closest_points_and_match_autograd():
+    """The written-out gradients (2 (P - Q), spread over the corners by the closest point's weights)
+    against autograd through the same formulas, and gradcheck, in every region of a triangle and for
+    skew segment pairs."""
+    g = torch.Generator().manual_seed(1)
+    k = 200
+    X = [torch.randn(k, 3, generator=g, dtype=torch.float64, requires_grad=True) for _ in range(4)]
+    for fn, raw in ((point_triangle_sqdist, lambda *a: _point_triangle(*a)[0]),
+                    (segment_sqdist, lambda *a: _segment_segment(*a)[0])):
+        w = torch.randn(k, generator=g, dtype=torch.float64)
+        mine = torch.autograd.grad((fn(*X) * w).sum(), X)
+        ref = torch.autograd.grad((raw(*X) * w).sum(), X)
+        for a, b in zip(mine, ref):
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+        assert torch.autograd.gradcheck(fn, [x[:20].detach().clone().requires_grad_() for x in X])
+    # the closest point lies on the plane (interior), on an edge and at a corner among these points
+    wts = _closest_weights(*_point_triangle(*(x.detach() for x in X))[1])
+    torch.testing.assert_close(wts.sum(1), torch.ones(k, dtype=torch.float64))
+    zeros = (wts == 0).sum(1)
+    assert bool((zeros == 0).any()) and bool((zeros == 1).any()) and bool((zeros == 2).any())
 
 
 def _crossing_edges(gap):

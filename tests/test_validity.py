@@ -195,6 +195,35 @@ def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_f
     assert nonzero >= 2 and float(guard.barrier(batch)[0]) == 0.0  # both sides of the bands are reached
 
 
+def test_the_guard_barrier_after_an_accepted_candidate_screens_with_its_frame_and_gives_the_same_energy(ball,
+                                                                                                       monkeypatch):
+    """After accepting a float32 candidate, the barrier of those vertices screens its faces with the
+    accepted float64 frame (no second frame): value and gradient as a guard that never saw it computes."""
+    import meshmei.validity as validity
+
+    V, F = ball
+    gen = torch.Generator().manual_seed(0)
+    W = (V + 0.03 * torch.randn(V.shape, generator=gen, dtype=V.dtype)).float()  # valid, some faces in a band
+    seen, fresh = StepGuard(V, F), StepGuard(V, F)
+    assert seen.accept(W)
+    calls = []
+    frame = validity.face_frame
+    monkeypatch.setattr(validity, "face_frame", lambda *a: calls.append(a[1].shape[0]) or frame(*a))
+    Wg = W.clone().requires_grad_(True)
+    mine = seen.barrier(Wg)
+    g_mine, = torch.autograd.grad(mine, Wg)
+    assert all(m < F.shape[0] for m in calls)  # only the graph over the faces in a band, no screening frame
+    ref = fresh.barrier(Wg)
+    g_ref, = torch.autograd.grad(ref, Wg)
+    assert float(ref.detach()) > 0
+    torch.testing.assert_close(mine, ref, rtol=1e-6, atol=0)
+    torch.testing.assert_close(g_mine, g_ref, rtol=1e-5, atol=1e-6 * float(g_ref.abs().max()))
+    # other vertices than the accepted ones: screened afresh
+    calls.clear()
+    seen.barrier(W + 1e-3)
+    assert F.shape[0] in calls
+
+
 def test_minimize_halves_each_refused_item_on_its_own():
     x = torch.zeros(3, 1, dtype=torch.float64, requires_grad=True)  # three items, one parameter each
     objective = lambda point: (((x - 1.0) ** 2).sum(1), {})  # noqa: E731
