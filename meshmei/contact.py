@@ -48,27 +48,25 @@ __all__ = ["ContactBarrier", "contact_energies", "log_barrier", "point_triangle_
 
 def _point_triangle(P, A, B, C):
     """Squared distances ``(k,)`` from ``P`` to triangles ``ABC``, and what gives the closest point's weights
-    on the corners (:func:`_closest_weights`)."""
+    on the corners (:func:`_closest_weights`). Sums over the last axis of 3 are products with ones: torch's
+    CPU ``sum(-1)`` over so short an axis costs several times more (7x in float64 at 1,000 rows)."""
+    one = P.new_ones(3)
     ab, ac = B - A, C - A
     n = torch.linalg.cross(ab, ac)
-    nn = (n * n).sum(-1)
+    nn = (n * n) @ one
     tiny = torch.finfo(P.dtype).tiny
     ap = P - A
-    # barycentric coordinates of the projection (Cramer's rule on the plane's normal)
-    u = (torch.linalg.cross(ap, ac) * n).sum(-1)  # weight of B, times nn
-    v = (torch.linalg.cross(ab, ap) * n).sum(-1)  # weight of C, times nn
+    # barycentric coordinates of the projection (Cramer's rule on the plane's normal), times nn: of B, of C
+    u, v = ((torch.linalg.cross(torch.stack([ap, ab], -2), torch.stack([ac, ap], -2)) * n[..., None, :]) @ one).unbind(-1)
     inside = (u >= 0) & (v >= 0) & (u + v <= nn) & (nn > tiny)
-    plane = (ap * n).sum(-1).square() / nn.clamp_min(tiny)
-
-    def segment(X, Y):
-        d = Y - X
-        t = (((P - X) * d).sum(-1) / (d * d).sum(-1).clamp_min(tiny)).clamp(0, 1)
-        return (P - X - d * t[..., None]).square().sum(-1), t
-
-    (e0, t0), (e1, t1), (e2, t2) = segment(A, B), segment(B, C), segment(C, A)
-    edge, which = torch.stack([e0, e1, e2], -1).min(-1)
-    return torch.where(inside, plane, edge), (inside, u / nn.clamp_min(tiny), v / nn.clamp_min(tiny), which,
-                                              torch.stack([t0, t1, t2], -1))
+    plane = ((ap * n) @ one).square() / nn.clamp_min(tiny)
+    # the edges AB, BC, CA: the closest point of each, at t along it
+    D = torch.stack([ab, C - B, A - C], -2)  # (k, 3, 3)
+    PX = P[..., None, :] - torch.stack([A, B, C], -2)
+    t = (((PX * D) @ one) / ((D * D) @ one).clamp_min(tiny)).clamp(0, 1)
+    edge, which = ((PX - D * t[..., None]).square() @ one).min(-1)
+    nn_c = nn.clamp_min(tiny)
+    return torch.where(inside, plane, edge), (inside, u / nn_c, v / nn_c, which, t)
 
 
 def _closest_weights(inside, bu, bv, which, t):
