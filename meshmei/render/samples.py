@@ -19,11 +19,19 @@ from .settings import RenderSettings
 __all__ = ["PixelSamples", "seg_dist", "face_table", "pixel_centres", "sample_geometry", "used_faces"]
 
 
-def seg_dist(ax, ay, bx, by, px, py, eps):
-    """Distance from p to segment ab and the foot parameter t in [0, 1]."""
+def seg_foot(ax, ay, bx, by, px, py, eps):
+    """The segment ab's direction ``(dx, dy)``, squared length ``L2`` and the unclamped parameter of the
+    foot of p on its line, ``t_raw`` (``L2`` floored at ``eps`` in the division)."""
     dx, dy = bx - ax, by - ay
     L2 = dx * dx + dy * dy
-    t = (((px - ax) * dx + (py - ay) * dy) / L2.clamp_min(eps)).clamp(0.0, 1.0)
+    t_raw = ((px - ax) * dx + (py - ay) * dy) / L2.clamp_min(eps)
+    return dx, dy, L2, t_raw
+
+
+def seg_dist(ax, ay, bx, by, px, py, eps):
+    """Offset from p to the nearest point of segment ab and its parameter t in [0, 1]."""
+    dx, dy, _, t_raw = seg_foot(ax, ay, bx, by, px, py, eps)
+    t = t_raw.clamp(0.0, 1.0)
     ex, ey = ax + t * dx - px, ay + t * dy - py
     return ex, ey, t
 
@@ -124,9 +132,7 @@ class _SampleGeometry(torch.autograd.Function):
         av, bv_ = f_dv.gather(0, ends)
         fu, fv = pixel_centres(fr_pix, S, dt)
         Qu, Qv = fu - f_u0[0], fv - f_v0[0]
-        dx, dy = bu_ - au, bv_ - av
-        L2 = dx * dx + dy * dy
-        t_raw = ((Qu - au) * dx + (Qv - av) * dy) / L2.clamp_min(eps)
+        dx, dy, L2, t_raw = seg_foot(au, av, bu_, bv_, Qu, Qv, eps)
         t = t_raw.clamp(0.0, 1.0)
         ex, ey = au + t * dx - Qu, av + t * dy - Qv
         d2 = ex * ex + ey * ey
