@@ -416,3 +416,26 @@ def test_module_docstring_examples(module):
     mod = importlib.import_module(f"meshmei.shapes.{module}")
     result = doctest.testmod(mod, raise_on_error=True)
     assert result.failed == 0 and result.attempted > 0
+
+
+def test_pymeshlab_meshes_do_not_depend_on_earlier_filter_calls(sphere):
+    """pymeshlab keeps a filter parameter's last value as its default for the whole process: a remesh that
+    left ``featuredeg`` out gave the fin target 9,159 faces after a stage remesh (``featuredeg=180``) and
+    9,917 before it. meshmei names every parameter, so its meshes do not depend on what ran before."""
+    import pymeshlab
+
+    from meshmei.shapes.remeshing import isotropic_parameters
+
+    implicit = target_mesh.__globals__["_implicit"].__wrapped__  # uncached
+    before = implicit("fin"), remesh(*sphere, 500)
+    ms = pymeshlab.MeshSet()  # every parameter away from its default, on another mesh
+    ms.create_sphere(radius=2.0, subdiv=3)
+    odd = dict(isotropic_parameters(pymeshlab.PureValue(0.3), iterations=2, feature_degrees=180.0), adaptive=True,
+               checksurfdist=False, maxsurfdist=pymeshlab.PureValue(0.5), swapflag=False, smoothflag=False,
+               reprojectflag=False)
+    ms.meshing_isotropic_explicit_remeshing(**odd)
+    after = implicit("fin"), remesh(*sphere, 500)
+    for a, b in zip(before[0], after[0]):
+        assert np.array_equal(a, b)
+    for a, b in zip(before[1], after[1]):
+        assert torch.equal(a, b)

@@ -11,7 +11,8 @@ from .._checks import check_positive
 from ..errors import MeshError
 from ..mesh import check_mesh
 
-__all__ = ["edge_length_for_count", "count_for_edge_length", "isotropic_remesh", "remesh", "mesh_arrays"]
+__all__ = ["edge_length_for_count", "count_for_edge_length", "isotropic_parameters", "isotropic_remesh", "remesh",
+           "mesh_arrays"]
 
 
 def edge_length_for_count(area, n_vertices):
@@ -45,6 +46,22 @@ def mesh_arrays(m):
     return V, np.ascontiguousarray(m.face_matrix(), dtype=np.int64)
 
 
+def isotropic_parameters(targetlen, *, iterations: int, feature_degrees: float) -> dict:
+    """Every parameter of pymeshlab's ``meshing_isotropic_explicit_remeshing``, named.
+
+    pymeshlab keeps, for the whole process, the last value passed to each filter parameter and uses it as
+    that parameter's default in later calls, on any ``MeshSet`` (a call with ``featuredeg=180`` made a
+    later call that left it out remesh with 180 instead of 30). So a call that leaves a parameter out
+    depends on what ran before it; every call in meshmei names them all. ``targetlen`` is a pymeshlab
+    ``PureValue`` or ``PercentageValue``; the rest are pymeshlab's documented defaults.
+    """
+    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
+
+    return dict(iterations=int(iterations), adaptive=False, selectedonly=False, targetlen=targetlen,
+                featuredeg=float(feature_degrees), checksurfdist=True, maxsurfdist=pymeshlab.PercentageValue(1.0),
+                splitflag=True, collapseflag=True, swapflag=True, smoothflag=True, reprojectflag=True)
+
+
 def isotropic_remesh(ms, h, *, iterations, feature_degrees):
     """Remesh the current mesh of the pymeshlab ``MeshSet`` ``ms`` in place to edge length ``h`` and return it.
 
@@ -70,8 +87,8 @@ def isotropic_remesh(ms, h, *, iterations, feature_degrees):
     """
     import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
 
-    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PureValue(h), iterations=iterations,
-                                            featuredeg=feature_degrees, reprojectflag=True)
+    ms.meshing_isotropic_explicit_remeshing(**isotropic_parameters(pymeshlab.PureValue(h), iterations=iterations,
+                                                                   feature_degrees=feature_degrees))
     ms.meshing_remove_unreferenced_vertices()
     return mesh_arrays(ms.current_mesh())
 

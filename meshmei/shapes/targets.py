@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .._checks import check_positive
 from ..errors import MeshError
-from .remeshing import mesh_arrays
+from .remeshing import isotropic_parameters, mesh_arrays
 
 __all__ = ["target_mesh", "bunny_path", "normalize_unit_diagonal", "TARGET_NAMES", "TEAPOT_FILE", "THIN_TARGETS"]
 
@@ -201,7 +201,8 @@ def _implicit(name):
     ms = pymeshlab.MeshSet()
     ms.create_implicit_surface(voxelsize=0.015, minx=-1, miny=-1, minz=-1, maxx=1, maxy=1, maxz=1,
                                expr=THIN_TARGETS[name])
-    ms.meshing_isotropic_explicit_remeshing(iterations=5, targetlen=pymeshlab.PercentageValue(1.0))
+    ms.meshing_isotropic_explicit_remeshing(**isotropic_parameters(pymeshlab.PercentageValue(1.0), iterations=5,
+                                                                   feature_degrees=30.0))
     V, F = mesh_arrays(ms.current_mesh())
     if _signed_volume(V, F) < 0:
         F = F[:, ::-1].copy()

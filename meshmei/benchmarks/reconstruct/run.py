@@ -42,8 +42,11 @@ def decimation_floor(Vt, Ft, n_faces, *, n_samples=100_000):
 
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vt.double().numpy(), face_matrix=Ft.numpy().astype(np.int32)))
-    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(n_faces), preservenormal=True,
-                                                preserveboundary=True, optimalplacement=True, qualitythr=0.3)
+    # every parameter named: pymeshlab keeps a parameter's last value as its default for the whole process
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(n_faces), targetperc=0.0, qualitythr=0.3,
+                                                preserveboundary=True, boundaryweight=1.0, preservenormal=True,
+                                                preservetopology=False, optimalplacement=True, planarquadric=False,
+                                                planarweight=0.001, qualityweight=False, autoclean=True, selected=False)
     V, F = (torch.as_tensor(x) for x in mesh_arrays(ms.current_mesh()))
     return surface_metrics(V, F, Vt.double(), Ft, n_samples=n_samples), int(V.shape[0]), int(F.shape[0])
 
