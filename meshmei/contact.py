@@ -59,13 +59,13 @@ def _point_triangle(P, A, B, C):
     # barycentric coordinates of the projection (Cramer's rule on the plane's normal), times nn: of B, of C
     u, v = ((torch.linalg.cross(torch.stack([ap, ab], -2), torch.stack([ac, ap], -2)) * n[..., None, :]) @ one).unbind(-1)
     inside = (u >= 0) & (v >= 0) & (u + v <= nn) & (nn > tiny)
-    plane = ((ap * n) @ one).square() / nn.clamp_min(tiny)
+    nn_c = nn.clamp_min(tiny)
+    plane = ((ap * n) @ one).square() / nn_c
     # the edges AB, BC, CA: the closest point of each, at t along it
     D = torch.stack([ab, C - B, A - C], -2)  # (k, 3, 3)
     PX = P[..., None, :] - torch.stack([A, B, C], -2)
     t = (((PX * D) @ one) / ((D * D) @ one).clamp_min(tiny)).clamp(0, 1)
     edge, which = ((PX - D * t[..., None]).square() @ one).min(-1)
-    nn_c = nn.clamp_min(tiny)
     return torch.where(inside, plane, edge), (inside, u / nn_c, v / nn_c, which, t)
 
 

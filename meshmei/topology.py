@@ -109,7 +109,7 @@ class MeshTopology:
         lo, hi = torch.minimum(a, b), torch.maximum(a, b)
         twin = self.twins
         tf = torch.where(twin >= 0, twin // 3, torch.full_like(twin, -1))
-        opp = torch.where(twin >= 0, F.reshape(-1)[(twin.clamp_min(0) // 3) * 3 + twin.clamp_min(0) % 3], lo)
+        opp = torch.where(twin >= 0, F.reshape(-1)[twin.clamp_min(0)], lo)  # corner k of face f is half-edge 3 f + k's
         return torch.cat([lo, hi, opp, tf, (a > b).long()], 1).contiguous()
 
     def adjacency_list(self) -> list[list[int]]:

@@ -150,11 +150,12 @@ class StepGuard:
         self.accepted = ref if rules.max_step is not None else None  # the last accepted vertices, for max_step
         # the float64 face frame of the last accepted candidate: the next objective's barrier screens its faces
         # with it (the same vertices) instead of computing the frame again
-        self._frame = self._accepted_frame = None
+        self._accepted_frame = None
 
     def _verdict(self, V: torch.Tensor, frame=None) -> tuple:
-        """``(rule, message, normals)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
-        them all), what is wrong, and ``V``'s face normals when they were computed (cheapest checks first).
+        """``(rule, message, frame)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
+        them all), what is wrong, and ``V``'s float64 :func:`face_frame` ``(normals, quality)`` when it was
+        computed (cheapest checks first; always when ``V`` meets the rules).
         ``frame``: :func:`face_frame` of ``V`` in float64, when already computed (a batch's, at once)."""
         if V.ndim != 2 or V.shape[1] != 3:
             raise MeshError(f"candidate vertices must have shape (n, 3), got {tuple(V.shape)}")
@@ -165,23 +166,24 @@ class StepGuard:
             moved = float((Vd - self.accepted).norm(dim=1).max())
             if moved > self.rules.max_step:
                 return "step", f"a vertex moved {moved:.3g}, more than {self.rules.max_step:.3g}, in one step", None
-        n, quality = face_frame(Vd, self.F) if frame is None else frame
-        self._frame = (Vd, n, quality)
+        frame = face_frame(Vd, self.F) if frame is None else frame
+        n, quality = frame
         q = float(quality.min())
         if q < self.quality_floor:
-            return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", n
+            return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", frame
         turned = (n * self.normals).sum(-1) < self.cos_bound - 1e-12
         turned &= (n.abs().sum(-1) > 0) & (self.normals.abs().sum(-1) > 0)  # a zero-area face has no direction
         if self.rules.max_turn_degrees < 180 and bool(turned.any()):
-            return "turn", f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees", n
+            why = f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees"
+            return "turn", why, frame
         if self.rules.self_intersections:
             if self.certificate is not None and self.certificate.holds(Vd, n):
                 self.certified += 1  # proven a graph over a plane, or star-shaped: no pair can intersect
-                return None, None, n
+                return None, None, frame
             pairs = count_self_intersections(Vd, self.F)
             if pairs > self.allowed_pairs:
-                return "intersection", f"{pairs} self-intersecting face pairs (start: {self.allowed_pairs})", n
-        return None, None, n
+                return "intersection", f"{pairs} self-intersecting face pairs (start: {self.allowed_pairs})", frame
+        return None, None, frame
 
     def why_not(self, V: torch.Tensor) -> str | None:
         """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first)."""
@@ -191,19 +193,19 @@ class StepGuard:
         """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``.
         ``frame``: :func:`face_frame` of ``V`` in float64, when already computed."""
         t0 = time.perf_counter()
-        self._frame = None
-        rule, _, normals = self._verdict(V, frame)
+        rule, _, frame = self._verdict(V, frame)
         self.checks += 1
         self._accepted_frame = None
         if rule is not None:
             self.failures += 1
             self.reasons[rule] += 1
         else:
-            self._accepted_frame = self._frame
+            Vd = V.detach().double()
+            self._accepted_frame = (Vd, *frame)
             if self.accepted is not None:
-                self.accepted = V.detach().double()
+                self.accepted = Vd
             if self.rules.turn_from == "step":
-                self.normals = normals
+                self.normals = frame[0]
         self.seconds += time.perf_counter() - t0
         return rule is None
 
