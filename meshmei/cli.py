@@ -43,7 +43,9 @@ def _add_model_options(p, instead: str) -> None:
                         "(give --mean and --std)")
     p.add_argument("--mean", type=float, default=None, help="training mean, in the model's pixel units (--model)")
     p.add_argument("--std", type=float, default=None, help="training std, in the model's pixel units (--model)")
-    p.add_argument("--norm", type=float, default=None, help="L2 norm of the preprocessed image (--model; default 25)")
+    p.add_argument("--norm", type=_norm, default=None,
+                   help="L2 norm of the preprocessed image, or 'none' to keep the standardised image as it is "
+                        "(--model; default 25)")
     p.add_argument("--channels", type=int, default=None, help="input channels of the model (--model; default 1)")
     p.add_argument("--pixel-range", default=None, metavar="LO,HI",
                    help="the model's pixel units for the renderer's 0..1, e.g. 0,255 (--model; default 0,1)")
@@ -63,7 +65,8 @@ def _add_mei(sub) -> None:
                    help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
     p.add_argument("--image-size", type=int, default=None,
-                   help=f"render size in pixels (default {d.image_size}, or the model's own size with --model)")
+                   help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
+                        "(default: what its factory sets, else 100), which it is rendered at")
     p.add_argument("--n-vertices", type=int, default=d.n_vertices)
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--weight", action="append", default=[], metavar="NAME=W",
@@ -118,6 +121,19 @@ def _pixel_range(text):
     return (lo, hi)
 
 
+_NO_NORM = "none"
+
+
+def _norm(text: str):
+    """``--norm``: a number, or ``none`` (no rescaling)."""
+    if text.strip().lower() == _NO_NORM:
+        return _NO_NORM
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
+
+
 def _cli_encoder(args, default=None):
     """The encoder of ``meshmei mei`` or ``demo``: ``--model`` (a lab's model, loaded and checked), else
     ``--encoder`` (mei) or ``default`` (demo: None, the shipped demo model)."""
@@ -127,11 +143,21 @@ def _cli_encoder(args, default=None):
         if given:
             raise MEIError(f"{', '.join(given)} apply to --model only")
         return make_encoder(args.encoder) if hasattr(args, "encoder") else default
-    options = dict(mean=args.mean, std=args.std, norm=args.norm, channels=args.channels, clip=args.clip,
-                   pixel_range=None if args.pixel_range is None else _pixel_range(args.pixel_range))
+    given = dict(mean=args.mean, std=args.std, norm=args.norm, channels=args.channels, clip=args.clip,
+                 pixel_range=None if args.pixel_range is None else _pixel_range(args.pixel_range),
+                 image_size=getattr(args, "image_size", None))  # --image-size: the model's input size
+    options = {k: (None if v == _NO_NORM else v) for k, v in given.items() if v is not None}  # what was given
     if args.data_key is not None:
         options["forward_kwargs"] = {"data_key": args.data_key}
     return load_model(args.model, **options)
+
+
+def _image_size(args, encoder) -> int:
+    """The render size: a lab's model's own (square) size, else ``--image-size``, else the default."""
+    size = getattr(encoder, "image_size", None)
+    if size is not None:
+        return int(size[0])
+    return args.image_size if args.image_size is not None else MEISettings.image_size
 
 
 def _run_mei(args) -> int:
@@ -139,7 +165,7 @@ def _run_mei(args) -> int:
     if out.exists() and not args.overwrite:
         raise MEIError(f"{out} exists; pass --overwrite to replace it")
     encoder = _cli_encoder(args)
-    image_size = args.image_size or getattr(encoder, "image_size", (MEISettings.image_size,))[0]
+    image_size = _image_size(args, encoder)
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
@@ -152,7 +178,7 @@ def _run_mei(args) -> int:
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:
-        pm = pixel_mei(encoder, args.neuron, image_size=image_size)
+        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", image_size))
         line += f"; pixel MEI {pm.activation:.4f}"
         res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
     save_run(res, out, overwrite=args.overwrite)
@@ -315,7 +341,8 @@ def _add_population(sub) -> None:
                    help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--image-size", type=int, default=None,
-                   help=f"render size in pixels (default {d.image_size}, or the model's own size with --model)")
+                   help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
+                        "(default: what its factory sets, else 100), which it is rendered at")
     p.add_argument("--n-vertices", type=int, default=d.n_vertices)
     p.add_argument("--out", required=True, help="the population folder (created, or resumed)")
     p.add_argument("--batch-size", type=int, default=8, help="(neuron, seed) items optimised together (default 8)")
@@ -331,8 +358,7 @@ def _add_population(sub) -> None:
 
 def _run_population(args) -> int:
     encoder = _cli_encoder(args)
-    image_size = args.image_size or getattr(encoder, "image_size", (MEISettings.image_size,))[0]
-    settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
+    settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=_image_size(args, encoder),
                            n_vertices=args.n_vertices, **_objective_settings(args))
     try:
         rows = run_population(encoder, parse_neurons(args.neurons), args.out, init=args.init, settings=settings,
@@ -367,7 +393,7 @@ def main(argv=None) -> int:
     except (ValueError, OSError, FloatingPointError) as err:
         # bad input (every meshmei error is a ValueError), files that are missing or in the way, a
         # diverging optimisation: one clear line, no traceback
-        print(f"meshmei {args.command}: error: {err}", file=sys.stderr)
+        print(f"meshmei {args.command}: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
 
 

@@ -311,3 +311,185 @@ def test_the_main_job_runs_on_a_labs_model(tmp_path):
     summary = json.loads((out / "mei" / "summary.json").read_text())
     assert summary["encoder"]["kind"] == "model" and summary["settings"]["image_size"] == 40
     assert (out / "summary.png").is_file()
+
+
+class Normed(torch.nn.Module):
+    """A conv, a batch norm and a pooled linear readout; records its training flags per call."""
+
+    def __init__(self, n_neurons=3):
+        super().__init__()
+        torch.manual_seed(4)
+        self.conv, self.bn = torch.nn.Conv2d(1, 4, 5, 4), torch.nn.BatchNorm2d(4)
+        self.head = torch.nn.Linear(4, n_neurons)
+        self.seen = []
+
+    def forward(self, x, data_key=None):
+        self.seen.append((self.training, self.bn.training))
+        return self.head(torch.relu(self.bn(self.conv(x))).mean((2, 3)))
+
+
+def _modes(model):
+    return [m.training for m in model.modules()]
+
+
+def test_the_models_own_modes_are_kept_and_restored_submodule_by_submodule():
+    frozen_bn = Normed()
+    frozen_bn.train()
+    frozen_bn.bn.eval()  # a model fine-tuned with its batch norm frozen
+    for model in (Normed().eval(), frozen_bn):
+        before, stats = _modes(model), model.bn.running_mean.clone()
+        enc = encoder_from_model(model, mean=0.5, std=0.2, image_size=32)
+        assert _modes(model) == before  # wrapping changes no mode
+        optimize_mei(enc, 1, "sheet", **SMALL, image_size=32)
+        assert _modes(model) == before and torch.equal(model.bn.running_mean, stats)
+        assert model.seen and all(seen == (False, False) for seen in model.seen)
+
+
+def test_pose_and_light_sweeps_run_the_model_in_eval_mode():
+    from meshmei.tuning import light_sweep
+
+    model = Normed()
+    enc = encoder_from_model(model, mean=0.5, std=0.2, image_size=32)
+    res = optimize_mei(enc, 0, "sheet", **SMALL, image_size=32)
+    model.train()
+    model.seen.clear()
+    stats = model.bn.running_mean.clone()
+    pose_sweep(res, enc, elevation=[-5.0, 5.0], azimuth=[0.0])
+    light_sweep(res, enc, elevation=[30.0], azimuth=[0.0, 90.0])
+    assert model.seen and all(seen == (False, False) for seen in model.seen)
+    assert model.training and torch.equal(model.bn.running_mean, stats)
+
+
+@pytest.mark.parametrize("wrap", [lambda m: __import__("functools").partial(m, data_key="s1"),
+                                  lambda m: m.forward, lambda m: (lambda x: m(x, data_key="s1"))],
+                         ids=["partial", "bound-forward", "closure"])
+def test_a_callable_that_holds_a_model_is_frozen_like_the_model(wrap):
+    model = Normed().train()
+    enc = encoder_from_model(wrap(model), mean=0.5, std=0.2, image_size=32)
+    model.seen.clear()
+    optimize_mei(enc, 2, "sheet", **SMALL, image_size=32)
+    assert model.seen and all(seen == (False, False) for seen in model.seen)
+    assert model.training and all(p.requires_grad and p.grad is None for p in model.parameters())
+
+
+def test_wrong_shapes_and_failures_during_a_run_are_named():
+    with pytest.raises(EncoderError, match=r"for a batch of 1 it returned \(3,\), expected \(1, 3\)"):
+        encoder_from_model(lambda x: x.flatten(1)[:, :3].squeeze(), mean=0.5, std=0.2, image_size=16)
+    calls = []
+
+    def flaky(x):
+        calls.append(1)
+        if len(calls) > 4:
+            raise RuntimeError("CUDA error: an illegal memory access\nmore detail")
+        return x.flatten(1)[:, :3]
+
+    enc = encoder_from_model(flaky, mean=0.5, std=0.2, image_size=16)
+    with pytest.raises(EncoderError, match=r"the model failed on images of shape \(1, 1, 16, 16\) with no keyword "
+                                           r"arguments: RuntimeError: CUDA error: an illegal memory access more detail"):
+        optimize_mei(enc, 0, "sheet", **SMALL, image_size=16)
+    with pytest.raises(EncoderError, match="the ensemble's models return different shapes"):
+        encoder_from_model([lambda x: x.flatten(1)[:, :3], lambda x: x.flatten(1)[:, :4]], mean=0.5, std=0.2,
+                           image_size=16)
+
+
+FACTORIES = """
+    import torch
+    from helper_beside import make  # a module next to the factory
+
+    def build():
+        return {"model": make(), "mean": 0.5, "std": 0.2, "image_size": 24, "forward_kwargs": {"multiplex": False}}
+
+    def unknown_key():
+        return {"model": make(), "mean": 0.5, "std": 0.2, "data_key": "s1"}
+
+    def bad_checkpoint():
+        m = make()
+        m.load_state_dict({"weight": torch.zeros(1)})
+"""
+
+HELPER = """
+    import torch
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            torch.manual_seed(3)
+            self.lin = torch.nn.Linear(24 * 24, 4)
+
+        def forward(self, x, multiplex=True, data_key=None):
+            assert multiplex is False
+            return self.lin(x.flatten(1)) + (0.0 if data_key is None else 1.0)
+
+    def make():
+        return Net()
+"""
+
+
+def test_a_factorys_dict_and_the_options_are_merged_and_checked(tmp_path):
+    (tmp_path / "helper_beside.py").write_text(textwrap.dedent(HELPER))
+    path = _write_factory(tmp_path, FACTORIES)
+    enc = load_model(f"{path}:build", forward_kwargs={"data_key": "s1"}, norm=None)
+    assert enc.forward_kwargs == {"multiplex": False, "data_key": "s1"}  # merged key by key
+    assert not enc.preprocess.renorm  # norm=None: no rescaling, as encoder_from_model's
+    for options, message in [(dict(mean=3.0), "sets mean=0.5 and the options give mean=3.0"),
+                             (dict(image_size=32), "sets image_size=24 and the options give image_size=32"),
+                             (dict(forward_kwargs={"multiplex": True}), "passes forward_kwargs"),
+                             (dict(data_key="s1"), r"unknown adapter options \['data_key'\]")]:
+        with pytest.raises(EncoderError, match=message):
+            load_model(f"{path}:build", **options)
+    assert load_model(f"{path}:build", image_size=24, mean=0.5).image_size == (24, 24)  # the same value: fine
+    with pytest.raises(EncoderError, match=r"returned unknown keys \['data_key'\]"):
+        load_model(f"{path}:unknown_key")
+    with pytest.raises(EncoderError) as err:
+        load_model(f"{path}:bad_checkpoint")
+    assert "Missing key(s)" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_run_with_an_option_json_cannot_hold_is_saved_and_says_so(tmp_path):
+    from meshmei.mei import save_run
+
+    (tmp_path / "helper_beside.py").write_text(textwrap.dedent(HELPER))
+    path = _write_factory(tmp_path, FACTORIES)
+    enc = load_model(f"{path}:build", output=lambda out: out)  # an option JSON cannot hold
+    res = optimize_mei(enc, 0, "sheet", **SMALL)
+    save_run(res, tmp_path / "run", figures=False)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["encoder"]["source"]["unrecorded"] == ["output"]
+    with pytest.raises(MEIError, match=r"options that a run folder cannot record \(output\)"):
+        load_run(tmp_path / "run", rebuild_encoder=True)
+    assert load_run(tmp_path / "run", encoder=enc).activation == res.activation
+
+
+def test_a_changed_model_is_told_apart_from_the_runs(tmp_path):
+    from meshmei.encoders import model_fingerprint
+
+    a, b = Normed(), Normed()
+    ea = encoder_from_model(a, mean=0.5, std=0.2, image_size=32)
+    assert model_fingerprint(ea) == model_fingerprint(encoder_from_model(b, mean=0.5, std=0.2, image_size=32))
+    with torch.no_grad():
+        b.head.bias[0] += 1e-6
+    assert model_fingerprint(ea) != model_fingerprint(encoder_from_model(b, mean=0.5, std=0.2, image_size=32))
+    path = _write_factory(tmp_path, FACTORY)
+    out = tmp_path / "run"
+    assert main(["mei", "--model", f"{path}:build", "--data-key", "all_sessions", "--out", str(out), "--steps", "2",
+                 "--seeds", "0", "--n-vertices", "100", "--quiet"]) == 0
+    path.write_text(path.read_text().replace("torch.manual_seed(0)", "torch.manual_seed(1)"))
+    with pytest.raises(MEIError, match="is not the run's any more"):
+        load_run(out, rebuild_encoder=True)
+
+
+def test_the_cli_gives_a_torchscript_model_its_input_size_and_the_pixel_mei_its_size(tmp_path, capsys):
+    path = tmp_path / "fixed.ts"
+    torch.manual_seed(0)
+    torch.jit.script(torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(32 * 32, 3))).save(str(path))
+    out = tmp_path / "run"
+    rc = main(["mei", "--model", str(path), "--mean", "0.5", "--std", "0.2", "--image-size", "32", "--pixel-mei",
+               "--out", str(out), "--steps", "2", "--seeds", "0", "--n-vertices", "100", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["image_size"] == 32 and summary["encoder"]["image_size"] == [32, 32]
+    assert math.isfinite(summary["pixel_mei_activation"])
+    rc = main(["mei", "--model", str(path), "--mean", "0.5", "--std", "0.2", "--out", str(tmp_path / "other"),
+               "--steps", "1", "--quiet"])  # at the default 100 the model cannot run: one line, code 2
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "mat1 and mat2 shapes cannot be multiplied" in err and "\n" not in err

@@ -23,7 +23,7 @@ edge to +1 at the right edge, ``y`` from -1 at the top to +1 at the bottom (``gr
 both over the full image, so a parameter set means the same at any resolution.
 """
 
-from .adapter import ModelEncoder, PixelPreprocess, encoder_from_model, load_model
+from .adapter import ModelEncoder, PixelPreprocess, encoder_from_model, load_model, model_fingerprint
 from .base import DEFAULT_NORM, Encoder, EncoderError, Preprocess, eval_mode, frozen_encoder
 from .core_readout import (
     DEMO_MODEL_PATH,
@@ -34,7 +34,7 @@ from .core_readout import (
     load_demo_model,
 )
 from .gabor import GaborComplexCell, GaborSimpleCell, gabor_filters
-from .registry import encoder_from_spec, encoder_spec, make_encoder
+from .registry import encoder_from_spec, encoder_identity, encoder_spec, make_encoder
 
 __all__ = [
     "EncoderError",
@@ -54,9 +54,11 @@ __all__ = [
     "is_demo_model",
     "make_encoder",
     "encoder_spec",
+    "encoder_identity",
     "encoder_from_spec",
     "ModelEncoder",
     "PixelPreprocess",
     "encoder_from_model",
     "load_model",
+    "model_fingerprint",
 ]

@@ -20,8 +20,13 @@ The model runs in eval mode with no parameter gradients whenever meshmei optimis
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import importlib.util
+import inspect
+import json
 import math
+import sys
 from pathlib import Path
 
 import torch
@@ -31,7 +36,7 @@ from .._checks import check_positive
 from ..errors import EncoderError
 from .base import DEFAULT_NORM, Encoder, Preprocess, eval_mode
 
-__all__ = ["ModelEncoder", "PixelPreprocess", "encoder_from_model", "load_model", "model_source"]
+__all__ = ["ModelEncoder", "PixelPreprocess", "encoder_from_model", "load_model", "model_source", "model_fingerprint"]
 
 
 class PixelPreprocess(Preprocess):
@@ -76,6 +81,79 @@ class PixelPreprocess(Preprocess):
         return super().extra_repr() + f", pixel_range=({lo:g}, {hi:g}), clip={self.clip}, renorm={self.renorm}"
 
 
+def one_line(err: BaseException, limit: int = 300) -> str:
+    """``Type: message`` of an exception on one line, for an error that names what a model or factory raised:
+    TorchScript's traceback is cut down to its last line (the error it ends with), line breaks are folded,
+    and the text is cut at ``limit``."""
+    text = str(err)
+    head, sep, trace = text.partition("Traceback of TorchScript")
+    if sep:
+        lines = [line.strip() for line in trace.splitlines() if line.strip()]
+        text = head + " " + (lines[-1] if lines else "")
+    text = " ".join(text.split())
+    if len(text) > limit:
+        text = text[: limit - 4].rstrip() + " ..."
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def _held_modules(fn, depth: int = 2) -> list:
+    """The ``torch.nn.Module`` objects a callable holds: a module itself, a ``functools.partial``'s function
+    and arguments, a bound method's object, a function's closure cells and defaults, an object's attributes
+    (``depth`` levels of such wrapping)."""
+    if isinstance(fn, torch.nn.Module):
+        return [fn]
+    if depth == 0 or fn is None:
+        return []
+    if isinstance(fn, functools.partial):
+        parts = [fn.func, *fn.args, *fn.keywords.values()]
+    elif inspect.ismethod(fn):
+        parts = [fn.__self__]
+    elif inspect.isfunction(fn):
+        parts = [c.cell_contents for c in (fn.__closure__ or ()) if _cell_full(c)]
+        parts += list(fn.__defaults__ or ()) + [getattr(fn, "__wrapped__", None)]
+    elif isinstance(fn, (list, tuple)):
+        parts = list(fn)
+    elif isinstance(fn, dict):
+        parts = list(fn.values())
+    else:
+        parts = list(getattr(fn, "__dict__", {}).values())
+    return [m for part in parts for m in _held_modules(part, depth - 1)]
+
+
+def _cell_full(cell) -> bool:
+    try:
+        cell.cell_contents
+    except ValueError:  # an empty cell (a name not yet bound)
+        return False
+    return True
+
+
+def model_fingerprint(encoder: "ModelEncoder") -> str:
+    """A hash of what a :class:`ModelEncoder` computes with: every parameter and buffer (names, dtypes, shapes
+    and values) of its modules, the code of a plain callable, and the source of module classes defined
+    outside torch. Two encoders with the same fingerprint and options give the same responses; a changed
+    weight or forward gives another fingerprint (a population folder then refuses to mix them)."""
+    h = hashlib.sha256()
+    for m in (*encoder.models, *encoder.held):
+        for name, t in m.state_dict().items():
+            t = t.detach().contiguous().cpu().reshape(-1)
+            h.update(f"{name}:{t.dtype}:{t.numel()}".encode())
+            h.update(t.view(torch.uint8).numpy().tobytes())
+        for cls in {type(sub) for sub in m.modules()}:
+            if not cls.__module__.startswith("torch."):
+                h.update(cls.__qualname__.encode())
+                try:
+                    h.update(inspect.getsource(cls).encode())
+                except (OSError, TypeError):
+                    pass
+    for c in encoder.callables:
+        code = getattr(c, "__code__", None) or getattr(getattr(c, "func", None), "__code__", None)
+        h.update(getattr(c, "__qualname__", type(c).__qualname__).encode())
+        if code is not None:
+            h.update(code.co_code + repr(code.co_consts).encode())
+    return h.hexdigest()[:16]
+
+
 def _pick(out, output):
     """The response tensor of a model's output: ``output`` None (the output itself), an int (a tuple's
     element), a str (a dict's key) or a callable."""
@@ -112,7 +190,12 @@ class ModelEncoder(Encoder):
         super().__init__(preprocess)
         self.models = torch.nn.ModuleList([m for m in models if isinstance(m, torch.nn.Module)])
         self.callables = [m for m in models if not isinstance(m, torch.nn.Module)]
-        self._n = int(n_neurons)
+        # the modules a callable holds (a partial, a bound method, a closure): registered here too, so that
+        # eval mode, frozen parameters and the device reach them
+        own = {id(m) for m in self.models}
+        held = {id(m): m for c in self.callables for m in _held_modules(c) if id(m) not in own}
+        self.held = torch.nn.ModuleList(held.values())
+        self._n, self._probed = int(n_neurons), False
         self.channels, self.image_size = int(channels), tuple(int(s) for s in image_size)
         self.forward_kwargs, self.output, self.source = dict(forward_kwargs), output, source
 
@@ -123,9 +206,9 @@ class ModelEncoder(Encoder):
     @property
     def device(self) -> torch.device:
         """The device of the models' parameters (CPU for a model without parameters)."""
-        for p in self.models.parameters():
+        for p in self.parameters():
             return p.device
-        for b in self.models.buffers():
+        for b in self.buffers():
             return b.device
         return torch.device("cpu")
 
@@ -144,8 +227,36 @@ class ModelEncoder(Encoder):
     def all_responses(self, z: torch.Tensor) -> torch.Tensor:
         """Every neuron's response ``(B, N)`` to preprocessed images ``z`` ``(B, 1, H, W)`` (the ensemble mean)."""
         x = z.expand(-1, self.channels, -1, -1) if self.channels != 1 else z
-        outs = [_pick(m(x, **self.forward_kwargs), self.output) for m in (*self.models, *self.callables)]
+        outs = []
+        for i, m in enumerate((*self.models, *self.callables)):
+            try:
+                out = _pick(m(x, **self.forward_kwargs), self.output)
+            except EncoderError:
+                raise
+            except Exception as err:  # the model's own failure, named with what it was given
+                raise EncoderError(f"the model{self._member(i)} failed on images of shape {tuple(x.shape)} with "
+                                   f"{self.forward_kwargs or 'no keyword arguments'}: {one_line(err)}") from err
+            outs.append(self._checked(out, x.shape[0], i))
+        if len(outs) > 1 and len({o.shape for o in outs}) > 1:
+            raise EncoderError(f"the ensemble's models return different shapes: {[tuple(o.shape) for o in outs]}")
         return outs[0] if len(outs) == 1 else torch.stack(outs).mean(0)
+
+    def _member(self, i: int) -> str:
+        n = len(self.models) + len(self.callables)
+        return f" (member {i} of the ensemble of {n})" if n > 1 else ""
+
+    def _checked(self, out, batch: int, i: int) -> torch.Tensor:
+        """``out`` if it is a ``(batch, N)`` float tensor (``N`` the probed count once known), else EncoderError."""
+        if not isinstance(out, torch.Tensor):
+            raise EncoderError(f"the model{self._member(i)} returned a {type(out).__name__}, not a tensor of "
+                               f"responses (B, N); pick the response with output=<index, key or callable>")
+        if out.ndim != 2 or out.shape[0] != batch or out.shape[1] < 1 or (self._probed and out.shape[1] != self._n):
+            want = f"({batch}, {self._n})" if self._probed else f"({batch}, N)"
+            raise EncoderError(f"the model{self._member(i)} must return responses of shape (B, N); for a batch of "
+                               f"{batch} it returned {tuple(out.shape)}, expected {want}")
+        if not out.is_floating_point():
+            raise EncoderError(f"the model must return float responses, got dtype {out.dtype}")
+        return out
 
     def respond(self, z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         return self.all_responses(z).index_select(1, idx)
@@ -161,32 +272,22 @@ def _positive_int(name, value):
 
 
 def _probe(encoder: ModelEncoder) -> int:
-    """Run the model once on a gray image at its size; the neuron count, or EncoderError naming what arrived."""
+    """Run the model on gray images at its size, a batch of 2 and a batch of 1 (a 3D-MEI step renders one
+    image): the neuron count, or EncoderError naming what arrived."""
     H, W = encoder.image_size
     x = torch.full((2, 1, H, W), 0.5, device=encoder.device)
     x[1, :, : H // 2] = 0.25  # two different images: a model that ignores its batch shows up as (1, N)
     pre = encoder.preprocess.to(encoder.device)
-    try:
-        with torch.no_grad():
-            z = pre.rescale(pre.standardise(x))
-            out = encoder.all_responses(z)
-    except EncoderError:
-        raise
-    except Exception as err:
-        raise EncoderError(f"the model failed on a batch of 2 gray images of shape (2, {encoder.channels}, {H}, {W}) "
-                           f"with {encoder.forward_kwargs or 'no keyword arguments'}: {type(err).__name__}: {err}") from None
-    if not isinstance(out, torch.Tensor):
-        raise EncoderError(f"the model returned a {type(out).__name__}, not a tensor of responses (B, N); pick the "
-                           f"response with output=<index, key or callable>")
-    if out.ndim != 2 or out.shape[0] != 2 or out.shape[1] < 1:
-        raise EncoderError(f"the model must return responses of shape (B, N); for a batch of 2 it returned "
-                           f"{tuple(out.shape)}")
-    if not bool(torch.isfinite(out).all()):
-        raise EncoderError(f"the model returned non-finite responses to a gray image ({int((~torch.isfinite(out)).sum())} "
-                           f"of {out.numel()} values NaN or Inf)")
-    if not out.is_floating_point():
-        raise EncoderError(f"the model must return float responses, got dtype {out.dtype}")
-    return int(out.shape[1])
+    with torch.no_grad():
+        z = pre.rescale(pre.standardise(x))
+        out = encoder.all_responses(z)
+        encoder._n, encoder._probed = int(out.shape[1]), True
+        one = encoder.all_responses(z[:1])  # the same count for a single image (a model ending in squeeze())
+    if not bool(torch.isfinite(out).all() & torch.isfinite(one).all()):
+        bad = int((~torch.isfinite(out)).sum())
+        raise EncoderError(f"the model returned non-finite responses to a gray image ({bad} of {out.numel()} "
+                           f"values NaN or Inf)")
+    return encoder._n
 
 
 def encoder_from_model(model, *, mean: float, std: float, norm: float | None = DEFAULT_NORM, channels: int = 1,
@@ -251,7 +352,7 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
         raise EncoderError(f"the models' parameters are on several devices: {sorted(map(str, devices))}")
     enc.preprocess.to(enc.device)
     with eval_mode(enc):  # the probe runs as the optimisation will: in eval mode
-        enc._n = _probe(enc)
+        _probe(enc)
     return enc
 
 
@@ -263,30 +364,45 @@ def model_source(spec: str) -> tuple:
     return Path(spec), None
 
 
+_OPTIONS = tuple(inspect.signature(encoder_from_model).parameters)[1:]  # the adapter's keyword arguments
+
+
 def load_model(spec: str, **adapter_options) -> ModelEncoder:
     """A :class:`ModelEncoder` from a ``--model`` spec.
 
     ``path/to/model.py:build``: ``build()`` returns an encoder made with :func:`encoder_from_model`, or a dict
     of its arguments (``{"model": m, "mean": 124.5, "std": 70.3, ...}``); ``adapter_options`` fill in what
-    the dict leaves out. ``model.ts`` (or ``.pt``): a TorchScript module, with its statistics in
-    ``adapter_options`` (``mean`` and ``std`` are required). The spec is recorded as the encoder's
-    ``source``, so a saved run can load the model again.
+    the dict leaves out, and an option the dict sets to another value is an error (``forward_kwargs`` are
+    merged key by key). The factory's folder is on ``sys.path`` while it is imported and called, so it can
+    import its neighbours; relative file paths inside it resolve against the working directory.
+    ``model.ts`` (or ``.pt``): a TorchScript module, with its statistics in ``adapter_options`` (``mean`` and
+    ``std`` are required; ``image_size`` is its input size, default 100). The spec is recorded as the
+    encoder's ``source``, so a saved run can load the model again; options that are not JSON (a callable
+    ``output``) are named there as unrecorded, and such a run cannot rebuild its model by itself.
 
     Raises
     ------
     EncoderError
-        A missing file, a factory that fails or returns something else, or a model the adapter refuses.
+        A missing file, a factory that fails or returns something else, an unknown or conflicting option,
+        or a model the adapter refuses.
     """
+    unknown = sorted(set(adapter_options) - set(_OPTIONS) - {"model"})
+    if unknown:
+        raise EncoderError(f"unknown adapter options {unknown}; encoder_from_model takes {list(_OPTIONS)}")
     path, attr = model_source(spec)
     if not path.is_file():
         raise EncoderError(f"no model file at {path}")
-    options = {k: v for k, v in adapter_options.items() if v is not None}
-    source = {"spec": str(spec), "path": str(path.resolve()), "factory": attr, "options": _jsonable(options)}
+    options = dict(adapter_options)
+    recorded, unrecorded = _jsonable(options)
+    source = {"spec": str(spec), "path": str(path.resolve()), "factory": attr, "options": recorded,
+              "sha256": _file_hash(path)}
+    if unrecorded:
+        source["unrecorded"] = unrecorded
     if attr is None:
         try:
             module = torch.jit.load(str(path), map_location="cpu")
         except Exception as err:
-            raise EncoderError(f"{path} is not a TorchScript file ({type(err).__name__}: {err}); for Python code "
+            raise EncoderError(f"{path} is not a TorchScript file ({one_line(err)}); for Python code "
                                f"pass path/to/model.py:factory") from None
         missing = [k for k in ("mean", "std") if k not in options]
         if missing:
@@ -305,34 +421,75 @@ def load_model(spec: str, **adapter_options) -> ModelEncoder:
     if not isinstance(built, dict) or "model" not in built:
         raise EncoderError(f"{spec} must return an encoder made with meshmei.encoder_from_model or a dict with "
                            f"'model', 'mean' and 'std'; it returned a {type(built).__name__}")
-    kwargs = {**options, **built}
+    bad = sorted(set(built) - set(_OPTIONS) - {"model"})
+    if bad:
+        raise EncoderError(f"{spec} returned unknown keys {bad}; encoder_from_model takes 'model' and {list(_OPTIONS)}")
+    kwargs = _merge(spec, built, options)
     missing = [k for k in ("mean", "std") if k not in kwargs]
     if missing:
         raise EncoderError(f"{spec} gave no {', '.join(missing)}; return them in the dict or pass them as options")
     return encoder_from_model(kwargs.pop("model"), source=source, **kwargs)
 
 
+def _merge(spec: str, built: dict, options: dict) -> dict:
+    """The factory's dict completed by the options; an option the dict sets otherwise is an error."""
+    kwargs = dict(built)
+    for k, v in options.items():
+        if k == "forward_kwargs" and isinstance(built.get(k), dict) and isinstance(v, dict):
+            clash = sorted(key for key in v if key in built[k] and built[k][key] != v[key])
+            if clash:
+                raise EncoderError(f"{spec} passes forward_kwargs {({c: built[k][c] for c in clash})} and the options "
+                                   f"give {({c: v[c] for c in clash})}; set each in one place")
+            kwargs[k] = {**built[k], **v}
+        elif k in built and not _same(built[k], v):
+            raise EncoderError(f"{spec} sets {k}={built[k]!r} and the options give {k}={v!r}; set it in one place")
+        else:
+            kwargs[k] = v
+    return kwargs
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(a == b) or (isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)) and list(a) == list(b))
+    except Exception:
+        return False
+
+
+def _file_hash(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
 def _call_factory(path: Path, attr: str):
     name = f"meshmei_user_model_{abs(hash(str(path.resolve())))}"
+    folder = str(path.resolve().parent)
+    sys.path.insert(0, folder)  # the factory may import modules beside it
     try:
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    except Exception as err:
-        raise EncoderError(f"importing {path} failed: {type(err).__name__}: {err}") from None
-    factory = getattr(module, attr, None)
-    if not callable(factory):
-        raise EncoderError(f"{path} has no callable {attr!r}")
-    try:
-        return factory()
-    except Exception as err:
-        raise EncoderError(f"{path}:{attr}() failed: {type(err).__name__}: {err}") from None
+        try:
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        except Exception as err:
+            raise EncoderError(f"importing {path} failed: {one_line(err)}") from None
+        factory = getattr(module, attr, None)
+        if not callable(factory):
+            raise EncoderError(f"{path} has no callable {attr!r}")
+        try:
+            return factory()
+        except Exception as err:
+            raise EncoderError(f"{path}:{attr}() failed: {one_line(err)}") from None
+    finally:
+        sys.path.remove(folder)
 
 
-def _jsonable(options: dict) -> dict:
-    out = {}
+def _jsonable(options: dict) -> tuple[dict, list]:
+    """``(recorded, unrecorded)``: the options that survive JSON (tuples as lists), and the names of the rest."""
+    out, left = {}, []
     for k, v in options.items():
-        if isinstance(v, tuple):
-            v = list(v)
+        v = list(v) if isinstance(v, tuple) else v
+        try:
+            json.dumps(v, allow_nan=False)
+        except (TypeError, ValueError):
+            left.append(k)
+            continue
         out[k] = v
-    return out
+    return out, left

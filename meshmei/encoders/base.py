@@ -179,13 +179,16 @@ class Encoder(torch.nn.Module):
 
 @contextlib.contextmanager
 def eval_mode(module: torch.nn.Module):
-    """Put ``module`` in eval mode (deterministic readout) for the block, then restore its mode."""
-    was = module.training
+    """Put ``module`` in eval mode (deterministic readout) for the block, then restore the mode of each of
+    its submodules as it was (a model in eval mode stays in eval mode; a frozen batch norm inside a model in
+    training mode stays frozen)."""
+    modes = [(m, m.training) for m in module.modules()]  # parents before children
     module.eval()
     try:
         yield module
     finally:
-        module.train(was)
+        for m, was in modes:  # a parent's train() sets its children; each child is then set to its own
+            m.train(was)
 
 
 @contextlib.contextmanager

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from ..errors import EncoderError, MEIError
-from .adapter import ModelEncoder, load_model
+from .adapter import ModelEncoder, load_model, model_fingerprint
 from .base import Encoder
 from .core_readout import is_demo_model, load_demo_model
 from .gabor import GaborComplexCell, GaborSimpleCell
 
-__all__ = ["make_encoder", "encoder_spec", "encoder_from_spec"]
+__all__ = ["make_encoder", "encoder_spec", "encoder_identity", "encoder_from_spec"]
 
 
 def encoder_spec(encoder: Encoder) -> dict:
@@ -26,9 +26,21 @@ def encoder_spec(encoder: Encoder) -> dict:
                     channels=encoder.channels, pixel_range=list(encoder.preprocess.pixel_range),
                     clip=encoder.preprocess.clip, renorm=encoder.preprocess.renorm,
                     forward_kwargs={k: v for k, v in encoder.forward_kwargs.items()
-                                    if isinstance(v, (str, int, float, bool, type(None)))})
+                                    if isinstance(v, (str, int, float, bool, type(None)))},
+                    fingerprint=model_fingerprint(encoder))
     else:
         spec["kind"] = "custom"
+    return spec
+
+
+def encoder_identity(encoder: Encoder) -> dict:
+    """:func:`encoder_spec` without where a lab's model was loaded from (the spec as typed and the resolved
+    path): what makes two encoders compute the same, for a configuration hash. The same model file reached by
+    another path (another job's working directory) has the same identity; changed weights, code or options
+    do not (its ``fingerprint`` and the file's ``sha256``)."""
+    spec = encoder_spec(encoder)
+    if isinstance(spec.get("source"), dict):
+        spec["source"] = {k: v for k, v in spec["source"].items() if k not in ("spec", "path")}
     return spec
 
 
@@ -63,11 +75,18 @@ def encoder_from_spec(spec: dict) -> Encoder:
         return make_encoder("demo")
     if kind == "model" and spec.get("source"):
         src = spec["source"]
+        if src.get("unrecorded"):
+            raise MEIError(f"the run's model was loaded with options that a run folder cannot record "
+                           f"({', '.join(src['unrecorded'])}); load it yourself and pass encoder=... to load_run")
         try:
             enc = load_model(src["path"] + (f":{src['factory']}" if src.get("factory") else ""), **src["options"])
         except EncoderError as err:
             raise MEIError(f"cannot load the run's model again: {err}") from None
         if enc.n_neurons != spec["n_neurons"]:
             raise MEIError(f"the model at {src['path']} now has {enc.n_neurons} neurons; the run's had {spec['n_neurons']}")
+        if spec.get("fingerprint") and model_fingerprint(enc) != spec["fingerprint"]:
+            raise MEIError(f"the model at {src['path']} is not the run's any more (its weights or code changed: "
+                           f"fingerprint {model_fingerprint(enc)}, the run's {spec['fingerprint']}); a factory must "
+                           f"build the same model every time (load its weights, or seed its initialisation)")
         return enc
     raise MEIError(f"cannot rebuild a {spec.get('class')} encoder from a run directory; pass encoder=... to load_run")

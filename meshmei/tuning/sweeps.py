@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..encoders import frozen_encoder
 from ..errors import TuningError
 from ..render import DEFAULT_DISTANCE, render
 from .grids import check_angles, light_positions, pose_rotations
@@ -100,14 +101,16 @@ def _neurons(encoder, neurons, result):
 
 @torch.no_grad()
 def _respond(encoder, V, F, neurons, scene, batch_size, **batched):
-    """Render the batched scene parameters in chunks and return responses ``(N, k)``."""
+    """Render the batched scene parameters in chunks and return responses ``(N, k)``; the encoder runs in
+    eval mode, as in the optimisation (its mode is restored after)."""
     n = next(iter(batched.values())).shape[0]
     out = []
-    for s in range(0, n, batch_size):
-        kw = dict(scene)
-        kw.update({k: v[s:s + batch_size] for k, v in batched.items()})
-        img = render(V, F, **kw)
-        out.append(encoder(img, neurons).double().cpu())
+    with frozen_encoder(encoder):
+        for s in range(0, n, batch_size):
+            kw = dict(scene)
+            kw.update({k: v[s:s + batch_size] for k, v in batched.items()})
+            img = render(V, F, **kw)
+            out.append(encoder(img, neurons).double().cpu())
     return torch.cat(out).numpy()
 
 
@@ -173,7 +176,7 @@ def light_sweep(result, encoder, *, neurons=None, elevation=np.linspace(0, 90, 1
     ref_scene = dict(scene)
     if orig is not None:
         ref_scene["light"] = orig
-    with torch.no_grad():
+    with torch.no_grad(), frozen_encoder(encoder):
         ref = encoder(render(V, F, **ref_scene), neurons).double().reshape(-1).tolist()
     axes = (("elevation", check_angles("elevation", elevation)), ("azimuth", check_angles("azimuth", azimuth)))
     return Sweep("light", resp.T.reshape(len(neurons), *P.shape[:2]), axes, tuple(neurons), {"responses": ref},
