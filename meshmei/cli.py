@@ -14,6 +14,7 @@ import torch
 from .encoders import load_model, make_encoder
 from .errors import MEIError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
+from .mei.optimize import start_from_file
 from .plots import diverse_figure
 from .population import parse_neurons, run_population
 from .regularizer_table import tabulate_regularizers
@@ -59,7 +60,9 @@ def _add_mei(sub) -> None:
     p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS, help="a built-in encoder (default gabor-simple)")
     _add_model_options(p, "--encoder")
     p.add_argument("--neuron", type=int, default=0)
-    p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
+    p.add_argument("--init", default="sheet",
+                   help=f"{', '.join(INITIAL_KINDS)} (default sheet), or a mesh file, centred and scaled to a "
+                        "largest side of 1 as the built-in starts")
     p.add_argument("--out", required=True, help="run directory to write (must not exist unless --overwrite)")
     p.add_argument("--steps", type=int, default=None,
                    help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
@@ -160,19 +163,29 @@ def _image_size(args, encoder) -> int:
     return args.image_size if args.image_size is not None else MEISettings.image_size
 
 
+def _mei_start(init: str):
+    """``--init`` of ``meshmei mei``: a built-in start by name, or a mesh file (:func:`start_from_file`)."""
+    if init in INITIAL_KINDS:
+        return init
+    if not Path(init).is_file():
+        raise MEIError(f"--init must be one of {', '.join(INITIAL_KINDS)} or a mesh file; {init!r} is neither")
+    return start_from_file(init)
+
+
 def _run_mei(args) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise MEIError(f"{out} exists; pass --overwrite to replace it")
     encoder = _cli_encoder(args)
+    init = _mei_start(args.init)
     image_size = _image_size(args, encoder)
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
                            **_objective_settings(args))
     if args.diverse > 1:
-        return _run_diverse(args, encoder, settings, out)
-    res = optimize_mei(encoder, args.neuron, args.init, settings, progress=not args.quiet)
+        return _run_diverse(args, encoder, settings, out, init)
+    res = optimize_mei(encoder, args.neuron, init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
     line = f"3D-MEI neuron {res.neuron} ({args.model or args.encoder}, {args.init}): response {res.activation:.4f}"
     if frac is not None:
@@ -191,9 +204,9 @@ def _run_mei(args) -> int:
     return 0
 
 
-def _run_diverse(args, encoder, settings, out: Path) -> int:
+def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     """``meshmei mei --diverse K``: OUT/member_<i> run folders, OUT/diversity.json and OUT/diverse.png."""
-    d = diverse_meis(encoder, args.neuron, args.diverse, args.init, settings)
+    d = diverse_meis(encoder, args.neuron, args.diverse, init, settings)
     out.mkdir(parents=True, exist_ok=True)
     for i, res in enumerate(d.results):
         save_run(res, out / f"member_{i}", overwrite=args.overwrite)

@@ -214,6 +214,30 @@ def test_cli_writes_a_run(tmp_path, capsys):
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
 
 
+def test_cli_starts_from_a_mesh_file_placed_as_the_built_in_starts(tmp_path, capsys):
+    import trimesh
+    from meshmei.cli import main
+    from meshmei.mesh import load_mesh
+
+    sphere = trimesh.creation.icosphere(2, radius=7.0)
+    sphere.apply_translation([100.0, -3.0, 2.0])  # far off the camera's view, 14 wide
+    sphere.export(tmp_path / "ball.obj")
+    out = tmp_path / "run"
+    rc = main(["mei", "--init", str(tmp_path / "ball.obj"), "--out", str(out), "--steps", "3", "--seeds", "0",
+               "--image-size", "32", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    V0, F0 = load_mesh(out / "rest.obj", dtype=torch.float64)
+    lo, hi = V0.min(0).values, V0.max(0).values
+    torch.testing.assert_close(0.5 * (lo + hi), torch.zeros(3, dtype=torch.float64), atol=1e-6, rtol=0)
+    assert float((hi - lo).max()) == pytest.approx(1.0, abs=1e-6) and F0.shape == (len(sphere.faces), 3)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["quality"]["self_intersections"] == 0
+    image = load_run(out).image[0, 0]
+    assert float((image - 0.5).abs().gt(1e-3).float().mean()) > 0.2  # in view: it covers the image's middle
+    assert main(["mei", "--init", str(tmp_path / "none.obj"), "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    assert "a mesh file; " in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------------------------------------- demo model
 
 def test_demo_neuron_3d_mei_beats_random_meshes_and_pixel_mei_is_higher_still():

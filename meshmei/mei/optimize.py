@@ -15,7 +15,7 @@ import torch
 from ..contact import ContactBarrier, contact_energies
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
-from ..mesh import check_mesh
+from ..mesh import check_mesh, load_mesh
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
@@ -23,7 +23,7 @@ from ..validity import StepGuard
 from .scene import SeedScene, sheet_uv
 from .settings import MEIResult, MEISettings
 
-__all__ = ["optimize_mei", "initial", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights",
+__all__ = ["optimize_mei", "initial", "start_from_file", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights",
            "validity_barriers", "contact_barriers"]
 
 
@@ -74,6 +74,20 @@ def initial(init, settings: MEISettings):
     V0, F = torch.as_tensor(V0), torch.as_tensor(F)
     check_mesh(V0, F)
     return V0.detach().to(settings.torch_dtype), F.long(), "custom"
+
+
+def start_from_file(path, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """A 3D-MEI start ``(V, F)`` from a mesh file (:func:`meshmei.mesh.load_mesh`), placed as the built-in
+    starts are: its bounding box centred at the origin and its largest side scaled to 1 (the sphere's
+    diameter, the sheet's side), so that it fills the camera's view as they do. Faces keep their
+    orientation; an open mesh is allowed (as the sheet)."""
+    V, F = load_mesh(path, dtype=torch.float64)
+    used = V[torch.unique(F)]
+    lo, hi = used.min(0).values, used.max(0).values
+    side = float((hi - lo).max())
+    if not side > 0:
+        raise MEIError(f"{path}: the mesh has no extent (all its vertices coincide)")
+    return ((V - 0.5 * (lo + hi)) / side).to(dtype), F
 
 
 def objective_weights(settings: MEISettings, n_weights: int) -> dict:
