@@ -493,3 +493,16 @@ def test_the_cli_gives_a_torchscript_model_its_input_size_and_the_pixel_mei_its_
                "--steps", "1", "--quiet"])  # at the default 100 the model cannot run: one line, code 2
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "mat1 and mat2 shapes cannot be multiplied" in err and "\n" not in err
+
+
+def test_a_model_that_turns_nan_during_a_run_is_blamed_not_the_learning_rate():
+    calls = []
+
+    def unstable(x):
+        calls.append(1)
+        out = x.flatten(1)[:, :3].clone()
+        return out if len(calls) <= 4 else out * math.nan
+
+    enc = encoder_from_model(unstable, mean=0.5, std=0.2, image_size=16)
+    with pytest.raises(EncoderError, match=r"returned non-finite responses to finite images of shape \(1, 1, 16, 16\)"):
+        optimize_mei(enc, 0, "sheet", **SMALL, image_size=16)

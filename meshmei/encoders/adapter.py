@@ -236,7 +236,7 @@ class ModelEncoder(Encoder):
             except Exception as err:  # the model's own failure, named with what it was given
                 raise EncoderError(f"the model{self._member(i)} failed on images of shape {tuple(x.shape)} with "
                                    f"{self.forward_kwargs or 'no keyword arguments'}: {one_line(err)}") from err
-            outs.append(self._checked(out, x.shape[0], i))
+            outs.append(self._checked(out, x, i))
         if len(outs) > 1 and len({o.shape for o in outs}) > 1:
             raise EncoderError(f"the ensemble's models return different shapes: {[tuple(o.shape) for o in outs]}")
         return outs[0] if len(outs) == 1 else torch.stack(outs).mean(0)
@@ -245,8 +245,10 @@ class ModelEncoder(Encoder):
         n = len(self.models) + len(self.callables)
         return f" (member {i} of the ensemble of {n})" if n > 1 else ""
 
-    def _checked(self, out, batch: int, i: int) -> torch.Tensor:
-        """``out`` if it is a ``(batch, N)`` float tensor (``N`` the probed count once known), else EncoderError."""
+    def _checked(self, out, x: torch.Tensor, i: int) -> torch.Tensor:
+        """``out`` if it is a ``(B, N)`` float tensor for the ``B`` images ``x`` (``N`` the probed count once
+        known), finite where ``x`` is, else EncoderError."""
+        batch = x.shape[0]
         if not isinstance(out, torch.Tensor):
             raise EncoderError(f"the model{self._member(i)} returned a {type(out).__name__}, not a tensor of "
                                f"responses (B, N); pick the response with output=<index, key or callable>")
@@ -256,6 +258,10 @@ class ModelEncoder(Encoder):
                                f"{batch} it returned {tuple(out.shape)}, expected {want}")
         if not out.is_floating_point():
             raise EncoderError(f"the model must return float responses, got dtype {out.dtype}")
+        if not bool(torch.isfinite(out).all()) and bool(torch.isfinite(x).all()):
+            bad = int((~torch.isfinite(out)).sum())
+            raise EncoderError(f"the model{self._member(i)} returned non-finite responses to finite images of shape "
+                               f"{tuple(x.shape)} ({bad} of {out.numel()} values NaN or Inf)")
         return out
 
     def respond(self, z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
