@@ -11,7 +11,7 @@ import torch
 
 from .errors import MeshError
 
-__all__ = ["check_mesh", "numpy_mesh", "load_mesh", "save_mesh", "MESH_FORMATS"]
+__all__ = ["check_mesh", "numpy_mesh", "remove_unreferenced", "load_mesh", "save_mesh", "MESH_FORMATS"]
 
 MESH_FORMATS = (".obj", ".ply", ".off", ".stl")
 
@@ -29,6 +29,18 @@ def _as_tensor(x, name):
     raise MeshError(f"{name} must be a torch tensor or numpy array, got {type(x).__name__}")
 
 
+# unsigned dtypes whose reductions torch does not implement (uint8 works): faces in them are converted to int64
+_WIDE_UNSIGNED = (torch.uint16, torch.uint32, torch.uint64)
+
+
+def _signed_faces(F: torch.Tensor) -> torch.Tensor:
+    """``F`` of a wide unsigned dtype as int64; uint64 indices of 2**63 or more do not fit and are refused."""
+    F64 = F.to(torch.int64)  # uint64 values from 2**63 wrap to negative numbers
+    if F.dtype == torch.uint64 and F64.numel() and int(F64.min()) < 0:
+        raise MeshError(f"F holds vertex index {int(F64.min()) + 2 ** 64} ({F.dtype}), too large for any mesh")
+    return F64
+
+
 # face tensors that passed the index checks, with their in-place version counter: a hit is the very
 # tensor, unmodified, and skips two reductions per call in optimisation loops
 _CHECKED_FACES: "OrderedDict[tuple, tuple[torch.Tensor, int]]" = OrderedDict()
@@ -40,9 +52,12 @@ def check_mesh(V, F, *, batched: bool | None = False):
     Parameters
     ----------
     V : (n, 3) float tensor or array, or (B, n, 3) when ``batched``
-        Vertex positions. float32 and float64 are kept as they are; other float types are kept too.
+        Vertex positions. float32 and float64 are kept as they are; other float types (float16, bfloat16)
+        are kept too, and meshmei's steps that go through numpy (KD-trees, libigl) read them in float32
+        or float64.
     F : (m, 3) integer tensor or array
-        Triangle indices into the vertices (0-based).
+        Triangle indices into the vertices (0-based). Any signed or unsigned integer dtype; uint16, uint32
+        and uint64 are converted to int64 before the checks.
     batched : bool or None
         Accept a leading batch dimension on ``V`` (all members share ``F``); None: batched exactly when
         ``V`` has three axes.
@@ -76,6 +91,8 @@ def check_mesh(V, F, *, batched: bool | None = False):
         raise MeshError(f"V must have shape {want}, got {tuple(V.shape)}")
     if F.dtype == torch.bool or F.is_floating_point() or F.is_complex():
         raise MeshError(f"F must have an integer dtype, got {F.dtype} with shape {tuple(F.shape)}")
+    if F.dtype in _WIDE_UNSIGNED:
+        F = _signed_faces(F)
     if F.ndim != 2:
         raise MeshError(f"F must have shape (m, 3), got {tuple(F.shape)}")
     if F.shape[1] != 3:
@@ -121,10 +138,45 @@ def numpy_mesh(V, F):
     return np.ascontiguousarray(V.detach().cpu().double().numpy()), np.ascontiguousarray(F.cpu().numpy())
 
 
+def remove_unreferenced(V, F):
+    """Drop the vertices no face uses and renumber the faces (libigl's ``remove_unreferenced``).
+
+    Parameters
+    ----------
+    V : (n, 3) float tensor or array
+    F : (m, 3) integer tensor or array
+
+    Returns
+    -------
+    V : (k, 3) float tensor
+        The vertices ``F`` uses, in their order; ``V`` itself (as :func:`check_mesh` returns it) when all are.
+    F : (m, 3) int64 tensor
+        The same faces, indexing the kept vertices.
+
+    Examples
+    --------
+    >>> V, F = remove_unreferenced(torch.eye(4, 3, dtype=torch.float64), [[3, 1, 2]])
+    >>> V.shape[0], F.tolist()
+    (3, [[2, 0, 1]])
+    """
+    V, F = check_mesh(V, F)
+    used = torch.unique(F)  # (k,) sorted
+    if used.numel() == V.shape[0]:
+        return V, F
+    new_index = torch.full((V.shape[0],), -1, dtype=torch.int64, device=F.device)
+    new_index[used] = torch.arange(used.numel(), device=F.device)
+    return V[used], new_index[F]
+
+
 def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     """Read a triangle mesh with trimesh (OBJ, PLY, OFF, STL and what else trimesh reads).
 
-    Polygon faces are triangulated by trimesh; vertices are kept as stored (no merging or reordering).
+    Polygon faces are triangulated by trimesh. Vertices at exactly the same position are welded into one
+    (the first in file order keeps its place, later copies are removed and the faces renumbered): an STL
+    file stores every triangle's corners separately, and an OBJ with texture coordinates or normals
+    repeats a vertex along every seam, so without welding a closed surface would read as loose triangles
+    with coincident copies. Nothing else changes: faces keep their order and orientation, zero-area and
+    duplicate faces stay, and vertices no face uses are kept.
 
     Parameters
     ----------
@@ -137,7 +189,7 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     Returns
     -------
     V : (n, 3) float tensor
-        The vertices as stored, in ``dtype``.
+        The distinct vertex positions in file order, in ``dtype``.
     F : (m, 3) int64 tensor
 
     Raises
@@ -145,7 +197,17 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     FileNotFoundError
         The file does not exist.
     MeshError
-        The file is not a readable triangle mesh, or the mesh in it is invalid (see ``check_mesh``).
+        The file is not a readable triangle mesh (a point cloud, say), the mesh in it is invalid (see
+        ``check_mesh``), or its coordinates do not fit in ``dtype``.
+
+    Examples
+    --------
+    >>> import tempfile, trimesh
+    >>> path = os.path.join(tempfile.mkdtemp(), "box.stl")
+    >>> _ = trimesh.creation.box().export(path)  # STL: 12 triangles, 36 corners
+    >>> V, F = load_mesh(path)
+    >>> tuple(V.shape), tuple(F.shape)
+    ((8, 3), (12, 3))
     """
     import trimesh  # deferred: importing trimesh takes about 0.35 s and only file I/O needs it
 
@@ -160,13 +222,49 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
         raise MeshError(f"{path} does not hold a triangle mesh (trimesh returned {type(mesh).__name__})")
     V = np.asarray(mesh.vertices, dtype=np.float64)
     F = np.asarray(mesh.faces, dtype=np.int64)
-    if V.size == 0 or F.size == 0:
-        raise MeshError(f"{path} holds an empty mesh ({len(V)} vertices, {len(F)} faces)")
+    if F.size == 0:
+        n_points = len(V) or _point_count(path)
+        if n_points:
+            raise MeshError(f"{path} holds {n_points} points and no faces; a triangle mesh is needed")
+        raise MeshError(f"{path} holds an empty mesh (0 vertices, 0 faces)")
     try:
         V, F = check_mesh(V.reshape(-1, 3), F.reshape(-1, 3))
     except MeshError as err:
         raise MeshError(f"{path}: {err}") from None
-    return V.to(dtype=dtype, device=device), F.to(device=device)
+    V, F = _weld(V, F)
+    return _cast_vertices(V, dtype, str(path)).to(device=device), F.to(device=device)
+
+
+def _point_count(path: Path) -> int:
+    """The number of points in a file that trimesh reads as a point cloud (0 for anything else)."""
+    import trimesh
+
+    try:
+        cloud = trimesh.load(str(path), process=False)
+    except Exception:  # the forced read already succeeded; this one only words the error
+        return 0
+    return len(cloud.vertices) if isinstance(cloud, trimesh.PointCloud) else 0
+
+
+def _weld(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Merge vertices of exactly equal coordinates, keeping the first copy's place; faces are renumbered."""
+    _, first, inverse = np.unique(V.numpy(), axis=0, return_index=True, return_inverse=True)
+    if len(first) == V.shape[0]:
+        return V, F
+    order = np.argsort(first)  # distinct positions in order of first appearance
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    old_to_new = torch.from_numpy(rank[inverse.reshape(-1)])
+    return V[torch.from_numpy(np.sort(first))], old_to_new[F]
+
+
+def _cast_vertices(V: torch.Tensor, dtype: torch.dtype, where: str) -> torch.Tensor:
+    """``V`` (finite) in ``dtype``, or a MeshError naming ``where`` when a coordinate overflows ``dtype``."""
+    out = V.to(dtype)
+    if not bool(torch.isfinite(out).all()):
+        raise MeshError(f"{where}: coordinates up to {float(V.abs().max()):.3g} do not fit in {dtype} (largest "
+                        f"{torch.finfo(dtype).max:.3g}); rescale the mesh or use float64")
+    return out
 
 
 def save_mesh(path, V, F) -> None:

@@ -155,14 +155,17 @@ def mesh_health(V, F, V0=None, *, self_intersections: bool = True, eps: float = 
     return MeshHealth(self_intersections=si, degenerate_faces=degenerate, flipped_faces=flipped)
 
 
-def mesh_quality(V: torch.Tensor, F: torch.Tensor, *, self_intersections: bool = True) -> dict:
+def mesh_quality(V, F, *, self_intersections: bool = True) -> dict:
     """Minimum and mean triangle quality, and self-intersecting face pairs (libigl, exact predicates).
+
+    ``V`` and ``F`` are tensors, arrays or nested lists, as :func:`~meshmei.mesh.check_mesh` takes them.
 
     Returns
     -------
     dict with ``min_quality`` and ``mean_quality`` (floats, see :func:`triangle_quality`) and
     ``self_intersections`` (int, or None when not asked for).
     """
+    V, F = check_mesh(V, F)
     q = triangle_quality(V.detach().double(), F)
     out = {"min_quality": float(q.min()), "mean_quality": float(q.mean()), "self_intersections": None}
     if self_intersections:
@@ -181,7 +184,9 @@ def edge_use(F) -> tuple[int, int]:
 def health_report(V, F, V0=None, *, self_intersections: bool = True) -> dict:
     """Everything meshmei reports beside a result: self-intersecting pairs, flipped faces (given a rest
     pose ``V0``), degenerate faces, minimum and mean triangle quality, boundary and non-manifold edges, and
-    whether the mesh is watertight (closed and edge-manifold)."""
+    whether the mesh is watertight (closed and edge-manifold). ``V``, ``F`` and ``V0`` are tensors, arrays
+    or nested lists, as :func:`~meshmei.mesh.check_mesh` takes them."""
+    V, F = check_mesh(V, F)
     report = mesh_quality(V, F, self_intersections=self_intersections)
     h = mesh_health(V, F, V0, self_intersections=False)
     boundary, nonmanifold = edge_use(F)

@@ -137,10 +137,10 @@ def nearest_neighbors(P: torch.Tensor, Q: torch.Tensor, *, tree=None, exact_with
     _check_points(P, "P")
     _check_points(Q, "Q")
     if tree is None:
-        tree = cKDTree(Q.detach().cpu().numpy())
+        tree = cKDTree(_numpy_points(Q))
     elif tree.n != Q.shape[0]:
         raise ValueError(f"tree holds {tree.n} points but Q has {Q.shape[0]}")
-    Pn = P.detach().cpu().numpy()
+    Pn = _numpy_points(P)
     if exact_within is None:
         _, idx = tree.query(Pn, k=1)
     else:
@@ -181,9 +181,16 @@ def nn_spacing(X: np.ndarray, tree=None, sample: int | None = None) -> float:
     return float(np.mean(d))
 
 
+def _numpy_points(X: torch.Tensor) -> np.ndarray:
+    """A point tensor as a numpy array (no gradient); half precision comes out in float32, since numpy has no
+    bfloat16 and the KD-trees compute in float64 anyway."""
+    X = X.detach().cpu()
+    return (X.float() if X.is_floating_point() and X.element_size() < 4 else X).numpy()
+
+
 def _point_array(X, name: str, shape: str = "(n, 3)", *, nonempty: bool = False) -> np.ndarray:
     """``X`` as a contiguous ``(k, 3)`` numpy array of finite points, or a ValueError naming ``name``."""
-    Xn = np.ascontiguousarray(X.detach().cpu().numpy() if isinstance(X, torch.Tensor) else np.asarray(X))
+    Xn = np.ascontiguousarray(_numpy_points(X) if isinstance(X, torch.Tensor) else np.asarray(X))
     if Xn.ndim != 2 or Xn.shape[1] != 3 or (nonempty and len(Xn) == 0):
         raise ValueError(f"{name} must be {'a non-empty' if nonempty else 'an'} {shape} point array, "
                          f"got shape {Xn.shape}")

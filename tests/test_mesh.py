@@ -114,3 +114,90 @@ def test_numpy_mesh_gives_contiguous_float64_and_int64_arrays():
     np.testing.assert_array_equal(Fn, F.numpy())
     with pytest.raises(MeshError, match="out of range"):
         numpy_mesh(V, F + V.shape[0])
+
+
+def _write_uv_obj(path, V, F):
+    """``(V, F)`` as an OBJ with per-corner texture coordinates wrapped around z: every face that crosses
+    the seam gets texture coordinates of its own, so a reader splits the vertices there."""
+    u = (np.arctan2(V[:, 1], V[:, 0]) / (2 * np.pi)) % 1.0
+    lines = ["v %.17g %.17g %.17g" % tuple(p) for p in V.tolist()] + ["vt %.6f 0.5" % a for a in u]
+    extra, faces = [], []
+    for f in F.tolist():
+        wraps = u[f].max() - u[f].min() > 0.5
+        corners = []
+        for c in f:
+            if wraps and u[c] < 0.5:
+                extra.append("vt %.6f 0.5" % (u[c] + 1))
+                corners.append(f"{c + 1}/{len(V) + len(extra)}")
+            else:
+                corners.append(f"{c + 1}/{c + 1}")
+        faces.append("f " + " ".join(corners))
+    path.write_text("\n".join(lines + extra + faces) + "\n")
+
+
+def test_load_mesh_welds_split_vertices_of_stl_and_uv_seams(tmp_path):
+    from meshmei.quality import health_report
+
+    V, F = icosphere(2)
+    save_mesh(tmp_path / "plain.obj", V, F)
+    save_mesh(tmp_path / "soup.stl", V, F)
+    _write_uv_obj(tmp_path / "seam.obj", V.numpy(), F.numpy())
+    plain = load_mesh(tmp_path / "plain.obj", dtype=torch.float64)
+    plain_health = health_report(*plain)
+    assert plain_health["watertight"] and plain_health["self_intersections"] == 0
+    for name in ("soup.stl", "seam.obj"):
+        V2, F2 = load_mesh(tmp_path / name, dtype=torch.float64)
+        assert V2.shape == plain[0].shape and F2.shape == F.shape
+        assert len(torch.unique(V2, dim=0)) == V2.shape[0]  # no two vertices left at one position
+        # every face keeps its corners, in order (so its orientation), at the positions it had
+        torch.testing.assert_close(V2[F2], V[F], rtol=0, atol=1e-6)
+        assert health_report(V2, F2) == pytest.approx(plain_health)
+
+
+def test_load_mesh_weld_drops_nothing_else(tmp_path):
+    import trimesh
+
+    # vertex 4 repeats vertex 0; vertex 3 is used by no face; face 2 has zero area once welded
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [9, 9, 9], [0, 0, 0], [0, 0, 1]])
+    F = np.array([[0, 1, 2], [4, 2, 1], [0, 4, 1], [4, 1, 5]])
+    path = tmp_path / "odd.ply"  # PLY keeps unused vertices (trimesh's OBJ reader drops them)
+    trimesh.Trimesh(V, F, process=False, validate=False).export(str(path))
+    V2, F2 = load_mesh(path, dtype=torch.float64)
+    torch.testing.assert_close(V2, torch.from_numpy(V[[0, 1, 2, 3, 5]]))
+    assert F2.tolist() == [[0, 1, 2], [0, 2, 1], [0, 0, 1], [0, 1, 4]]
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply"])
+def test_load_mesh_names_a_point_cloud(tmp_path, suffix):
+    import trimesh
+
+    V, _ = icosphere(1)
+    path = tmp_path / f"points{suffix}"
+    trimesh.PointCloud(V.numpy()).export(str(path))
+    with pytest.raises(MeshError, match=f"holds {V.shape[0]} points and no faces"):
+        load_mesh(path)
+
+
+def test_load_mesh_refuses_coordinates_beyond_the_dtype(tmp_path):
+    path = tmp_path / "far.obj"
+    path.write_text("v 0 0 0\nv 1e39 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"far\.obj: coordinates up to 1e\+39 do not fit in torch\.float32"):
+        load_mesh(path)
+    V, _ = load_mesh(path, dtype=torch.float64)
+    assert bool(torch.isfinite(V).all()) and float(V.max()) == 1e39
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32, np.uint64])
+def test_check_mesh_accepts_unsigned_faces(dtype):
+    V, F = icosphere(1)
+    for faces in (F.numpy().astype(dtype), torch.from_numpy(F.numpy().astype(dtype))):
+        V2, F2 = check_mesh(V, faces)
+        assert F2.dtype == torch.int64 and torch.equal(F2, F)
+    with pytest.raises(MeshError, match=f"vertex index {V.shape[0]}, out of range"):
+        check_mesh(V, (F.numpy() + 1).astype(dtype))
+
+
+def test_check_mesh_refuses_uint64_faces_beyond_int64():
+    F = np.array([[0, 1, 2 ** 63 + 5]], dtype=np.uint64)
+    with pytest.raises(MeshError, match=f"vertex index {2 ** 63 + 5} \\(torch.uint64\\), too large"):
+        check_mesh(torch.zeros(3, 3), F)

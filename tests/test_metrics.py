@@ -121,3 +121,12 @@ def test_surface_metrics_area_ratio():
     # twice the size, four times the area, whatever the target's orientation
     assert surface_metrics(2 * V, F, V, F[:, [0, 2, 1]], n_samples=500, health=False).area_ratio == pytest.approx(
         4.0, rel=1e-12)
+
+
+def test_surface_metrics_ignore_vertices_the_target_faces_do_not_use():
+    V, F = icosphere(2)
+    Vm = 1.02 * V  # the mesh evaluated, a little off the target
+    Vt_unused = torch.cat([V, torch.tensor([[50.0, 50.0, 50.0]], dtype=V.dtype)])
+    plain = surface_metrics(Vm, F, V, F, n_samples=500)
+    assert plain.threshold == pytest.approx(0.01 * float((V.max(0).values - V.min(0).values).norm()))
+    assert surface_metrics(Vm, F, Vt_unused, F, n_samples=500) == plain

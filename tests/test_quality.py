@@ -93,3 +93,17 @@ def test_health_report_counts_boundary_and_nonmanifold_edges_and_reports_waterti
     # a fin: three triangles on one edge make it non-manifold; the other edges are boundary edges
     fin = torch.tensor([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
     assert edge_use(fin) == (6, 1)
+
+
+@pytest.mark.parametrize("form", ["numpy", "list"])
+def test_health_report_and_mesh_quality_take_arrays_and_lists_as_their_siblings_do(form):
+    from meshmei.quality import health_report, mesh_quality
+    from meshmei.shapes import initial_mesh
+
+    V, F = initial_mesh("sphere", n_vertices=100, dtype=torch.float64)
+    V0 = V * 1.1
+    convert = (lambda x: x.numpy()) if form == "numpy" else (lambda x: x.tolist())
+    assert health_report(convert(V), convert(F), convert(V0)) == health_report(V, F, V0)
+    assert mesh_quality(convert(V), convert(F)) == mesh_quality(V, F)
+    with pytest.raises(MeshError, match="out of range"):
+        health_report(convert(V), convert(F + V.shape[0]))

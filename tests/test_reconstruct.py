@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import torch
@@ -492,3 +493,104 @@ def test_cli_contact_edges_choice_reaches_the_settings(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["reconstruct", "--contact-edges", "sometimes"])
     assert exc.value.code == 2 and "--contact-edges" in capsys.readouterr().err
+
+
+def test_unused_vertices_of_a_source_or_target_change_nothing(sphere, tmp_path):
+    # an unused vertex far away used to stretch the target's unit-diagonal box (to 0.02 of the surface)
+    # and the source's RBF kernel scale
+    import trimesh
+
+    V, F = sphere
+    Vt, Ft = icosphere(2)
+    far = torch.tensor([[50.0, 50.0, 50.0]])
+    plain = reconstruct((V, F), (Vt, Ft), "rbf", steps=5, **SMALL)
+    padded = reconstruct((torch.cat([far, V]), F + 1), (torch.cat([Vt, far.double()]), Ft), "rbf", steps=5, **SMALL)
+    assert torch.equal(padded.V, plain.V) and torch.equal(padded.F, plain.F)
+    assert padded.final == plain.final
+    assert padded.info["stages"][0]["sigma_median"] == plain.info["stages"][0]["sigma_median"]
+    path = tmp_path / "padded.ply"  # PLY keeps unused vertices
+    trimesh.Trimesh(torch.cat([Vt, 100 * far.double()]).numpy(), Ft.numpy(), process=False).export(str(path))
+    Vn, Fn = target_surface(path)
+    torch.testing.assert_close(Vn, target_surface((Vt, Ft))[0], rtol=0, atol=1e-6)
+    assert torch.equal(Fn, Ft)
+    assert torch.equal(source_mesh(path)[1], Ft) and source_mesh(path)[0].shape == Vt.shape
+
+
+@pytest.mark.parametrize("dtype", [torch.uint16, torch.uint32, torch.uint64])
+def test_unsigned_faces_are_accepted(sphere, dtype):
+    V, F = sphere
+    for faces in (F.to(dtype), F.numpy().astype(str(dtype).split(".")[1])):
+        assert torch.equal(source_mesh((V, faces))[1], F)
+        assert torch.equal(target_surface((V, faces))[1], F)
+
+
+def test_a_start_under_32_vertices_runs_the_automatic_schedule_in_one_stage(tmp_path, capsys):
+    from meshmei.mesh import save_mesh
+    from meshmei.reconstruct import default_schedule, schedule_from_text
+    from meshmei.reconstruct.settings import MIN_STAGE_VERTICES
+
+    for n in range(1, MIN_STAGE_VERTICES):
+        for method in ("rbf", "vertex", "largesteps"):
+            for levels in (None, 2, 3):
+                assert default_schedule(method, n, levels) == (None, None, None)
+        with pytest.raises(ValueError, match=f"needs at least 32 vertices, got {n}"):
+            default_stages(n)
+    for n in range(MIN_STAGE_VERTICES, 300):  # every automatic schedule resolves
+        for spec in ("auto", "auto2", "auto3"):
+            stages, fractions, overrides = schedule_from_text(spec, "rbf", n)
+            ReconstructionSettings(stages=stages, stage_fractions=fractions, stage_overrides=overrides).resolved()
+    tet = tmp_path / "tet.obj"
+    save_mesh(tet, torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]),
+              torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    base = ["--init", tet, "--target", "bunny", "--steps", 3, "--samples", 300, "--eval-samples", 500, "--no-progress"]
+    rc, out = _cli(base + ["--out", tmp_path / "auto"], capsys)
+    assert rc == 0, out.err
+    rec = json.loads((tmp_path / "auto" / "history.json").read_text())
+    assert rec["settings"]["stages"] is None and rec["n_vertices"] == 4
+    rc, out = _cli(base + ["--out", tmp_path / "bad", "--stages", "16,64"], capsys)
+    assert rc == 2 and "--stages 16,64: every stage needs at least 32 vertices (the start has 4)" in out.err
+    with pytest.raises(ValueError, match=r"at least 32, got \(16, 64\) \(stages=None runs one stage"):
+        ReconstructionSettings(stages=(16, 64)).resolved()
+
+
+@pytest.mark.parametrize("field, value", [
+    ("lr", float("inf")), ("lr", float("nan")), ("r_cut", float("inf")), ("contact_distance", float("inf")),
+    ("stage_fractions", (float("nan"), 1.0)), ("stage_fractions", (float("inf"), 1.0)),
+    ("seed", 1.5), ("seed", 10 ** 23), ("seed", -(2 ** 63) - 1), ("seed", True), ("seed", "0"),
+])
+def test_settings_refuse_non_finite_values_and_bad_seeds(field, value):
+    from meshmei.errors import ReconstructionError
+
+    kw = {field: value, **({"stages": (100, 300)} if field == "stage_fractions" else {})}
+    with pytest.raises(ReconstructionError, match=f"{field} must .* got {re.escape(repr(value))}$"):
+        ReconstructionSettings(**kw).resolved()
+
+
+def test_seeds_at_the_ends_of_torchs_range_are_accepted():
+    from meshmei.reconstruct.settings import SEED_MAX, SEED_MIN
+
+    for seed in (SEED_MIN, 0, SEED_MAX):
+        assert ReconstructionSettings(seed=seed).resolved().seed == seed
+        torch.Generator().manual_seed(seed + 1)  # the metrics' target seed fits as well
+
+
+@pytest.mark.parametrize("stages", [None, "auto"])
+def test_a_source_beyond_float32s_range_asks_to_rescale_whatever_the_schedule(sphere, stages):
+    from meshmei.reconstruct import default_schedule
+
+    V, F = sphere
+    kw = {}
+    if stages == "auto":
+        st, fr, ov = default_schedule("rbf", V.shape[0])
+        kw = dict(stages=st, stage_fractions=fr, stage_overrides=ov)
+    with pytest.raises(MeshError, match=r"^source: the face areas overflow torch.float32 .*rescale the mesh"):
+        reconstruct((1e20 * V, F), "bunny", steps=2, **SMALL, **kw)
+    with pytest.raises(MeshError, match=r"target: coordinates up to 1e\+39 do not fit in torch.float32"):
+        target_surface((torch.cat([torch.tensor([[1e39, 0, 0]], dtype=torch.float64), V[1:].double()]), F))
+
+
+def test_a_bfloat16_source_runs_in_bfloat16(sphere):
+    V, F = sphere
+    res = reconstruct((V.bfloat16(), F), "bunny", steps=3, **SMALL)
+    assert res.V.dtype == torch.bfloat16 and res.V.shape == V.shape
+    assert torch.isfinite(res.V.float()).all() and res.final.chamfer_l2 > 0

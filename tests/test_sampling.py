@@ -189,3 +189,17 @@ def test_nn_spacing_ignores_duplicates():
 def test_docstring_examples_run(module):
     res = doctest.testmod(importlib.import_module(module))
     assert res.attempted > 0 and res.failed == 0
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_half_precision_points_find_the_neighbours_of_their_float32_values(dtype):
+    # numpy has no bfloat16: the KD-tree side used to fail with "Got unsupported ScalarType BFloat16"
+    V, F = icosphere(2)
+    P = sample_points(V, F, 300, generator=0).to(dtype)
+    Q = (1.1 * sample_points(V, F, 400, generator=1)).to(dtype)
+    i_pq, i_qp = nearest_neighbors(P.float(), Q.float()), nearest_neighbors(Q.float(), P.float())
+    assert torch.equal(nearest_neighbors(P, Q), i_pq)
+    assert np.array_equal(PointIndex(Q).query(P), PointIndex(Q.float()).query(P.float()))
+    cd = chamfer_distance(P, Q)
+    assert cd.dtype == dtype
+    assert torch.equal(cd, ((P - Q[i_pq]) ** 2).sum(-1).mean() + ((Q - P[i_qp]) ** 2).sum(-1).mean())

@@ -326,13 +326,13 @@ class RBFDeformer(torch.nn.Module):
         inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)
         return torch.exp(-self._d2 * inv[self._cols])  # (P,)
 
-    def _fixed_matrices(self) -> tuple:
-        """``W`` and ``W^T`` as CSR tensors at the current scales, cached until the pairs or scales change."""
-        key = (self.n_rebuilds, self.log_sigma._version, self.log_sigma.data_ptr(), self._rows.data_ptr(),
-               self.offsets.dtype)
+    def _fixed_matrices(self, dtype: torch.dtype) -> tuple:
+        """``W`` and ``W^T`` as CSR tensors in ``dtype`` at the current scales, cached until the pairs, the
+        scales or the dtype change."""
+        key = (self.n_rebuilds, self.log_sigma._version, self.log_sigma.data_ptr(), self._rows.data_ptr(), dtype)
         if getattr(self, "_fixed_key", None) != key:
             with torch.no_grad():
-                w = self._pair_weights().to(self.offsets.dtype)
+                w = self._pair_weights().to(dtype)
             n, K = self.V0.shape[0], self.n_kernels
             self._fixed = (_csr(self._rows, self._cols, w, (n, K)), _csr(self._cols, self._rows, w, (K, n)))
             self._fixed_key = key
@@ -352,8 +352,10 @@ class RBFDeformer(torch.nn.Module):
             W = torch.exp(-D2 * inv.unsqueeze(0)) * mask  # (n, K), zero off the pair list
             return (W.to(offsets.dtype) @ offsets).to(self.V0.dtype)
         if not log_sigma.requires_grad and log_sigma is self.log_sigma:  # fixed scales: a constant sparse matrix
-            W, Wt = self._fixed_matrices()
-            return _FixedMap.apply(offsets, W, Wt).to(self.V0.dtype)
+            # torch's CSR products have no float16 or bfloat16 kernels: half-precision offsets multiply in float32
+            dtype = torch.float32 if offsets.element_size() < 4 else offsets.dtype
+            W, Wt = self._fixed_matrices(dtype)
+            return _FixedMap.apply(offsets.to(dtype), W, Wt).to(self.V0.dtype)
         inv = 0.5 * torch.exp(-2.0 * log_sigma)
         w = torch.exp(-self._d2 * inv[self._cols])  # (P,)
         contrib = w.unsqueeze(1) * offsets[self._cols]  # (P, 3)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ReconstructionError
-from .settings import METHODS
+from .settings import METHODS, MIN_STAGE_VERTICES
 
 __all__ = ["RBF_THREE_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES", "default_stages", "default_schedule",
            "schedule_from_text"]
@@ -32,13 +32,17 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     slivers left by the one before. At 10k vertices three levels helped rbf on all three benchmark problems
     and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
     *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 2,000
-    vertices.
+    vertices. No stage has fewer than :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32)
+    vertices, so ``n_vertices`` must have at least that many.
     """
     n = int(n_vertices)
+    if n < MIN_STAGE_VERTICES:
+        raise ReconstructionError(f"a coarse-to-fine schedule needs at least {MIN_STAGE_VERTICES} vertices, got "
+                                  f"{n_vertices!r}; run one stage at the mesh's own size (stages=None)")
     if levels == 3:
-        return (max(32, n // 16), max(32, n // 4), n, n), (0.15, 0.25, 0.35, 0.25)
+        return (max(MIN_STAGE_VERTICES, n // 16), max(MIN_STAGE_VERTICES, n // 4), n, n), (0.15, 0.25, 0.35, 0.25)
     if levels == 2:
-        return (max(32, n // 4), n, n), (0.25, 0.45, 0.3)
+        return (max(MIN_STAGE_VERTICES, n // 4), n, n), (0.25, 0.45, 0.3)
     raise ReconstructionError(f"levels must be 2 or 3, got {levels!r}")
 
 
@@ -65,12 +69,17 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
     CLI's default 2,500 on the bunny and the teapot (guarded). Otherwise two levels
     (``default_stages(n)``); large steps and vertex always get two: three hurt large steps through the
     teapot's handle.
+
+    A start of fewer than ``MIN_STAGE_VERTICES`` (32) vertices has no coarser level to start from: it
+    runs in one stage at its own size, ``(None, None, None)``, whatever ``levels`` says.
     """
     if method not in METHODS:
         raise ReconstructionError(f"method must be one of {METHODS}, got {method!r}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
         raise ReconstructionError(f"n_samples must be an integer of at least 2, got {n_samples!r}")
     n = int(n_vertices)
+    if n < MIN_STAGE_VERTICES:
+        return None, None, None
     if levels is None:
         levels = 3 if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES else 2
     stages, fractions = default_stages(n, levels)
@@ -83,14 +92,19 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
 def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: int = 10_000) -> tuple:
     """``(stages, stage_fractions, stage_overrides)`` from the CLI's ``--stages`` text: ``"auto"``
     (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` (that many levels), ``"none"`` (one stage),
-    or comma-separated vertex counts with equal shares (``"600,2500,2500"``)."""
+    or comma-separated vertex counts with equal shares (``"600,2500,2500"``), each at least
+    ``MIN_STAGE_VERTICES`` (32). ``n_vertices`` is the start's count."""
     levels = {"auto": None, "auto2": 2, "auto3": 3}
     if spec in levels:
         return default_schedule(method, n_vertices, levels[spec], n_samples=n_samples)
     if not spec or spec == "none":
         return None, None, None
     try:
-        return tuple(int(x) for x in spec.split(",")), None, None
+        stages = tuple(int(x) for x in spec.split(","))
     except ValueError:
         raise ReconstructionError(f"--stages must be 'auto', 'auto2', 'auto3', 'none' or comma-separated integers, "
                                   f"got {spec!r}") from None
+    if min(stages) < MIN_STAGE_VERTICES:
+        raise ReconstructionError(f"--stages {spec}: every stage needs at least {MIN_STAGE_VERTICES} vertices (the "
+                                  f"start has {int(n_vertices)}); '--stages none' runs one stage at the start's size")
+    return stages, None, None

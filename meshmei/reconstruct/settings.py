@@ -13,8 +13,8 @@ from ..metrics import EVAL_SAMPLES, SurfaceMetrics
 from ..optim import OPTIMIZERS
 from ..validity import ValidityRules
 
-__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "ReconstructionSettings",
-           "ReconstructionResult"]
+__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES",
+           "ReconstructionSettings", "ReconstructionResult"]
 
 METHODS = ("rbf", "vertex", "largesteps")
 # The step count of a run given neither steps nor a time budget. 1,000 since 2026-11-24 (it was 500): the
@@ -23,6 +23,12 @@ METHODS = ("rbf", "vertex", "largesteps")
 # teapot's handle over seeds 0-2 (500: 2.13-2.40e-6), clean, in about 47 s against 25 s
 # (docs/reconstruction.md, *How many steps*).
 DEFAULT_STEPS = 1000
+
+# The seeds torch.Generator.manual_seed takes, less one at the top: the metrics sample the target with seed + 1.
+SEED_MIN, SEED_MAX = -(2 ** 63), 2 ** 64 - 2
+
+# The fewest vertices a stage may be remeshed to.
+MIN_STAGE_VERTICES = 32
 
 # contact_edges="auto": a stage turns edge-edge contact pairs on after this many candidates refused by the
 # intersection rule (a stage that does not stall refuses 0-5 in all; a stall, hundreds)
@@ -119,7 +125,8 @@ class ReconstructionSettings:
         scaling follow the whole run (the fraction of the budget used; the stage counts, see
         ``reg_ref_vertices``).
     seed : int
-        Seed of all sampling (runs with ``steps`` are then bitwise repeatable).
+        Seed of all sampling (runs with ``steps`` are then bitwise repeatable); an integer from ``-2**63`` to
+        ``2**64 - 2`` (torch's seed range; the metrics sample the target with ``seed + 1``).
     eval_every : int or None
         Evaluate :func:`surface_metrics` every this many steps (and always at the end).
     eval_times : tuple of float
@@ -228,8 +235,11 @@ def _check_values(s: ReconstructionSettings) -> None:
     if s.time_budget is not None and not (s.time_budget > 0 and math.isfinite(s.time_budget)):
         raise ReconstructionError(f"time_budget must be positive and finite, got {s.time_budget!r}")
     for name in ("lr", "n_samples", "target_pool", "eval_samples", "r_cut", "sigma_factor", "contact_distance"):
-        if not getattr(s, name) > 0:
-            raise ReconstructionError(f"{name} must be positive, got {getattr(s, name)!r}")
+        if not (getattr(s, name) > 0 and math.isfinite(getattr(s, name))):
+            raise ReconstructionError(f"{name} must be positive and finite, got {getattr(s, name)!r}")
+    seed = s.seed
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not SEED_MIN <= seed <= SEED_MAX:
+        raise ReconstructionError(f"seed must be an integer from {SEED_MIN} to {SEED_MAX}, got {seed!r}")
     if not (isinstance(s.contact_edges, bool) or s.contact_edges == "auto"):
         raise ReconstructionError(f"contact_edges must be True, False or 'auto', got {s.contact_edges!r}")
     cr = s.coarse_ratio
@@ -261,11 +271,13 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
             raise ReconstructionError("stage_fractions needs stages")
         return s
     stages = tuple(int(x) for x in s.stages)
-    if not stages or min(stages) < 32:
-        raise ReconstructionError(f"stages must be vertex counts of at least 32, got {s.stages!r}")
+    if not stages or min(stages) < MIN_STAGE_VERTICES:
+        raise ReconstructionError(f"stages must be vertex counts of at least {MIN_STAGE_VERTICES}, got {s.stages!r} "
+                                  f"(stages=None runs one stage at the source's own size)")
     fr = s.stage_fractions or tuple(1.0 / len(stages) for _ in stages)
-    if len(fr) != len(stages) or min(fr) <= 0:
-        raise ReconstructionError(f"stage_fractions must give one positive share per stage, got {s.stage_fractions!r}")
+    if len(fr) != len(stages) or not all(f > 0 and math.isfinite(f) for f in fr):
+        raise ReconstructionError(f"stage_fractions must give one positive, finite share per stage, "
+                                  f"got {s.stage_fractions!r}")
     tot = float(sum(fr))
     return replace(s, stages=stages, stage_fractions=tuple(float(f) / tot for f in fr))
 

@@ -3,12 +3,13 @@ target surfaces (named targets, files, pairs, normalised to unit diagonal)."""
 
 from __future__ import annotations
 
+import math
 import os
 
 import torch
 
 from ..errors import MeshError
-from ..mesh import check_mesh, load_mesh
+from ..mesh import _cast_vertices, load_mesh, remove_unreferenced
 from ..operators import doublearea
 from ..shapes import DEFAULT_N_VERTICES, TARGET_NAMES, initial_mesh, normalize_unit_diagonal, target_mesh
 from .openings import find_opening, torus_through_opening
@@ -18,15 +19,17 @@ __all__ = ["SOURCE_NAMES", "source_mesh", "resolve_source", "target_surface"]
 def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
     """Resolve a target: ``"bunny"``, ``"teapot"``, a mesh file path, or a ``(V, F)`` pair.
 
-    Files and pairs are centred and scaled to unit bounding-box diagonal (``normalize=True``), as the
-    named targets are, so metrics are comparable across targets.
+    Files and pairs keep only the vertices their faces use (an unused vertex has no surface, and would
+    stretch the bounding box), and are centred and scaled to unit bounding-box diagonal
+    (``normalize=True``), as the named targets are, so metrics are comparable across targets.
 
     Raises
     ------
     FileNotFoundError
         A path that does not exist.
     MeshError
-        A file that holds no mesh, an empty mesh, NaN coordinates, or a mesh of zero area.
+        A file that holds no mesh, an empty mesh, NaN coordinates, coordinates beyond ``dtype``'s range,
+        or a mesh of zero area.
     """
     if isinstance(spec, str) and spec in TARGET_NAMES:
         V, F = target_mesh(spec, dtype=dtype)
@@ -35,7 +38,7 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
             V, F = _load(spec, "target", dtype)
         else:
             V, F = _pair(spec, "target")
-            V = V.to(dtype)
+            V = _cast_vertices(V, dtype, "target")
         if normalize:
             V = normalize_unit_diagonal(V)
     _check_area(V, F, f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target")
@@ -47,7 +50,9 @@ SOURCE_NAMES = ("sheet", "sphere", "torus", "torus-centred", "torus-through-open
 
 def source_mesh(spec, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float32, target=None):
     """Resolve a starting mesh: a name in :data:`SOURCE_NAMES` (made with ``n_vertices``), a mesh file
-    path (used as stored), or a ``(V, F)`` pair.
+    path (used as stored), or a ``(V, F)`` pair. A file or pair keeps only the vertices its faces use: an
+    unused vertex would take part in the deformation (an RBF kernel of its own, which sets the kernel
+    scale) without being part of the surface.
 
     ``"torus"`` is placed for the ``target`` ``(V, F)`` when one is given: with its hole through the
     target's most open through-hole (:func:`meshmei.reconstruct.openings.torus_through_opening`) when
@@ -94,7 +99,7 @@ def resolve_source(spec, n_vertices, dtype, target):
 
 def _load(path, role, dtype):
     try:
-        return load_mesh(path, dtype=dtype)
+        return remove_unreferenced(*load_mesh(path, dtype=dtype))
     except MeshError as err:
         if str(path) in str(err):
             raise
@@ -106,7 +111,7 @@ def _pair(spec, role):
         V, F = spec
     except (TypeError, ValueError):
         raise ValueError(f"{role} must be a name, a mesh file path or a (V, F) pair, got {type(spec).__name__}") from None
-    V, F = check_mesh(V, F)
+    V, F = remove_unreferenced(V, F)
     return V.detach(), F
 
 
@@ -118,3 +123,8 @@ def _check_area(V, F, role):
     area = _area(V, F)
     if not area > 0:
         raise MeshError(f"{role} mesh has zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
+    # squared coordinates beyond the dtype's range (float32: about 1e19) would turn sampling, edge lengths
+    # and the contact reach into Inf at the first step or stage; say so here, whatever the schedule
+    if not math.isfinite(float(doublearea(V.detach(), F).sum())):
+        raise MeshError(f"{role}: the face areas overflow {V.dtype} (largest coordinate "
+                        f"{float(V.detach().abs().max()):.3g}); rescale the mesh or use float64")

@@ -64,6 +64,9 @@ def bunny_path():
 def normalize_unit_diagonal(V):
     """Centre ``V`` on its bounding-box centre and scale it to unit bounding-box diagonal.
 
+    Every row of ``V`` sets the box: drop the vertices no face uses first
+    (:func:`meshmei.mesh.remove_unreferenced`, as :func:`meshmei.reconstruct.target_surface` does).
+
     Parameters
     ----------
     V : (n, 3) float tensor
