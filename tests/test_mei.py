@@ -11,6 +11,7 @@ import torch
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
 from meshmei.mei import DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.shapes import initial_mesh
 
 from conftest import demo_or_skip
 
@@ -212,6 +213,14 @@ def test_cli_writes_a_run(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["encoder"]["kind"] == "gabor-complex" and "pixel_mei_activation" in summary
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
+
+
+def test_a_start_of_your_own_drops_the_vertices_no_face_uses():
+    V, F = initial_mesh("sphere", n_vertices=120)[:2]
+    far = torch.cat([V, torch.tensor([[40.0, 40.0, 40.0]])])  # one stray vertex: it widened every kernel
+    a = optimize_mei(GaborSimpleCell(), 0, (V, F), steps=3, seeds=(0,), image_size=32)
+    b = optimize_mei(GaborSimpleCell(), 0, (far, F), steps=3, seeds=(0,), image_size=32)
+    assert torch.equal(a.V, b.V) and b.V0.shape == V.shape
 
 
 def test_cli_starts_from_a_mesh_file_placed_as_the_built_in_starts(tmp_path, capsys):

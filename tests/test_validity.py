@@ -134,6 +134,28 @@ def test_mei_at_ten_times_the_learning_rate_is_clean_in_every_iterate(init, monk
     assert max(res.history) > res.history[0] + 0.02  # and the guarded run still climbs
 
 
+@pytest.mark.parametrize("scale", [0.02, 1e-3])
+def test_a_start_the_initial_noise_would_fold_runs_from_a_valid_first_iterate(monkeypatch, scale):
+    """A small mesh of your own: the initial noise (1e-3 world units, made for unit-sized starts) flipped its
+    faces before the first step; the guard then refused every step and returned the folded start. The noise
+    is halved until the start meets the rules, so the result is clean."""
+    import meshmei.mei.optimize as mo
+
+    V, F = initial_mesh("sheet", n_vertices=150)[:2]
+    first = []
+    real = mo.valid_start
+
+    def spy(rbf, guard, **k):
+        halved = real(rbf, guard, **k)
+        first.append(guard.why_not(rbf().detach()))
+        return halved
+
+    monkeypatch.setattr(mo, "valid_start", spy)
+    res = optimize_mei(GaborSimpleCell(), 0, (scale * V, F), steps=5, seeds=(0, 1), image_size=32)
+    assert first == [None, None]  # every seed's first iterate meets the rules
+    assert _clean(res.V, res.F, res.V0)
+
+
 def test_the_guard_barrier_is_zero_inside_its_band_and_grows_without_bound_at_the_bounds(ball):
     V, F = ball
     guard = StepGuard(V, F, ValidityRules(min_quality=0.02))

@@ -15,7 +15,7 @@ import torch
 from ..contact import ContactBarrier, contact_energies
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
-from ..mesh import check_mesh, load_mesh
+from ..mesh import load_mesh, remove_unreferenced
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
@@ -61,7 +61,8 @@ def start_name(init) -> str:
 
 
 def initial(init, settings: MEISettings):
-    """``(V0, F, name)``: a built-in starting mesh by name (``settings.n_vertices``) or a given ``(V, F)``."""
+    """``(V0, F, name)``: a built-in starting mesh by name (``settings.n_vertices``) or a given ``(V, F)``
+    (vertices no face uses are dropped: they would only widen the RBF kernels' spacing)."""
     if isinstance(init, str):
         if init not in INITIAL_KINDS:
             raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {init!r}")
@@ -71,9 +72,8 @@ def initial(init, settings: MEISettings):
         V0, F = init
     except (TypeError, ValueError):
         raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {type(init).__name__}") from None
-    V0, F = torch.as_tensor(V0), torch.as_tensor(F)
-    check_mesh(V0, F)
-    return V0.detach().to(settings.torch_dtype), F.long(), "custom"
+    V0, F = remove_unreferenced(torch.as_tensor(V0).detach(), torch.as_tensor(F))
+    return V0.to(settings.torch_dtype), F, "custom"
 
 
 def start_from_file(path, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -144,9 +144,26 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
     return objective
 
 
+def valid_start(rbf, guard, halvings: int = 30) -> int:
+    """Halve the seed's initial offsets of ``rbf`` until the deformed start meets ``guard``'s rules (the rest
+    mesh meets them by construction); returns how often they were halved. A start the noise would fold (a
+    fine or thin mesh of your own) then runs from a valid first iterate instead of one every step is refused
+    from; the built-in starts' noise is far inside the rules and is left as it is."""
+    for k in range(halvings + 1):
+        with torch.no_grad():
+            if guard.why_not(rbf()) is None:
+                return k
+            rbf.offsets.mul_(0.5)
+    with torch.no_grad():
+        rbf.offsets.zero_()
+    return halvings + 1
+
+
 def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights,
               uv=None) -> dict:
     scene = SeedScene(V0, settings, seed, uv)
+    if guard is not None:
+        valid_start(scene.rbf, guard)
     trace = Trace()
     accept = None if guard is None else guard.acceptor(scene.rbf)
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights, guard), make_optimizer("adam", scene.groups),
