@@ -374,7 +374,7 @@ def _run_population(args) -> int:
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=_image_size(args, encoder),
                            n_vertices=args.n_vertices, **_objective_settings(args))
     try:
-        rows = run_population(encoder, parse_neurons(args.neurons), args.out, init=args.init, settings=settings,
+        rows = run_population(encoder, parse_neurons(args.neurons, encoder.n_neurons), args.out, init=args.init, settings=settings,
                               batch_size=args.batch_size, pixel_steps=args.pixel_steps, cluster=args.cluster,
                               device=args.device, figures=args.figures, progress=not args.quiet)
     except KeyboardInterrupt:

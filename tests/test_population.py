@@ -38,6 +38,92 @@ def test_neuron_lists_parse_ranges_and_keep_order():
     for bad in ("", "a-b", "5-2", "-3"):
         with pytest.raises(MEIError):
             parse_neurons(bad)
+    assert parse_neurons("0-3", 4) == [0, 1, 2, 3]
+    with pytest.raises(MEIError, match="out of range for 4 neurons: got 999999999"):
+        parse_neurons("0-999999999", 4)  # refused before the range is built (it would take GBs)
+
+
+def test_repeated_seeds_are_refused_not_silently_dropped():
+    # a repeated seed once left every neuron unfinished: the run wrote an empty table and reported success
+    with pytest.raises(MEIError, match=r"seeds must be distinct; \[0\] repeated"):
+        MEISettings(seeds=(0, 0, 1))
+
+
+def test_a_refused_call_writes_nothing_so_the_corrected_one_runs(tmp_path):
+    enc, out = cells(), tmp_path / "pop"
+    for kwargs in (dict(n_vertices=3), dict(batch_size=0), dict(cluster="slurm")):
+        settings = {**SMALL, **{k: v for k, v in kwargs.items() if k == "n_vertices"}}
+        extra = {k: v for k, v in kwargs.items() if k != "n_vertices"}
+        with pytest.raises(MEIError):
+            run_population(enc, [0], out, settings=MEISettings(**settings), pixel_steps=0, progress=False, **extra)
+        assert not out.exists()
+    assert [r["neuron"] for r in run_population(enc, [0], out, settings=MEISettings(**SMALL), pixel_steps=0,
+                                                progress=False)] == [0]
+
+
+def test_damaged_folders_are_named_in_one_clear_error(tmp_path):
+    enc, out = cells(), tmp_path / "pop"
+    run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    folder = out / "neurons" / "neuron_00001"
+    summary = (folder / "summary.json").read_text()
+    damage = [(folder / "summary.json", "[]"), (folder / "summary.json", json.dumps({**json.loads(summary), "neuron": 3})),
+              (folder / "summary.json", json.dumps({k: v for k, v in json.loads(summary).items() if k != "neuron"})),
+              (folder / "state.pt", None)]
+    for path, text in damage:
+        kept = path.read_bytes()
+        path.unlink() if text is None else path.write_text(text)
+        with pytest.raises(MEIError, match="neuron_00001 is not a complete run folder; remove it and resume"):
+            run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+        path.write_bytes(kept)
+    meta = out / "population.json"
+    meta.write_text("[1]")
+    with pytest.raises(MEIError, match="is not a population description"):
+        run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+
+
+def test_a_neuron_another_job_finished_meanwhile_is_kept_and_the_run_goes_on(tmp_path, monkeypatch):
+    import shutil
+
+    import meshmei.population.run as pr
+
+    enc, s = cells(), MEISettings(**SMALL)
+    run_population(enc, [0], tmp_path / "other", settings=s, pixel_steps=0, progress=False)
+    out = tmp_path / "pop"
+    run_population(enc, [2], out, settings=s, pixel_steps=0, progress=False)
+    real = pr.neuron_results
+
+    def racing(*args, **kwargs):  # another array task saves neuron 0 just before this one does
+        for n, res, seconds in real(*args, **kwargs):
+            if n == 0:
+                shutil.copytree(tmp_path / "other" / "neurons" / "neuron_00000", out / "neurons" / "neuron_00000")
+            yield n, res, seconds
+
+    monkeypatch.setattr(pr, "neuron_results", racing)
+    rows = run_population(enc, [0, 1], out, settings=s, pixel_steps=0, progress=False)
+    assert [r["neuron"] for r in rows] == [0, 1, 2]
+    other = json.loads((tmp_path / "other" / "neurons" / "neuron_00000" / "summary.json").read_text())
+    assert json.loads((out / "neurons" / "neuron_00000" / "summary.json").read_text()) == other
+
+
+def test_a_changed_model_is_refused_and_the_same_model_by_another_path_resumes(tmp_path, monkeypatch):
+    from meshmei.cli import main
+
+    body = (
+        "import torch\n"
+        "def build():\n"
+        "    torch.manual_seed(0)\n"
+        "    lin = torch.nn.Linear(16 * 16, 3)\n"
+        "    with torch.no_grad():\n"
+        "        lin.weight *= SCALE\n"
+        "    return {'model': torch.nn.Sequential(torch.nn.Flatten(), lin), 'mean': 0.5, 'std': 0.2, 'image_size': 16}\n")
+    (tmp_path / "m.py").write_text("SCALE = 1.0\n" + body)
+    monkeypatch.chdir(tmp_path)
+    common = ["--steps", "2", "--seeds", "0", "--n-vertices", "40", "--pixel-steps", "0", "--quiet", "--out", "pop"]
+    assert main(["population", "--model", "m.py:build", "--neurons", "0", *common]) == 0
+    assert main(["population", "--model", "./m.py:build", "--neurons", "1", *common]) == 0  # the same model
+    (tmp_path / "m.py").write_text("SCALE = -5.0\n" + body)
+    assert main(["population", "--model", "m.py:build", "--neurons", "2", *common]) == 2  # another model
+    assert [r["neuron"] for r in read_table(tmp_path / "pop")] == [0, 1]
 
 
 def test_a_population_writes_one_run_per_neuron_and_a_table(tmp_path):

@@ -129,12 +129,13 @@ def _cell_full(cell) -> bool:
 
 
 def model_fingerprint(encoder: "ModelEncoder") -> str:
-    """A hash of what a :class:`ModelEncoder` computes with: every parameter and buffer (names, dtypes, shapes
-    and values) of its modules, the code of a plain callable, and the source of module classes defined
+    """A hash of what a :class:`ModelEncoder` computes with: its modules' tree as printed (each module's
+    settings), every parameter and buffer (names, dtypes, shapes and values), the code of a plain callable, and the source of module classes defined
     outside torch. Two encoders with the same fingerprint and options give the same responses; a changed
     weight or forward gives another fingerprint (a population folder then refuses to mix them)."""
     h = hashlib.sha256()
     for m in (*encoder.models, *encoder.held):
+        h.update(repr(m).encode())  # the module tree with each module's settings (kernel sizes, Gabor parameters)
         for name, t in m.state_dict().items():
             t = t.detach().contiguous().cpu().reshape(-1)
             h.update(f"{name}:{t.dtype}:{t.numel()}".encode())

@@ -23,7 +23,7 @@ from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
 from .optimize import (check_neuron, contact_barriers, initial, objective_weights, optimize_mei, result_from_seeds,
-                       settings_for_encoder, start_name, validity_barriers)
+                       settings_for_encoder, start_name, valid_start, validity_barriers)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -41,6 +41,11 @@ class BatchScene:
 
     def __init__(self, V0, settings: MEISettings, seeds, uv=None, F=None):
         self.seeds = [SeedScene(V0, settings, s, uv) for s in seeds]  # the same initial draws as alone
+        self.guards = self.contacts = None
+        if settings.valid_steps and F is not None:  # each item's own guard, and the same valid first iterates
+            self.guards = [StepGuard(V0, F, settings.validity_rules()) for _ in self.seeds]
+            for scene, guard in zip(self.seeds, self.guards):
+                valid_start(scene.rbf, guard)
         self.rbfs = [s.rbf for s in self.seeds]
         self.V0 = V0
         self.offsets = torch.nn.Parameter(torch.stack([r.offsets.detach() for r in self.rbfs]))
@@ -70,9 +75,7 @@ class BatchScene:
             self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
         self.camera, self.render_settings = first.camera, first.render_settings
         self._dense_key, self._dense = None, None
-        self.guards = self.contacts = None
-        if settings.valid_steps and F is not None:
-            self.guards = [StepGuard(V0, F, settings.validity_rules()) for _ in self.seeds]
+        if self.guards is not None:
             self.contacts = contact_barriers(V0, F, settings, len(self.seeds))
 
     def vertices(self) -> torch.Tensor:
@@ -178,7 +181,7 @@ def _objective(encoder, neurons, F, scene: BatchScene, active: dict, settings: M
     return objective
 
 
-def _check_batch_size(batch_size) -> None:
+def check_batch_size(batch_size) -> None:
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
         raise MEIError(f"batch_size must be a positive integer, got {batch_size!r}")
 
@@ -216,7 +219,7 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
     if len(set(neurons)) != len(neurons):
         twice = sorted({n for n in neurons if neurons.count(n) > 1})
         raise MEIError(f"neurons {twice} are listed twice; each neuron's seeds are its items")
-    _check_batch_size(batch_size)
+    check_batch_size(batch_size)
     if settings.robust_pose > 0 or settings.robust_light > 0:
         for n in neurons:  # K views per item: each neuron alone
             yield n, optimize_mei(encoder, n, init, settings)
@@ -255,7 +258,7 @@ def optimize_mei_batch(encoder: Encoder, neurons, init="sheet", settings: MEISet
     [0, 1]
     """
     s = MEISettings.with_overrides(settings, overrides).for_start(start_name(init))
-    _check_batch_size(batch_size)
+    check_batch_size(batch_size)
     neurons = list(neurons)
     bar = Progress(s.steps * -(-len(neurons) * len(s.seeds) // batch_size), "3D-MEI batches", enabled=progress)
     try:

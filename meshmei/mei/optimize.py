@@ -66,7 +66,10 @@ def initial(init, settings: MEISettings):
     if isinstance(init, str):
         if init not in INITIAL_KINDS:
             raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {init!r}")
-        V0, F = initial_mesh(init, n_vertices=settings.n_vertices, dtype=settings.torch_dtype)
+        try:
+            V0, F = initial_mesh(init, n_vertices=settings.n_vertices, dtype=settings.torch_dtype)
+        except ValueError as err:  # a vertex count the start cannot have
+            raise MEIError(f"{init} start: {err}") from None
         return V0, F, init
     try:
         V0, F = init

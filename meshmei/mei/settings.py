@@ -190,7 +190,11 @@ class MEISettings:
         seeds = tuple(self.seeds) if not isinstance(self.seeds, int) else (self.seeds,)
         if not seeds or any(isinstance(s, bool) or int(s) != s for s in seeds):
             raise MEIError(f"seeds must be a non-empty sequence of integers, got {self.seeds!r}")
-        object.__setattr__(self, "seeds", tuple(int(s) for s in seeds))
+        seeds = tuple(int(s) for s in seeds)
+        if len(set(seeds)) != len(seeds):
+            twice = sorted({s for s in seeds if seeds.count(s) > 1})
+            raise MEIError(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
+        object.__setattr__(self, "seeds", seeds)
         if not isinstance(self.weights, dict):
             raise MEIError(f"weights must be a dict of regularizer name -> weight, got {type(self.weights).__name__}")
         for k, w in self.weights.items():

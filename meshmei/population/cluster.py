@@ -28,6 +28,18 @@ def _task(encoder, spec, neurons, init, settings: dict, batch_size, pixel_steps)
                                pixel_steps=pixel_steps))
 
 
+def check_cluster(cluster: str):
+    """Ray's module for ``cluster`` (``"ray"`` or ``"ray://HOST:PORT"``), or MEIError: another value, or Ray
+    not installed. Called before anything is written."""
+    if cluster != "ray" and not str(cluster).startswith("ray://"):
+        raise MEIError(f"cluster must be 'ray' or 'ray://HOST:PORT', got {cluster!r}")
+    try:
+        import ray
+    except ImportError:
+        raise MEIError('--cluster ray needs Ray: pip install "meshmei[cluster]"') from None
+    return ray
+
+
 def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettings, *, batch_size: int,
                        pixel_steps: int, max_retries: int = 3):
     """Yield ``(neuron, result, seconds)`` as Ray tasks finish (see :func:`~meshmei.population.run_population`).
@@ -36,12 +48,7 @@ def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettin
     at the end) or ``"ray://HOST:PORT"``. A task whose worker dies is retried up to ``max_retries`` times; an
     exception raised by the optimisation itself ends the run with that error.
     """
-    try:
-        import ray
-    except ImportError:
-        raise MEIError('--cluster ray needs Ray: pip install "meshmei[cluster]"') from None
-    if cluster != "ray" and not str(cluster).startswith("ray://"):
-        raise MEIError(f"cluster must be 'ray' or 'ray://HOST:PORT', got {cluster!r}")
+    ray = check_cluster(cluster)
     started = not ray.is_initialized()
     if started:
         ray.init(address=None if cluster == "ray" else cluster, log_to_driver=False, include_dashboard=False)

@@ -12,19 +12,22 @@ from pathlib import Path
 
 import torch
 
-from ..encoders import Encoder, encoder_spec
+from ..encoders import Encoder, encoder_identity
 from ..errors import MEIError
 from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
-from ..mei.optimize import check_neuron, settings_for_encoder, start_name
+from ..mei.batch import check_batch_size
+from ..mei.optimize import check_neuron, initial, settings_for_encoder, start_name
 from ..optim import Progress
-from .store import CONFIG_FORMAT, finished_neurons, neuron_dir, prepare_folder, table_row, write_table
+from .store import CONFIG_FORMAT, finished_neurons, neuron_dir, prepare_folder, read_summary, table_row, write_table
 
 __all__ = ["run_population", "population_config", "neuron_results", "check_device"]
 
 
 def population_config(encoder: Encoder, init: str, settings: MEISettings, pixel_steps: int) -> dict:
-    """What shapes every neuron's result: hashed into the folder, so that other settings never mix in."""
-    return {"format": CONFIG_FORMAT, "encoder": encoder_spec(encoder), "init": str(init),
+    """What shapes every neuron's result: hashed into the folder, so that other settings never mix in. A
+    lab's model enters by its identity (:func:`~meshmei.encoders.encoder_identity`: weights, code, options
+    and the model file's hash, not the path it was reached by)."""
+    return {"format": CONFIG_FORMAT, "encoder": encoder_identity(encoder), "init": str(init),
             "settings": settings.to_dict(), "pixel_mei": {"steps": pixel_steps, "seeds": list(settings.seeds)}}
 
 
@@ -82,9 +85,16 @@ def _terminate_as_interrupt():
 
 
 def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures: bool) -> dict:
+    """Write the neuron's run folder and return its summary; when another job on this folder (a SLURM array's
+    overlapping task) finished the neuron first, with the same configuration, its folder is kept instead."""
     res = replace(res, extra={**res.extra, "config_hash": digest, "population_seconds": seconds})
-    d = save_run(res, neuron_dir(out, res.neuron), figures=figures)
-    return json.loads((d / "summary.json").read_text())
+    d = neuron_dir(out, res.neuron)
+    try:
+        save_run(res, d, figures=figures)
+    except (MEIError, OSError):
+        if not d.exists():  # not a collision: a real failure to write
+            raise
+    return read_summary(d, digest)
 
 
 def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", settings: MEISettings | None = None,
@@ -130,6 +140,12 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
     neurons = [check_neuron(encoder, n) for n in neurons]
     if isinstance(pixel_steps, bool) or not isinstance(pixel_steps, int) or pixel_steps < 0:
         raise MEIError(f"pixel_steps must be a non-negative integer, got {pixel_steps!r}")
+    check_batch_size(batch_size)
+    initial(init, settings)  # a start that cannot be built fails here, before anything is written
+    if cluster is not None:
+        from .cluster import check_cluster
+
+        check_cluster(cluster)
     out = Path(out)
     digest = prepare_folder(out, population_config(encoder, init, settings, pixel_steps))
     done = finished_neurons(out, digest)
@@ -156,6 +172,9 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
         bar.close()
     done = finished_neurons(out, digest)
     write_table(out, done)
+    lost = [n for n in todo if n not in done]
+    if lost:  # a safety net: every neuron asked for has a folder, or the run says which have none
+        raise MEIError(f"neurons {lost} were asked for but produced no result")
     if done:
         from .figure import population_figure
 

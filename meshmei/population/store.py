@@ -26,7 +26,8 @@ from pathlib import Path
 
 from ..errors import MEIError
 
-__all__ = ["CONFIG_FORMAT", "COLUMNS", "config_hash", "neuron_dir", "prepare_folder", "finished_neurons",
+__all__ = ["CONFIG_FORMAT", "COLUMNS", "RUN_FILES", "config_hash", "neuron_dir", "prepare_folder", "read_summary",
+           "finished_neurons",
            "table_row", "write_table", "read_table", "parse_neurons"]
 
 CONFIG_FORMAT = 1
@@ -61,8 +62,11 @@ def prepare_folder(out, config: dict) -> str:
     if meta.is_file():
         try:
             old = json.loads(meta.read_text())
-        except (OSError, json.JSONDecodeError) as err:
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
             raise MEIError(f"{meta} is unreadable ({err}); choose another --out") from None
+        if not isinstance(old, dict) or not isinstance(old.get("config", {}), dict):
+            raise MEIError(f"{meta} is not a population description (it holds a {type(old).__name__}); choose "
+                           "another --out")
         if old.get("config_hash") != digest:
             changed = sorted(k for k in set(config) | set(old.get("config", {}))
                              if config.get(k) != old.get("config", {}).get(k))
@@ -80,29 +84,45 @@ def prepare_folder(out, config: dict) -> str:
     return digest
 
 
+# the files a finished neuron's folder holds (those meshmei.mei.load_run needs)
+RUN_FILES = ("summary.json", "state.pt", "mesh.obj")
+
+
+def read_summary(d: Path, digest: str) -> dict:
+    """The summary of the finished neuron folder ``d`` made with configuration ``digest``; MEIError when a
+    file is missing or damaged, the summary names another neuron, or the folder was made with other settings."""
+    d = Path(d)
+    incomplete = MEIError(f"{d} is not a complete run folder; remove it and resume")
+    if any(not (d / name).is_file() for name in RUN_FILES):
+        raise incomplete
+    try:
+        summary = json.loads((d / "summary.json").read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        raise incomplete from None
+    if not isinstance(summary, dict) or not isinstance(summary.get("neuron"), int) \
+            or not isinstance(summary.get("activation"), (int, float)) or d.name != f"neuron_{summary['neuron']:05d}":
+        raise incomplete
+    if summary.get("config_hash") != digest:
+        raise MEIError(f"{d} was made with other settings (config {summary.get('config_hash')}, this run "
+                       f"{digest}); it would mix results of different settings: use another --out")
+    return summary
+
+
 def finished_neurons(out, digest: str) -> dict[int, dict]:
-    """``{neuron: summary}`` of the complete run folders; a folder made with another configuration raises."""
-    found = {}
+    """``{neuron: summary}`` of the complete run folders (:func:`read_summary`); a damaged folder or one made
+    with another configuration raises."""
     root = Path(out) / "neurons"
     if not root.is_dir():
-        return found
-    for d in sorted(root.glob("neuron_*")):
-        try:
-            summary = json.loads((d / "summary.json").read_text())
-        except (OSError, json.JSONDecodeError):
-            raise MEIError(f"{d} is not a complete run folder; remove it and resume") from None
-        if summary.get("config_hash") != digest:
-            raise MEIError(f"{d} was made with other settings (config {summary.get('config_hash')}, this run "
-                           f"{digest}); it would mix results of different settings: use another --out")
-        found[int(summary["neuron"])] = summary
-    return found
+        return {}
+    summaries = (read_summary(d, digest) for d in sorted(root.glob("neuron_*")))
+    return {s["neuron"]: s for s in summaries}
 
 
 def table_row(summary: dict) -> dict:
     """One table row from a run folder's ``summary.json``."""
     q = summary.get("quality", {})
     mei, pix = summary["activation"], summary.get("pixel_mei_activation")
-    ratio = mei / pix if pix not in (None, 0) else None
+    ratio = mei / pix if pix is not None and pix > 0 else None  # no ratio to a pixel MEI that does not excite
     return {"neuron": summary["neuron"], "mei_response": mei, "pixel_mei_response": pix, "ratio": ratio,
             "fraction_of_bound": summary.get("fraction_of_bound"), "seed": summary.get("seed"),
             "self_intersections": q.get("self_intersections"), "flipped_faces": q.get("flipped_faces"),
@@ -148,8 +168,9 @@ def read_table(out) -> list[dict]:
     return rows
 
 
-def parse_neurons(text: str) -> list[int]:
-    """``"0-99"``, ``"3,7,12"``, ``"0-9,20,30-32"``: neuron indices in the order given, without repeats."""
+def parse_neurons(text: str, n_neurons: int | None = None) -> list[int]:
+    """``"0-99"``, ``"3,7,12"``, ``"0-9,20,30-32"``: neuron indices in the order given, without repeats.
+    With ``n_neurons``, an index beyond the encoder's count is refused before any range is expanded."""
     out: list[int] = []
     for part in str(text).replace(" ", "").split(","):
         if not part:
@@ -162,6 +183,8 @@ def parse_neurons(text: str) -> list[int]:
             raise MEIError(f"neurons must be ranges and lists such as 0-99 or 3,7,12; got {text!r}") from None
         if a < 0 or b < a:
             raise MEIError(f"neuron range {part!r} is empty or negative")
+        if n_neurons is not None and b >= n_neurons:
+            raise MEIError(f"neuron index out of range for {n_neurons} neurons: got {b} (in {part!r})")
         out.extend(range(a, b + 1))
     if not out:
         raise MEIError(f"no neurons in {text!r}")
