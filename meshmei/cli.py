@@ -386,7 +386,8 @@ def _run_population(args) -> int:
     if ratios:
         line += f"; 3D-MEI / pixel-MEI response {sum(ratios) / len(ratios):.3f} on average ({min(ratios):.3f}-{max(ratios):.3f})"
     clean = sum(1 for r in rows if r["self_intersections"] == 0)
-    print(f"{line}; {clean} of {len(rows)} free of self-intersections; wrote population.csv, population.png")
+    wrote = [name for name in ("population.csv", "population.png") if (Path(args.out) / name).is_file()]
+    print(f"{line}; {clean} of {len(rows)} free of self-intersections; wrote {', '.join(wrote)}")
     return 0
 
 

@@ -11,7 +11,7 @@ import torch
 
 from .errors import MeshError
 
-__all__ = ["check_mesh", "numpy_mesh", "remove_unreferenced", "load_mesh", "save_mesh", "MESH_FORMATS"]
+__all__ = ["check_mesh", "numpy_mesh", "remove_unreferenced", "cast_vertices", "load_mesh", "save_mesh", "MESH_FORMATS"]
 
 MESH_FORMATS = (".obj", ".ply", ".off", ".stl")
 
@@ -232,7 +232,7 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     except MeshError as err:
         raise MeshError(f"{path}: {err}") from None
     V, F = _weld(V, F)
-    return _cast_vertices(V, dtype, str(path)).to(device=device), F.to(device=device)
+    return cast_vertices(V, dtype, str(path)).to(device=device), F.to(device=device)
 
 
 def _point_count(path: Path) -> int:
@@ -258,7 +258,7 @@ def _weld(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return V[torch.from_numpy(np.sort(first))], old_to_new[F]
 
 
-def _cast_vertices(V: torch.Tensor, dtype: torch.dtype, where: str) -> torch.Tensor:
+def cast_vertices(V: torch.Tensor, dtype: torch.dtype, where: str) -> torch.Tensor:
     """``V`` (finite) in ``dtype``, or a MeshError naming ``where`` when a coordinate overflows ``dtype``."""
     out = V.to(dtype)
     if not bool(torch.isfinite(out).all()):

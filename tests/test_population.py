@@ -17,8 +17,10 @@ from meshmei.encoders import GaborComplexCell, GaborSimpleCell, encoder_from_mod
 from meshmei.errors import MEIError
 from meshmei.mei import MEISettings, load_run, optimize_mei, pixel_mei
 from meshmei.population import parse_neurons, read_table, run_population
+from meshmei.population.store import table_row
 
 SMALL = dict(steps=6, seeds=(0, 1), image_size=20, n_vertices=50, dtype="float64")
+TINY = dict(steps=2, seeds=(0,), image_size=20, n_vertices=40, dtype="float64")
 
 
 def cells():
@@ -49,6 +51,28 @@ def test_repeated_seeds_are_refused_not_silently_dropped():
         MEISettings(seeds=(0, 0, 1))
 
 
+def test_a_planned_neuron_without_a_result_is_an_error_not_a_short_table(tmp_path, monkeypatch):
+    import meshmei.population.run as pr
+
+    real = pr.neuron_results
+
+    def losing(*args, **kwargs):  # a backend that drops neuron 1 (as repeated seeds once dropped every neuron)
+        return ((n, res, seconds) for n, res, seconds in real(*args, **kwargs) if n != 1)
+
+    monkeypatch.setattr(pr, "neuron_results", losing)
+    with pytest.raises(MEIError, match=r"neurons \[1\] were asked for but produced no result"):
+        run_population(cells(), [0, 1], tmp_path / "pop", settings=MEISettings(**TINY), pixel_steps=0,
+                       progress=False)
+    assert not (tmp_path / "pop" / "population.png").exists()
+
+
+def test_the_ratio_is_empty_unless_the_pixel_mei_excites():
+    row = {"neuron": 0, "activation": 2.0}
+    assert table_row({**row, "pixel_mei_activation": 4.0})["ratio"] == 0.5
+    for pix in (None, 0.0, -1.0, -4.0):  # a ratio to a response <= 0 says nothing (and flips sign)
+        assert table_row({**row, "pixel_mei_activation": pix})["ratio"] is None
+
+
 def test_a_refused_call_writes_nothing_so_the_corrected_one_runs(tmp_path):
     enc, out = cells(), tmp_path / "pop"
     for kwargs in (dict(n_vertices=3), dict(batch_size=0), dict(cluster="slurm")):
@@ -68,7 +92,10 @@ def test_damaged_folders_are_named_in_one_clear_error(tmp_path):
     summary = (folder / "summary.json").read_text()
     damage = [(folder / "summary.json", "[]"), (folder / "summary.json", json.dumps({**json.loads(summary), "neuron": 3})),
               (folder / "summary.json", json.dumps({k: v for k, v in json.loads(summary).items() if k != "neuron"})),
-              (folder / "state.pt", None)]
+              *((folder / "summary.json", json.dumps({**json.loads(summary), **bad})) for bad in (
+                  {"complete": False}, {"neuron": True}, {"activation": "1.0"}, {"quality": []},
+                  {"pixel_mei_activation": "1.0"})),
+              (folder / "state.pt", None), (folder / "mesh.obj", None)]
     for path, text in damage:
         kept = path.read_bytes()
         path.unlink() if text is None else path.write_text(text)
@@ -103,6 +130,38 @@ def test_a_neuron_another_job_finished_meanwhile_is_kept_and_the_run_goes_on(tmp
     assert [r["neuron"] for r in rows] == [0, 1, 2]
     other = json.loads((tmp_path / "other" / "neurons" / "neuron_00000" / "summary.json").read_text())
     assert json.loads((out / "neurons" / "neuron_00000" / "summary.json").read_text()) == other
+
+
+def test_a_neuron_another_job_lands_while_this_one_writes_it_is_kept(tmp_path, monkeypatch):
+    """Both jobs finish the neuron at once: the other job's folder lands while this one writes its own, so this
+    one's rename into place fails (it must not replace the other's); a landed folder of other settings is an
+    error."""
+    import shutil
+
+    import meshmei.mei.runs as runs
+
+    enc, s = cells(), MEISettings(**TINY)
+    run_population(enc, [0], tmp_path / "other", settings=s, pixel_steps=0, progress=False)
+    other, out = tmp_path / "other" / "neurons" / "neuron_00000", tmp_path / "pop"
+    real = runs.save_mesh
+
+    def landing(path, *args, **kwargs):  # the other job's rename lands during this job's first write
+        target = out / "neurons" / "neuron_00000"
+        if not target.exists():
+            shutil.copytree(other, target)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(runs, "save_mesh", landing)
+    rows = run_population(enc, [0, 1], out, settings=s, pixel_steps=0, progress=False)
+    assert [r["neuron"] for r in rows] == [0, 1]
+    assert (out / "neurons" / "neuron_00000" / "summary.json").read_text() == (other / "summary.json").read_text()
+    assert sorted(p.name for p in (out / "neurons").iterdir()) == ["neuron_00000", "neuron_00001"]  # no leftovers
+
+    data = json.loads((other / "summary.json").read_text())
+    (other / "summary.json").write_text(json.dumps({**data, "config_hash": "0" * 16}))
+    out = tmp_path / "pop2"  # where a folder of other settings lands the same way
+    with pytest.raises(MEIError, match="neuron_00000 was made with other settings"):
+        run_population(enc, [0], out, settings=s, pixel_steps=0, progress=False)
 
 
 def test_a_changed_model_is_refused_and_the_same_model_by_another_path_resumes(tmp_path, monkeypatch):

@@ -17,10 +17,11 @@ from ..plots import mei_figures
 from ..quality import health_report
 from .settings import MEIResult, MEISettings, rebuild_deformer
 
-__all__ = ["RUN_FORMAT", "save_run", "load_run"]
+__all__ = ["RUN_FORMAT", "RUN_FILES", "save_run", "load_run"]
 
 RUN_FORMAT = 1
-_REQUIRED = ("summary.json", "state.pt", "mesh.obj")
+# the files a complete run folder holds (load_run needs each)
+RUN_FILES = ("summary.json", "state.pt", "mesh.obj")
 _SUMMARY_KEYS = {"format", "complete", "neuron", "init", "activation", "fraction_of_bound", "seed", "seed_activations",
                  "encoder", "settings", "light", "rotation_axis_angle", "translation", "n_vertices", "n_faces",
                  "wall_time_s", "seconds_per_step", "quality", "history", "loss_history", "reg_history",
@@ -96,7 +97,7 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     directory = Path(directory)
     if not directory.is_dir():
         raise MEIError(f"no MEI run directory at {directory}")
-    missing = [n for n in _REQUIRED if not (directory / n).is_file()]
+    missing = [n for n in RUN_FILES if not (directory / n).is_file()]
     if missing:
         raise MEIError(f"{directory} is not a complete MEI run: missing {missing}")
     try:

@@ -25,8 +25,9 @@ import uuid
 from pathlib import Path
 
 from ..errors import MEIError
+from ..mei.runs import RUN_FILES, RUN_FORMAT
 
-__all__ = ["CONFIG_FORMAT", "COLUMNS", "RUN_FILES", "config_hash", "neuron_dir", "prepare_folder", "read_summary",
+__all__ = ["CONFIG_FORMAT", "COLUMNS", "config_hash", "neuron_dir", "prepare_folder", "read_summary",
            "finished_neurons",
            "table_row", "write_table", "read_table", "parse_neurons"]
 
@@ -84,8 +85,19 @@ def prepare_folder(out, config: dict) -> str:
     return digest
 
 
-# the files a finished neuron's folder holds (those meshmei.mei.load_run needs)
-RUN_FILES = ("summary.json", "state.pt", "mesh.obj")
+def _number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _well_formed(summary, name: str) -> bool:
+    """Whether a parsed ``summary.json`` holds what load_run and table_row read, as the types they read it
+    as, for the neuron that its folder ``name`` is named after."""
+    if not isinstance(summary, dict) or summary.get("complete") is not True or summary.get("format") != RUN_FORMAT:
+        return False
+    n, pix = summary.get("neuron"), summary.get("pixel_mei_activation")
+    return (isinstance(n, int) and not isinstance(n, bool) and name == f"neuron_{n:05d}"
+            and _number(summary.get("activation")) and isinstance(summary.get("quality", {}), dict)
+            and (pix is None or _number(pix)))
 
 
 def read_summary(d: Path, digest: str) -> dict:
@@ -99,8 +111,7 @@ def read_summary(d: Path, digest: str) -> dict:
         summary = json.loads((d / "summary.json").read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError):
         raise incomplete from None
-    if not isinstance(summary, dict) or not isinstance(summary.get("neuron"), int) \
-            or not isinstance(summary.get("activation"), (int, float)) or d.name != f"neuron_{summary['neuron']:05d}":
+    if not _well_formed(summary, d.name):
         raise incomplete
     if summary.get("config_hash") != digest:
         raise MEIError(f"{d} was made with other settings (config {summary.get('config_hash')}, this run "

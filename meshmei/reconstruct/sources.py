@@ -9,7 +9,7 @@ import os
 import torch
 
 from ..errors import MeshError
-from ..mesh import _cast_vertices, load_mesh, remove_unreferenced
+from ..mesh import cast_vertices, load_mesh, remove_unreferenced
 from ..operators import doublearea
 from ..shapes import DEFAULT_N_VERTICES, TARGET_NAMES, initial_mesh, normalize_unit_diagonal, target_mesh
 from .openings import find_opening, torus_through_opening
@@ -38,7 +38,7 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
             V, F = _load(spec, "target", dtype)
         else:
             V, F = _pair(spec, "target")
-            V = _cast_vertices(V, dtype, "target")
+            V = cast_vertices(V, dtype, "target")
         if normalize:
             V = normalize_unit_diagonal(V)
     _check_area(V, F, f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target")
