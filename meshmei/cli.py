@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 
+from ._files import atomic_directory
 from .encoders import load_model, make_encoder
 from .errors import MEIError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
@@ -183,6 +184,8 @@ def _run_mei(args) -> int:
                            n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
                            **_objective_settings(args))
+    if args.diverse < 1:
+        raise MEIError(f"--diverse K needs K >= 1 (1: one ordinary 3D-MEI), got {args.diverse}")
     if args.diverse > 1:
         return _run_diverse(args, encoder, settings, out, init)
     res = optimize_mei(encoder, args.neuron, init, settings, progress=not args.quiet)
@@ -207,12 +210,15 @@ def _run_mei(args) -> int:
 def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     """``meshmei mei --diverse K``: OUT/member_<i> run folders, OUT/diversity.json and OUT/diverse.png."""
     d = diverse_meis(encoder, args.neuron, args.diverse, init, settings)
-    out.mkdir(parents=True, exist_ok=True)
-    for i, res in enumerate(d.results):
-        save_run(res, out / f"member_{i}", overwrite=args.overwrite)
-    (out / "diversity.json").write_text(json.dumps({"responses": d.responses,
-                                                     "dissimilarity": d.dissimilarity.tolist()}, indent=1))
-    diverse_figure(d, out / "diverse.png")
+
+    def write(tmp: Path) -> None:  # the whole set at once: --overwrite leaves nothing of an earlier run
+        for i, res in enumerate(d.results):
+            save_run(res, tmp / f"member_{i}")
+        (tmp / "diversity.json").write_text(json.dumps({"responses": d.responses,
+                                                         "dissimilarity": d.dissimilarity.tolist()}, indent=1))
+        diverse_figure(d, tmp / "diverse.png")
+
+    atomic_directory(out, write, overwrite=args.overwrite, error=MEIError)
     off = d.dissimilarity[~torch.eye(len(d.results), dtype=torch.bool)]
     health = [r.health() for r in d.results]
     clean = sum(1 for h in health if h["self_intersections"] == 0 and h["flipped_faces"] == 0)
@@ -331,8 +337,14 @@ def _run_tune(args) -> int:
               for k in ("elevation", "azimuth", "roll")}
     root = Path(args.mei)
     members = [root]
-    if (root / "diversity.json").is_file():  # meshmei mei --diverse K: sweep every member
-        members = sorted(root.glob("member_*"), key=lambda m: int(m.name.rpartition("_")[2]))
+    if (root / "diversity.json").is_file():  # meshmei mei --diverse K: sweep the members it lists
+        try:
+            k = len(json.loads((root / "diversity.json").read_text())["responses"])
+        except (OSError, ValueError, KeyError, TypeError):
+            raise MEIError(f"{root / 'diversity.json'} is damaged; run meshmei mei --diverse again") from None
+        members = [root / f"member_{i}" for i in range(k)]
+        if not members or not all(m.is_dir() for m in members):
+            raise MEIError(f"{root} should hold member_0 to member_{k - 1} ({k} diverse runs); it does not")
     for run_dir in members:
         out = args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name
         run_tuning(args.what, run_dir, out, neurons=args.neurons, distance=args.distance,

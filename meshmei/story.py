@@ -119,7 +119,8 @@ def _sweep(res, encoder, run_dir, p, log):
     log(f"[4/5] light sweep, {n_el} elevations x {n_az} azimuths over the camera-facing hemisphere")
     light = light_sweep(res, encoder, elevation=np.linspace(0, 90, n_el),
                         azimuth=np.linspace(0, 360, n_az, endpoint=False))
-    save_sweep(light, run_dir / "tuning_light", overwrite=True, images=example_renders(res, light))
+    save_sweep(light, run_dir / "tuning_light", overwrite=True,
+               images={n: example_renders(res, light, n) for n in light.neurons})
     return pose, light
 
 

@@ -215,6 +215,20 @@ def test_cli_writes_a_run(tmp_path, capsys):
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
 
 
+def test_a_damaged_summary_is_one_clear_error(tmp_path):
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40)
+    run = save_run(res, tmp_path / "run", figures=False)
+    good = json.loads((run / "summary.json").read_text())
+    for damage in ({"encoder": "gabor"}, {"activation": None}, {"seed_activations": [1, 2]}, {"neuron": "x"}):
+        (run / "summary.json").write_text(json.dumps({**good, **damage}))
+        with pytest.raises(MEIError, match="summary.json is damaged"):
+            load_run(run, rebuild_encoder=True)
+    for key in ("encoder", "neuron", "history"):
+        (run / "summary.json").write_text(json.dumps({k: v for k, v in good.items() if k != key}))
+        with pytest.raises(MEIError, match="summary.json is damaged"):
+            load_run(run, rebuild_encoder=True)
+
+
 def test_a_start_of_your_own_drops_the_vertices_no_face_uses():
     V, F = initial_mesh("sphere", n_vertices=120)[:2]
     far = torch.cat([V, torch.tensor([[40.0, 40.0, 40.0]])])  # one stray vertex: it widened every kernel

@@ -82,3 +82,27 @@ def test_the_cli_writes_the_members_and_tune_sweeps_each(tmp_path, capsys):
     for i in range(2):
         assert (out / f"member_{i}" / "tuning_pose").is_dir()
     assert capsys.readouterr().out.count("pose sweep, neuron 0") == 2
+
+
+def test_overwriting_a_diverse_set_leaves_no_member_of_the_old_one(tmp_path, capsys):
+    import json
+
+    from meshmei.cli import main
+
+    out, common = tmp_path / "div", ["--encoder", "gabor-complex", "--steps", "2", "--image-size", "16",
+                                     "--n-vertices", "40", "--quiet"]
+    assert main(["mei", "--diverse", "3", "--out", str(out), *common]) == 0
+    assert main(["mei", "--diverse", "2", "--out", str(out), "--overwrite", "--seeds", "7", *common]) == 0
+    assert sorted(p.name for p in out.glob("member_*")) == ["member_0", "member_1"]  # member_2 is gone
+    assert len(json.loads((out / "diversity.json").read_text())["responses"]) == 2
+    capsys.readouterr()
+    assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth", "0:0:1"]) == 0
+    assert capsys.readouterr().out.count("pose sweep, neuron 0") == 2
+    for k in ("0", "-3"):
+        assert main(["mei", "--diverse", k, "--out", str(tmp_path / f"d{k}"), *common]) == 2
+        assert "--diverse K needs K >= 1" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "diversity.json").write_text("{}")
+    assert main(["tune", "pose", "--mei", str(empty)]) == 2
+    assert "diversity.json is damaged" in capsys.readouterr().err

@@ -182,7 +182,31 @@ def test_cli_tune_pose_and_light(tmp_path, sheet_mei, capsys):
     assert main(["tune", "pose", "--mei", str(run), "--neurons", "5", "--overwrite"]) == 2
     assert "out of range" in capsys.readouterr().err
     assert main(["tune", "pose", "--mei", str(run), "--azimuth", "0:10:0", "--overwrite"]) == 2
-    assert "at least one angle" in capsys.readouterr().err
+    assert "a range gives 1 to 3601 angles, got n=0" in capsys.readouterr().err
+    assert main(["tune", "pose", "--mei", str(run), "--elevation=0:1:1000000000000", "--overwrite"]) == 2  # 7 TiB
+    assert "got n=1000000000000" in capsys.readouterr().err
+    assert main(["tune", "pose", "--mei", str(run), "--elevation=inf:1:3", "--overwrite"]) == 2
+    assert "bounds must be finite" in capsys.readouterr().err
+
+
+def test_each_neurons_light_plot_shows_its_own_examples(tmp_path, monkeypatch):
+    import meshmei.tuning.files as files
+    from meshmei.encoders import GaborSimpleCell
+    from meshmei.mei import optimize_mei
+    from meshmei.tuning import response_groups
+
+    cells = GaborSimpleCell(orientation=[0.0, 1.6], phase=[0.0, 2.0])  # two neurons that like different lights
+    run = save_run(optimize_mei(cells, 0, "sphere", steps=3, seeds=(0,), image_size=24, n_vertices=80),
+                   tmp_path / "run", figures=False)
+    shown = {}
+    monkeypatch.setattr(files.plots, "plot_light_polar",
+                        lambda sweep, nrn, stem, images=None: shown.update({nrn: (sweep, images)}))
+    run_tuning("light", run, neurons=[0, 1], elevation=[0.0, 45.0, 90.0], azimuth=[0.0, 90.0, 180.0, 270.0])
+    assert sorted(shown) == [0, 1]
+    for nrn, (sweep, images) in shown.items():
+        groups = response_groups(sweep, nrn)
+        assert all(images[label][1] == groups[f"{label}_example"] for label in ("high", "mid", "low"))
+    assert shown[0][1]["high"][1] != shown[1][1]["high"][1]  # the two neurons' examples differ here
 
 
 def test_run_tuning_refuses_an_unknown_sweep(tmp_path):

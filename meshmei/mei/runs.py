@@ -125,18 +125,23 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     bound += 1e-5 * (1 + float(state["V"].abs().max()))
     if V.shape != state["V"].shape or float((V.double() - state["V"].double()).abs().max()) > bound:
         raise MEIError(f"{directory}: the deformer state does not reproduce the saved vertices")
-    module = None
-    if encoder is not None or rebuild_encoder:
-        module = encoder if encoder is not None else encoder_from_spec(summary["encoder"])
-        if module.n_neurons <= int(summary["neuron"]):
-            raise MEIError(f"the encoder has {module.n_neurons} neurons; the run used neuron {summary['neuron']}")
-    return MEIResult(
-        V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
-        history=summary["history"], loss_history=summary["loss_history"], reg_history=summary["reg_history"],
-        seed=int(summary["seed"]), seed_activations={int(k): v for k, v in summary["seed_activations"].items()},
-        settings=settings, neuron=int(summary["neuron"]), encoder=summary["encoder"],
-        deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
-        translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),
-        seconds_per_step=float(summary["seconds_per_step"]), time_history=summary.get("time_history", []),
-        extra={k: summary[k] for k in summary if k not in _SUMMARY_KEYS}, encoder_module=module,
-        albedo=state.get("albedo"), albedo_uv=state.get("albedo_uv"))
+    try:  # a summary.json of the right format whose fields are missing or of the wrong type
+        module = None
+        if encoder is not None or rebuild_encoder:
+            module = encoder if encoder is not None else encoder_from_spec(summary["encoder"])
+            if module.n_neurons <= int(summary["neuron"]):
+                raise MEIError(f"the encoder has {module.n_neurons} neurons; the run used neuron {summary['neuron']}")
+        return MEIResult(
+            V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
+            history=summary["history"], loss_history=summary["loss_history"], reg_history=summary["reg_history"],
+            seed=int(summary["seed"]), seed_activations={int(k): v for k, v in summary["seed_activations"].items()},
+            settings=settings, neuron=int(summary["neuron"]), encoder=summary["encoder"],
+            deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
+            translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),
+            seconds_per_step=float(summary["seconds_per_step"]), time_history=summary.get("time_history", []),
+            extra={k: summary[k] for k in summary if k not in _SUMMARY_KEYS}, encoder_module=module,
+            albedo=state.get("albedo"), albedo_uv=state.get("albedo_uv"))
+    except MEIError:
+        raise
+    except (KeyError, TypeError, AttributeError, ValueError) as err:
+        raise MEIError(f"{directory / 'summary.json'} is damaged: {type(err).__name__}: {err}") from None

@@ -20,7 +20,8 @@ SWEEP_FORMAT = "meshmei-sweep-1"
 def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: bool = True, images=None) -> Path:
     """Write ``sweep.npz`` (responses and axes), ``sweep.json`` (metadata) and plots, atomically.
 
-    ``images`` (optional) maps group labels to example renders for the light plot.
+    ``images`` (optional): each neuron's example renders for its light plot, ``{neuron: {label: render}}``
+    (:func:`~meshmei.tuning.views.example_renders` per neuron).
     """
 
     def write(tmp: Path):
@@ -31,7 +32,7 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
                 if sweep.kind == "pose":
                     plots.plot_pose_heatmap(sweep, nrn, stem)
                 else:
-                    plots.plot_light_polar(sweep, nrn, stem, images=images)
+                    plots.plot_light_polar(sweep, nrn, stem, images=None if images is None else images.get(nrn))
         meta = {"format": SWEEP_FORMAT, "complete": True, "kind": sweep.kind, "neurons": list(sweep.neurons),
                 "axes": [n for n, _ in sweep.axes], "reference": sweep.reference, "meta": sweep.meta}
         if sweep.kind == "light":

@@ -69,14 +69,21 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32)
     return torch.as_tensor(P, dtype=dtype)
 
 
+# the most angles one range may give (a 3,601-step axis is a tenth of a degree over a full turn); a grid's
+# renders are the product of its axes' counts
+MAX_RANGE_ANGLES = 3601
+
+
 def parse_range(text: str) -> np.ndarray:
-    """``"lo:hi:n"`` -> n angles from lo to hi inclusive."""
+    """``"lo:hi:n"`` -> n angles from lo to hi inclusive (finite bounds, 1 to :data:`MAX_RANGE_ANGLES`)."""
     try:
         lo, hi, n = text.split(":")
         n = int(n)
         lo, hi = float(lo), float(hi)
     except ValueError:
         raise TuningError(f"a range is 'lo:hi:n' (degrees, count), got {text!r}") from None
-    if n < 1:
-        raise TuningError(f"a range needs at least one angle, got n={n} in {text!r}")
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise TuningError(f"a range's bounds must be finite degrees, got {text!r}")
+    if not 1 <= n <= MAX_RANGE_ANGLES:
+        raise TuningError(f"a range gives 1 to {MAX_RANGE_ANGLES} angles, got n={n} in {text!r}")
     return np.linspace(lo, hi, n)

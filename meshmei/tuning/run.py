@@ -49,7 +49,7 @@ def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, az
         images = None
     else:
         sweep = light_sweep(run, encoder, neurons=neurons, distance=distance, **grid)
-        images = example_renders(run, sweep)
+        images = {nrn: example_renders(run, sweep, nrn) for nrn in sweep.neurons}  # each neuron's own examples
     sweep.meta["run"] = str(Path(mei_dir))
     save_sweep(sweep, out, overwrite=overwrite, images=images)
     for nrn in sweep.neurons:
