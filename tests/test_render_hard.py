@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -205,10 +206,21 @@ TRI = (torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), torch.tensor([[0, 1, 2
     (dict(shading="phong"), "shading"),
     (dict(chunk_size=10), "chunk_size"),
     (dict(eps=0.0), "eps"),
+    (dict(sigma=1e30), r"sigma must lie in \(0, 1000\] pixels"),  # an OverflowError in the pixel boxes before
+    (dict(light_intensity=1e300), r"light_intensity must lie in \[0, 1e\+06\]"),  # an inf image before
+    (dict(background=1e300), "background must lie within"),  # a NaN image before
+    (dict(image_size=np.bool_(True)), "image_size"),
 ])
 def test_bad_settings(kw, match):
     with pytest.raises(RenderError, match=match):
         RenderSettings(**kw)
+
+
+def test_a_numpy_integer_image_size_is_taken_as_an_int():
+    st = RenderSettings(image_size=np.int64(16))
+    assert st.image_size == 16 and type(st.image_size) is int
+    img = render(*TRI, settings=st)
+    assert img.shape[-2:] == (16, 16) and bool(torch.isfinite(img).all())
 
 
 @pytest.mark.parametrize("kw, match", [

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
+
+import numpy as np
 
 from ..errors import RenderError
 
@@ -12,6 +15,10 @@ __all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS", "finite_float"
 # Soft coverage is evaluated only within this many sigmas of the silhouette: beyond it the logistic
 # differs from 0 or 1 by less than 1e-3 (sigmoid(-7) = 9.1e-4), the size of the jump we accept there.
 SOFT_MARGIN_SIGMAS = 7.0
+# the widest fringe (pixels) and the largest intensity a setting may take: beyond them an image is meaningless,
+# and a fringe of 1e30 pixels overflowed the pixel boxes (an OverflowError) while 1e300 made the image inf
+MAX_SIGMA = 1000.0
+MAX_INTENSITY = 1e6
 
 
 def finite_float(name: str, value) -> float:
@@ -73,15 +80,17 @@ class RenderSettings:
 
     def __post_init__(self):
         size = self.image_size
-        if isinstance(size, bool) or not isinstance(size, int) or not 1 <= size <= 8192:
+        if isinstance(size, (bool, np.bool_)) or not isinstance(size, numbers.Integral) or not 1 <= size <= 8192:
             raise RenderError(f"image_size must be an integer in [1, 8192], got {size!r}")
+        object.__setattr__(self, "image_size", int(size))
         sigma = finite_float("sigma", self.sigma)
-        if sigma <= 0:
-            raise RenderError(f"sigma must be > 0 pixels, got {self.sigma!r}")
-        finite_float("background", self.background)
+        if not 0 < sigma <= MAX_SIGMA:
+            raise RenderError(f"sigma must lie in (0, {MAX_SIGMA:g}] pixels, got {self.sigma!r}")
+        if abs(finite_float("background", self.background)) > MAX_INTENSITY:
+            raise RenderError(f"background must lie within +-{MAX_INTENSITY:g}, got {self.background!r}")
         for name in ("ambient", "light_intensity", "albedo"):
-            if finite_float(name, getattr(self, name)) < 0:
-                raise RenderError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+            if not 0 <= finite_float(name, getattr(self, name)) <= MAX_INTENSITY:
+                raise RenderError(f"{name} must lie in [0, {MAX_INTENSITY:g}], got {getattr(self, name)!r}")
         if self.shading not in ("smooth", "flat"):
             raise RenderError(f"shading must be 'smooth' or 'flat', got {self.shading!r}")
         if not isinstance(self.two_sided, bool):
