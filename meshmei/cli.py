@@ -416,6 +416,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # Ctrl-C: one line, the shell's code for it; results are only ever written whole
+        print(f"meshmei {args.command}: interrupted (runs and sweeps are written whole or not at all)", file=sys.stderr)
+        return 130
     except (ValueError, OSError, FloatingPointError) as err:
         # bad input (every meshmei error is a ValueError), files that are missing or in the way, a
         # diverging optimisation: one clear line, no traceback

@@ -215,6 +215,18 @@ def test_cli_writes_a_run(tmp_path, capsys):
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
 
 
+def test_ctrl_c_ends_the_cli_in_one_line_with_code_130_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    import meshmei.cli as cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "optimize_mei", interrupted)
+    assert cli.main(["mei", "--out", str(tmp_path / "run"), "--steps", "2", "--quiet"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("meshmei mei: interrupted") and "\n" not in err and not (tmp_path / "run").exists()
+
+
 def test_a_damaged_summary_is_one_clear_error(tmp_path):
     res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40)
     run = save_run(res, tmp_path / "run", figures=False)
