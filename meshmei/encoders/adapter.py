@@ -130,8 +130,8 @@ def _cell_full(cell) -> bool:
 
 def model_fingerprint(encoder: "ModelEncoder") -> str:
     """A hash of what a :class:`ModelEncoder` computes with: its modules' tree as printed (each module's
-    settings), every parameter and buffer (names, dtypes, shapes and values), the code of a plain callable, and the source of module classes defined
-    outside torch. Two encoders with the same fingerprint and options give the same responses; a changed
+    settings), every parameter and buffer (names, dtypes, shapes and values), the code of a plain callable,
+    and the source of module classes defined outside torch. Two encoders with the same fingerprint and options give the same responses; a changed
     weight or forward gives another fingerprint (a population folder then refuses to mix them)."""
     h = hashlib.sha256()
     for m in (*encoder.models, *encoder.held):

@@ -84,9 +84,10 @@ def encoder_from_spec(spec: dict) -> Encoder:
             raise MEIError(f"cannot load the run's model again: {err}") from None
         if enc.n_neurons != spec["n_neurons"]:
             raise MEIError(f"the model at {src['path']} now has {enc.n_neurons} neurons; the run's had {spec['n_neurons']}")
-        if spec.get("fingerprint") and model_fingerprint(enc) != spec["fingerprint"]:
+        now = model_fingerprint(enc) if spec.get("fingerprint") else None
+        if now is not None and now != spec["fingerprint"]:
             raise MEIError(f"the model at {src['path']} is not the run's any more (its weights or code changed: "
-                           f"fingerprint {model_fingerprint(enc)}, the run's {spec['fingerprint']}); a factory must "
+                           f"fingerprint {now}, the run's {spec['fingerprint']}); a factory must "
                            f"build the same model every time (load its weights, or seed its initialisation)")
         return enc
     raise MEIError(f"cannot rebuild a {spec.get('class')} encoder from a run directory; pass encoder=... to load_run")

@@ -83,10 +83,9 @@ def start_from_file(path, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tens
     """A 3D-MEI start ``(V, F)`` from a mesh file (:func:`meshmei.mesh.load_mesh`), placed as the built-in
     starts are: its bounding box centred at the origin and its largest side scaled to 1 (the sphere's
     diameter, the sheet's side), so that it fills the camera's view as they do. Faces keep their
-    orientation; an open mesh is allowed (as the sheet)."""
-    V, F = load_mesh(path, dtype=torch.float64)
-    used = V[torch.unique(F)]
-    lo, hi = used.min(0).values, used.max(0).values
+    orientation; an open mesh is allowed (as the sheet); vertices no face uses are dropped."""
+    V, F = remove_unreferenced(*load_mesh(path, dtype=torch.float64))
+    lo, hi = V.min(0).values, V.max(0).values
     side = float((hi - lo).max())
     if not side > 0:
         raise MEIError(f"{path}: the mesh has no extent (all its vertices coincide)")

@@ -17,7 +17,7 @@ from ..plots import mei_figures
 from ..quality import health_report
 from .settings import MEIResult, MEISettings, rebuild_deformer
 
-__all__ = ["RUN_FORMAT", "RUN_FILES", "save_run", "load_run"]
+__all__ = ["RUN_FORMAT", "RUN_FILES", "is_complete_summary", "save_run", "load_run"]
 
 RUN_FORMAT = 1
 # the files a complete run folder holds (load_run needs each)
@@ -81,6 +81,11 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
     return atomic_directory(directory, write, overwrite=overwrite, error=MEIError)
 
 
+def is_complete_summary(summary) -> bool:
+    """Whether a parsed ``summary.json`` is one :func:`save_run` finished, in this :data:`RUN_FORMAT`."""
+    return isinstance(summary, dict) and summary.get("complete") is True and summary.get("format") == RUN_FORMAT
+
+
 def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool = False) -> MEIResult:
     """Read a run directory written by :func:`save_run` back into an :class:`MEIResult`.
 
@@ -105,7 +110,7 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
             summary = json.load(fh)
     except (OSError, json.JSONDecodeError) as err:
         raise MEIError(f"{directory / 'summary.json'} is unreadable: {err}") from None
-    if not isinstance(summary, dict) or summary.get("complete") is not True or summary.get("format") != RUN_FORMAT:
+    if not is_complete_summary(summary):
         raise MEIError(f"{directory} holds no complete run of format {RUN_FORMAT}")
     try:
         state = torch.load(directory / "state.pt", map_location="cpu", weights_only=True)

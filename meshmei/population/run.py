@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 import contextlib
-import os
-import shutil
 import signal
 import threading
 import time
-import uuid
 from dataclasses import replace
 from pathlib import Path
 
@@ -91,17 +88,11 @@ def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures
     overlapping task) finished the neuron first, with the same configuration, its folder is kept instead."""
     res = replace(res, extra={**res.extra, "config_hash": digest, "population_seconds": seconds})
     d = neuron_dir(out, res.neuron)
-    # built in a hidden sibling (ignored, like save_run's partial folders) and renamed without replacing:
-    # renaming onto a folder that landed meanwhile fails, where save_run would replace it
-    stage = d.parent / f".{d.name}.partial-{uuid.uuid4().hex[:8]}"
     try:
-        if not d.exists():
-            os.rename(save_run(res, stage / d.name, figures=figures), d)
-    except OSError:
+        save_run(res, d, figures=figures)  # never replaces a folder, also one that lands while it writes
+    except MEIError:
         if not d.exists():  # not a collision: a real failure to write
             raise
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
     return read_summary(d, digest)  # another job's folder: its summary, or an error if made with other settings
 
 

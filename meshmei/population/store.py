@@ -25,7 +25,7 @@ import uuid
 from pathlib import Path
 
 from ..errors import MEIError
-from ..mei.runs import RUN_FILES, RUN_FORMAT
+from ..mei.runs import RUN_FILES, is_complete_summary
 
 __all__ = ["CONFIG_FORMAT", "COLUMNS", "config_hash", "neuron_dir", "prepare_folder", "read_summary",
            "finished_neurons",
@@ -92,7 +92,7 @@ def _number(x) -> bool:
 def _well_formed(summary, name: str) -> bool:
     """Whether a parsed ``summary.json`` holds what load_run and table_row read, as the types they read it
     as, for the neuron that its folder ``name`` is named after."""
-    if not isinstance(summary, dict) or summary.get("complete") is not True or summary.get("format") != RUN_FORMAT:
+    if not is_complete_summary(summary):
         return False
     n, pix = summary.get("neuron"), summary.get("pixel_mei_activation")
     return (isinstance(n, int) and not isinstance(n, bool) and name == f"neuron_{n:05d}"
