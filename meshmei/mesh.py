@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from .errors import MeshError
+from .topology import same_faces
 
 __all__ = ["check_mesh", "numpy_mesh", "remove_unreferenced", "cast_vertices", "load_mesh", "save_mesh", "MESH_FORMATS"]
 
@@ -41,9 +42,9 @@ def _signed_faces(F: torch.Tensor) -> torch.Tensor:
     return F64
 
 
-# face tensors that passed the index checks, with their in-place version counter: a hit is the very
-# tensor, unmodified, and skips two reductions per call in optimisation loops
-_CHECKED_FACES: "OrderedDict[tuple, tuple[torch.Tensor, int]]" = OrderedDict()
+# face tensors that passed the index checks, with a copy of their values: a hit is the very tensor with
+# the same faces (edits through .numpy() or .data included), and skips two reductions per call in loops
+_CHECKED_FACES: "OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]]" = OrderedDict()
 
 
 def check_mesh(V, F, *, batched: bool | None = False):
@@ -106,13 +107,13 @@ def check_mesh(V, F, *, batched: bool | None = False):
         raise MeshError(f"batch is empty: V has shape {tuple(V.shape)}")
     key = (id(F), n)
     known = _CHECKED_FACES.get(key)
-    if known is None or known[0] is not F or known[1] != F._version:  # a loop's F is checked once
+    if known is None or known[0] is not F or not same_faces(F, known[1]):  # a loop's F is checked once
         fmin, fmax = int(F.min()), int(F.max())
         if fmin < 0:
             raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
         if fmax >= n:
             raise MeshError(f"F holds vertex index {fmax}, out of range for {n} vertices")
-        _CHECKED_FACES[key] = (F, F._version)
+        _CHECKED_FACES[key] = (F, F.clone())
         while len(_CHECKED_FACES) > 16:
             _CHECKED_FACES.popitem(last=False)
     bad = ~torch.isfinite(V)

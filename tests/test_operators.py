@@ -5,6 +5,7 @@ import scipy.sparse as sp
 import torch
 
 from meshmei import operators as ops
+from meshmei.errors import MeshError
 from meshmei.topology import mesh_topology
 
 from conftest import grid_sheet, hard_cases, icosphere, perturbed_sphere, random_rotation
@@ -136,6 +137,21 @@ def test_topology_is_cached_per_face_tensor_and_invalidated_by_mutation():
     tg = mesh_topology(G, V.shape[0])
     G[0] = G[0, [1, 2, 0]]  # in-place change bumps the version counter
     assert mesh_topology(G, V.shape[0]) is not tg
+
+
+def test_face_caches_see_edits_that_bypass_the_version_counter():
+    """Faces edited through ``.numpy()`` (no version bump) get a fresh topology, index check and image."""
+    from meshmei.render import RenderSettings, render
+    V, F = icosphere(2)
+    V = V.float()
+    st = RenderSettings(image_size=32)
+    render(V, F, settings=st)  # caches the topology and the index check of F
+    F.numpy()[:40] = F.numpy()[:40, [0, 2, 1]]  # turn 40 faces over behind torch's back
+    assert torch.equal(mesh_topology(F, V.shape[0]).edges, mesh_topology(F.clone(), V.shape[0]).edges)
+    assert torch.equal(render(V, F, settings=st), render(V, F.clone(), settings=st))
+    F.numpy()[0, 0] = V.shape[0]  # out of range, again unseen by torch
+    with pytest.raises(MeshError, match="out of range"):
+        render(V, F, settings=st)
 
 
 def test_topology_face_edges_and_degree():
