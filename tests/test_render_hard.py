@@ -283,3 +283,30 @@ def test_chunking_does_not_change_the_result():
     a = render(V, F, settings=RenderSettings(image_size=48))
     b = render(V, F, settings=RenderSettings(image_size=48, chunk_size=1024))
     torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_a_far_light_in_float32_shades_as_a_near_one():
+    """A point light 1e20 away (a stand-in for a directional light): its squared distance overflows float32,
+    which left the surface at the ambient level (0.2 against 0.9994 at the centre) before."""
+    V, F = initial_mesh("sphere", n_vertices=400)
+    st = RenderSettings(image_size=32)
+    Vg = V.clone().requires_grad_()
+    far = render(Vg, F, settings=st, light=torch.tensor([0.0, 0.0, 1e20]))
+    near = render(V, F, settings=st, light=torch.tensor([0.0, 0.0, 1e8]))
+    torch.testing.assert_close(far, near, rtol=0, atol=1e-6)
+    far.sum().backward()
+    assert bool(torch.isfinite(Vg.grad).all())
+
+
+@pytest.mark.parametrize("k", [40, -30])
+def test_a_scene_scaled_by_a_power_of_two_renders_the_same_image(k):
+    """Projection and shading do not depend on the scene's scale; in float32 the squares of the face cross
+    products (extent^4) overflowed at 2^40 (an unlit image) and underflowed near 2^-32."""
+    V, F = initial_mesh("sphere", n_vertices=400)
+    st = RenderSettings(image_size=32)
+    s = 2.0 ** k
+    Vg = (V * s).requires_grad_()
+    img = render(Vg, F, settings=st, camera=Camera(eye=(0.0, 0.0, 2.5 * s), znear=0.1 * s, zfar=100 * s))
+    torch.testing.assert_close(img, render(V, F, settings=st), rtol=0, atol=1e-6)
+    img.sum().backward()
+    assert bool(torch.isfinite(Vg.grad).all()) and float(Vg.grad.abs().max()) > 0

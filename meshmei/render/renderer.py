@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ..operators import corners, face_normals, vertex_normals_from_corners
@@ -35,9 +37,21 @@ def _vertex_albedo(albedo, n: int, B: int, dtype, device) -> torch.Tensor:
     return a.reshape(-1, n).expand(B, n).reshape(B * n)
 
 
+def _in_normal_range(posed) -> torch.Tensor:
+    """``posed`` itself, or divided by a power of two (exact) where the squares of its cross products, which
+    grow as its size to the fourth, would leave the dtype's range (coordinates beyond about 3e8 or all below
+    5e-9 in float32): the normals do not depend on the scale."""
+    size = float(posed.detach().abs().amax())
+    fi = torch.finfo(posed.dtype)
+    if size == 0 or fi.tiny ** 0.25 * 16 <= size <= fi.max ** 0.25 / 16:
+        return posed
+    return posed * 2.0 ** -math.floor(math.log2(size))
+
+
 def _corner_normals(posed, F, r, st: RenderSettings, B: int) -> torch.Tensor:
     """Shading normals at the corners of the used faces, ``(3, U, 3)``: interpolated vertex normals (smooth)
     or the face's own (flat), turned towards the camera on faces seen from behind (two-sided)."""
+    posed = _in_normal_range(posed)
     n, m = posed.shape[-2], F.shape[0]
     if st.shading == "smooth":  # on the un-expanded batch, then the used faces' corners
         normals = vertex_normals_from_corners(corners(posed, F), F, n, eps=1e-12).expand(B, n, 3)

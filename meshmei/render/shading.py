@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from .transforms import unit
+from .transforms import scaled_length, unit
 
 __all__ = ["lambert", "shade_samples"]
 
@@ -48,6 +48,8 @@ def _dot(a, b):
 
 def _unit(x, eps):
     length = torch.sqrt(_dot(x, x))
+    if length.numel() and not float(length.amax()) < float("inf"):  # a square overflowed: a light 1e20 away
+        length = scaled_length(x, 0)
     norm = length.clamp_min(eps)
     return x / norm, norm, length > eps
 
