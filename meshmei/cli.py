@@ -210,12 +210,18 @@ def _run_mei(args) -> int:
 def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     """``meshmei mei --diverse K``: OUT/member_<i> run folders, OUT/diversity.json and OUT/diverse.png."""
     d = diverse_meis(encoder, args.neuron, args.diverse, init, settings)
+    results, summary = list(d.results), {"responses": d.responses, "dissimilarity": d.dissimilarity.tolist()}
+    pixel = ""
+    if args.pixel_mei:  # one baseline for the neuron, recorded with every member
+        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", settings.image_size))
+        results = [replace(r, extra={**r.extra, "pixel_mei_activation": pm.activation}) for r in results]
+        summary["pixel_mei_activation"] = pm.activation
+        pixel = f"; pixel MEI {pm.activation:.4f}"
 
     def write(tmp: Path) -> None:  # the whole set at once: --overwrite leaves nothing of an earlier run
-        for i, res in enumerate(d.results):
+        for i, res in enumerate(results):
             save_run(res, tmp / f"member_{i}")
-        (tmp / "diversity.json").write_text(json.dumps({"responses": d.responses,
-                                                         "dissimilarity": d.dissimilarity.tolist()}, indent=1))
+        (tmp / "diversity.json").write_text(json.dumps(summary, indent=1))
         diverse_figure(d, tmp / "diverse.png")
 
     atomic_directory(out, write, overwrite=args.overwrite, error=MEIError)
@@ -223,7 +229,7 @@ def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     health = [r.health() for r in d.results]
     clean = sum(1 for h in health if h["self_intersections"] == 0 and h["flipped_faces"] == 0)
     print(f"{len(d.results)} diverse 3D-MEIs of neuron {args.neuron}: responses "
-          f"{', '.join(f'{r:.4f}' for r in d.responses)}; mean pairwise dissimilarity {float(off.mean()):.3f}; "
+          f"{', '.join(f'{r:.4f}' for r in d.responses)}{pixel}; mean pairwise dissimilarity {float(off.mean()):.3f}; "
           f"{clean} of {len(health)} free of self-intersections and flipped faces (min triangle quality "
           f"{min(h['min_quality'] for h in health):.3f}); wrote {out}/member_*, diversity.json, diverse.png")
     return 0
@@ -309,7 +315,9 @@ def _add_demo(sub) -> None:
     p.add_argument("--neuron", type=int, default=None, help="default: the best-predicted demo neuron (0 with --model)")
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty --out: the demo's own files and its mei/ folder are replaced, other "
+                        "files there are left alone")
     _add_model_options(p, "the demo model")
     p.set_defaults(func=lambda a: run_story(a.out, encoder=_cli_encoder(a), neuron=a.neuron, init=a.init,
                                             preset=QUICK if a.quick else FULL, overwrite=a.overwrite) and 0)

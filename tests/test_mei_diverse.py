@@ -106,3 +106,20 @@ def test_overwriting_a_diverse_set_leaves_no_member_of_the_old_one(tmp_path, cap
     (empty / "diversity.json").write_text("{}")
     assert main(["tune", "pose", "--mei", str(empty)]) == 2
     assert "diversity.json is damaged" in capsys.readouterr().err
+
+
+def test_the_cli_adds_the_pixel_mei_to_a_diverse_set(tmp_path, capsys):
+    """--diverse K --pixel-mei ran no pixel MEI (the option was silently dropped); now one baseline for the
+    neuron, printed and recorded with every member and in diversity.json."""
+    import json
+
+    from meshmei.cli import main
+
+    out = tmp_path / "div"
+    assert main(["mei", "--encoder", "gabor-complex", "--diverse", "2", "--steps", "2", "--image-size", "16",
+                 "--n-vertices", "40", "--out", str(out), "--quiet", "--pixel-mei"]) == 0
+    pm = json.loads((out / "diversity.json").read_text())["pixel_mei_activation"]
+    assert pm > 0.9  # the pixel MEI of a complex cell nearly reaches its bound of 1
+    for i in range(2):
+        assert json.loads((out / f"member_{i}" / "summary.json").read_text())["pixel_mei_activation"] == pm
+    assert f"pixel MEI {pm:.4f}" in capsys.readouterr().out

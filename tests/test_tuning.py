@@ -119,6 +119,25 @@ def test_sweep_saves_and_reloads_exactly(tmp_path, sheet_mei, simple_cell):
         save_sweep(sw, out)
 
 
+@pytest.mark.parametrize("damage", ["list", "axes", "neurons", "reference", "npz"])
+def test_a_damaged_sweep_is_one_tuning_error(tmp_path, sheet_mei, simple_cell, damage):
+    """Hand-edited or truncated sweep files gave TypeErrors, KeyErrors and BadZipFile tracebacks."""
+    import shutil
+
+    out = save_sweep(pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10]), tmp_path / "ok", figures=False)
+    bad = shutil.copytree(out, tmp_path / damage)
+    meta = json.loads((bad / "sweep.json").read_text())
+    edited = {"list": [meta], "axes": {**meta, "axes": 3}, "reference": {**meta, "reference": [1]},
+              "neurons": {k: v for k, v in meta.items() if k != "neurons"}}.get(damage)
+    if edited is None:
+        data = (bad / "sweep.npz").read_bytes()
+        (bad / "sweep.npz").write_bytes(data[:len(data) // 2])
+    else:
+        (bad / "sweep.json").write_text(json.dumps(edited))
+    with pytest.raises(TuningError, match="no complete sweep|not a readable sweep"):
+        load_sweep(bad)
+
+
 def test_half_written_sweep_is_not_taken_for_a_finished_one(tmp_path, sheet_mei, simple_cell):
     sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10])
 
@@ -212,6 +231,19 @@ def test_each_neurons_light_plot_shows_its_own_examples(tmp_path, monkeypatch):
 def test_run_tuning_refuses_an_unknown_sweep(tmp_path):
     with pytest.raises(TuningError, match="what must be 'pose' or 'light', got 'colour'"):
         run_tuning("colour", tmp_path)
+
+
+def test_each_sweep_refuses_the_others_option_before_any_work(tmp_path, capsys):
+    """tune light --roll and tune pose --distance were silently ignored; now a clear error (exit code 2)."""
+    from meshmei.cli import main
+
+    with pytest.raises(TuningError, match="roll is a pose sweep's axis"):
+        run_tuning("light", tmp_path / "no-run", roll=[0.0, 10.0])
+    with pytest.raises(TuningError, match="distance places the light of a light sweep"):
+        run_tuning("pose", tmp_path / "no-run", distance=3.0)
+    assert main(["tune", "light", "--mei", str(tmp_path), "--roll", "0:10:2"]) == 2
+    err = capsys.readouterr().err
+    assert "roll is a pose sweep's axis" in err and len(err.splitlines()) == 1
 
 
 def test_turned_views_frame_the_whole_mesh(sheet_mei):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -53,14 +54,18 @@ def load_sweep(directory) -> Sweep:
         with open(directory / "sweep.json") as fh:
             meta = json.load(fh)
         data = np.load(directory / "sweep.npz")
-        if meta.get("format") != SWEEP_FORMAT or meta.get("complete") is not True:
+        if not isinstance(meta, dict) or meta.get("format") != SWEEP_FORMAT or meta.get("complete") is not True:
             raise TuningError(f"{directory} holds no complete sweep of format {SWEEP_FORMAT}")
-        axes = tuple((n, data[f"axis_{n}"]) for n in meta["axes"])
-        responses = data["responses"]
+        axes = tuple((str(n), np.asarray(data[f"axis_{n}"], dtype=np.float64)) for n in meta["axes"])
+        responses = np.asarray(data["responses"], dtype=np.float64)
+        neurons = tuple(int(n) for n in meta["neurons"])
+        kind, reference, extra = str(meta["kind"]), meta.get("reference", {}), meta.get("meta", {})
+        if not isinstance(reference, dict) or not isinstance(extra, dict):
+            raise TypeError("reference and meta must be objects")
     except TuningError:
         raise
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as err:
+    except (OSError, KeyError, ValueError, TypeError, AttributeError, EOFError, zipfile.BadZipFile) as err:  # damaged, hand-edited
         raise TuningError(f"{directory} is not a readable sweep: {type(err).__name__}: {err}") from None
-    if responses.shape != (len(meta["neurons"]), *[len(v) for _, v in axes]):
+    if responses.shape != (len(neurons), *[len(v) for _, v in axes]):
         raise TuningError(f"{directory}: responses of shape {responses.shape} do not match the axes")
-    return Sweep(meta["kind"], responses, axes, tuple(meta["neurons"]), meta.get("reference", {}), meta.get("meta", {}))
+    return Sweep(kind, responses, axes, neurons, reference, extra)

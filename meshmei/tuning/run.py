@@ -37,6 +37,10 @@ def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, az
     """
     if what not in ("pose", "light"):
         raise TuningError(f"what must be 'pose' or 'light', got {what!r}")
+    if what == "light" and roll is not None:  # each sweep's own options: none is silently dropped
+        raise TuningError("roll is a pose sweep's axis; a light sweep takes elevation, azimuth and distance")
+    if what == "pose" and distance is not None:
+        raise TuningError("distance places the light of a light sweep; a pose sweep takes elevation, azimuth and roll")
     try:
         run = load_run(mei_dir, rebuild_encoder=True)
     except MEIError as err:
