@@ -127,6 +127,10 @@ def _segment_segment(P1, Q1, P2, Q2):
     # t outside [0, 1]: clamp it and take the best s for that end
     s = torch.where(t < 0, (-c / a.clamp_min(tiny)).clamp(0, 1), torch.where(t > 1, ((b - c) / a.clamp_min(tiny)).clamp(0, 1), s))
     t = t.clamp(0, 1)
+    # the second segment a point (e = 0): t = 0 and the nearest s to it (above, s stayed at 0)
+    point = e <= tiny
+    s = torch.where(point, (-c / a.clamp_min(tiny)).clamp(0, 1), s)
+    t = torch.where(point, torch.zeros_like(t), t)
     return (r + d1 * s[..., None] - d2 * t[..., None]).square().sum(-1), s, t
 
 

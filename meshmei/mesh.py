@@ -21,7 +21,8 @@ def _as_tensor(x, name):
     if isinstance(x, torch.Tensor):
         return x
     if isinstance(x, np.ndarray):
-        return torch.from_numpy(x)
+        # a view with negative strides (F[:, ::-1], the usual way to turn faces over) needs a copy
+        return torch.from_numpy(x if all(st >= 0 for st in x.strides) else np.ascontiguousarray(x))
     if isinstance(x, (list, tuple)):
         try:
             return torch.as_tensor(np.asarray(x))
@@ -42,9 +43,10 @@ def _signed_faces(F: torch.Tensor) -> torch.Tensor:
     return F64
 
 
-# face tensors that passed the index checks, with a copy of their values: a hit is the very tensor with
-# the same faces (edits through .numpy() or .data included), and skips two reductions per call in loops
-_CHECKED_FACES: "OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]]" = OrderedDict()
+# face arrays that passed the checks: (the source array, a copy of its values, its int64 tensor); a hit is the
+# very array with the same faces (edits through .numpy() or .data included), and skips the checks and the
+# conversion in loops
+_CHECKED_FACES: "OrderedDict[tuple, tuple[object, torch.Tensor, torch.Tensor]]" = OrderedDict()
 
 
 def check_mesh(V, F, *, batched: bool | None = False):
@@ -82,7 +84,7 @@ def check_mesh(V, F, *, batched: bool | None = False):
     torch.int64
     """
     V = _as_tensor(V, "V")
-    F = _as_tensor(F, "F")
+    source, F = F, _as_tensor(F, "F")
     if batched is None:
         batched = V.ndim == 3
     if not V.is_floating_point():
@@ -90,6 +92,36 @@ def check_mesh(V, F, *, batched: bool | None = False):
     want = "(B, n, 3)" if batched else "(n, 3)"
     if V.ndim != (3 if batched else 2) or V.shape[-1] != 3:
         raise MeshError(f"V must have shape {want}, got {tuple(V.shape)}")
+    n = V.shape[-2]
+    # a loop passes the same face array each call: checked and converted once, and the same int64 tensor
+    # handed back, so that the topology cache (keyed by that tensor) hits for int32 and numpy faces too
+    # (a new tensor each call rebuilt the topology every call: about 150 ms at 20,000 faces)
+    key = (id(source), n, V.device)
+    known = _CHECKED_FACES.get(key)
+    if known is not None and known[0] is source and same_faces(F, known[1]):
+        _CHECKED_FACES.move_to_end(key)
+        F = known[2]
+    else:
+        G = _checked_faces(F, n).to(device=V.device, dtype=torch.int64)
+        if isinstance(source, (torch.Tensor, np.ndarray)):  # a list is built anew each call: nothing to reuse
+            _CHECKED_FACES[key] = (source, F.clone(), G)
+            while len(_CHECKED_FACES) > 16:
+                _CHECKED_FACES.popitem(last=False)
+        F = G
+    if batched and V.shape[0] == 0:
+        raise MeshError(f"batch is empty: V has shape {tuple(V.shape)}")
+    bad = ~torch.isfinite(V)
+    if bool(bad.any()):
+        rows = bad.any(-1)
+        first = tuple(rows.nonzero()[0].tolist())
+        where = first[0] if len(first) == 1 else first
+        kind = "NaN" if bool(torch.isnan(V).any()) else "Inf"
+        raise MeshError(f"V holds {kind} coordinates ({int(rows.sum())} vertices, first at index {where})")
+    return V, F
+
+
+def _checked_faces(F: torch.Tensor, n: int) -> torch.Tensor:
+    """``F`` checked against ``n`` vertices (dtype, shape, emptiness, index range), in a signed dtype."""
     if F.dtype == torch.bool or F.is_floating_point() or F.is_complex():
         raise MeshError(f"F must have an integer dtype, got {F.dtype} with shape {tuple(F.shape)}")
     if F.dtype in _WIDE_UNSIGNED:
@@ -98,33 +130,16 @@ def check_mesh(V, F, *, batched: bool | None = False):
         raise MeshError(f"F must have shape (m, 3), got {tuple(F.shape)}")
     if F.shape[1] != 3:
         raise MeshError(f"F must hold triangles, shape (m, 3); got faces with {F.shape[1]} corners, shape {tuple(F.shape)}")
-    n = V.shape[-2]
     if n == 0:
-        raise MeshError(f"mesh is empty: V has no vertices, shape {tuple(V.shape)}")
+        raise MeshError("mesh is empty: V has no vertices")
     if F.shape[0] == 0:
         raise MeshError(f"mesh is empty: F has no faces, shape {tuple(F.shape)}")
-    if batched and V.shape[0] == 0:
-        raise MeshError(f"batch is empty: V has shape {tuple(V.shape)}")
-    key = (id(F), n)
-    known = _CHECKED_FACES.get(key)
-    if known is None or known[0] is not F or not same_faces(F, known[1]):  # a loop's F is checked once
-        fmin, fmax = int(F.min()), int(F.max())
-        if fmin < 0:
-            raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
-        if fmax >= n:
-            raise MeshError(f"F holds vertex index {fmax}, out of range for {n} vertices")
-        _CHECKED_FACES[key] = (F, F.clone())
-        while len(_CHECKED_FACES) > 16:
-            _CHECKED_FACES.popitem(last=False)
-    bad = ~torch.isfinite(V)
-    if bool(bad.any()):
-        rows = bad.any(-1)
-        first = tuple(rows.nonzero()[0].tolist())
-        where = first[0] if len(first) == 1 else first
-        kind = "NaN" if bool(torch.isnan(V).any()) else "Inf"
-        raise MeshError(f"V holds {kind} coordinates ({int(rows.sum())} vertices, first at index {where})")
-    F = F.to(device=V.device, dtype=torch.int64)
-    return V, F
+    fmin, fmax = int(F.min()), int(F.max())
+    if fmin < 0:
+        raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
+    if fmax >= n:
+        raise MeshError(f"F holds vertex index {fmax}, out of range for {n} vertices")
+    return F
 
 
 def numpy_mesh(V, F):

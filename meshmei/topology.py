@@ -198,7 +198,7 @@ def mesh_topology(F: torch.Tensor, n_vertices: int | None = None) -> MeshTopolog
         raise MeshError(f"F holds a negative vertex index ({fmin}); indices must lie in [0, {n - 1}]")
     if fmax >= n:
         raise MeshError(f"F holds vertex index {fmax}, out of range for n_vertices={n}")
-    topo = _build(F, n)
+    topo = _build(F.long(), n)  # int32 faces: edge keys lo * n + hi overflow int32 from n = 46,341 on
     _CACHE[key] = (F, F.clone(), topo)
     _CACHE.move_to_end(key)
     while len(_CACHE) > _CACHE_SIZE:

@@ -140,6 +140,8 @@ def test_segment_distance_is_the_closest_pair_of_points():
     P1, Q1, P2, Q2 = (torch.randn(120, 3, generator=g, dtype=torch.float64) for _ in range(4))
     Q2[:30] = P2[:30] + 2.0 * (Q1[:30] - P1[:30])  # parallel pairs
     Q1[30:40] = P1[30:40]  # a segment that is a point
+    Q2[40:50] = P2[40:50]  # the second segment a point (its distance was taken from the first's start)
+    Q1[50:55], Q2[50:55] = P1[50:55], P2[50:55]  # both points
     exact = segment_sqdist(P1, Q1, P2, Q2)
     t = torch.linspace(0, 1, 201, dtype=torch.float64)
     A = P1[:, None] + t[None, :, None] * (Q1 - P1)[:, None]

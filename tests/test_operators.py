@@ -154,6 +154,15 @@ def test_face_caches_see_edits_that_bypass_the_version_counter():
         render(V, F, settings=st)
 
 
+def test_int32_faces_of_a_large_mesh_give_the_int64_topology():
+    """Edge keys lo * n + hi overflowed int32 from n = 46,341 on: wrong edges, silently."""
+    n = 70000
+    F = torch.tensor([[n - 3, n - 2, n - 1], [n - 1, n - 2, 5]])
+    t32, t64 = mesh_topology(F.int(), n), mesh_topology(F, n)
+    assert t32.edges.dtype == torch.int64 and torch.equal(t32.edges, t64.edges)
+    assert torch.equal(t32.cot_pattern[0], t64.cot_pattern[0]) and torch.equal(t32.boundary_vertex, t64.boundary_vertex)
+
+
 def test_topology_face_edges_and_degree():
     V, F = icosphere(2)
     topo = mesh_topology(F, V.shape[0])
