@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from collections import OrderedDict
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import torch
 from .errors import MeshError
 from .topology import same_faces
 
-__all__ = ["check_mesh", "numpy_mesh", "remove_unreferenced", "cast_vertices", "load_mesh", "save_mesh", "MESH_FORMATS"]
+__all__ = ["check_mesh", "check_rest_pose", "as_faces", "numpy_mesh", "remove_unreferenced", "cast_vertices", "load_mesh", "save_mesh", "MESH_FORMATS"]
 
 MESH_FORMATS = (".obj", ".ply", ".off", ".stl")
 
@@ -118,6 +119,37 @@ def check_mesh(V, F, *, batched: bool | None = False):
         kind = "NaN" if bool(torch.isnan(V).any()) else "Inf"
         raise MeshError(f"V holds {kind} coordinates ({int(rows.sum())} vertices, first at index {where})")
     return V, F
+
+
+def check_rest_pose(V0, V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """The rest pose ``V0`` of a checked mesh ``(V, F)``, checked as :func:`check_mesh` checks ``V`` (same
+    number of vertices; batched like ``V`` or shared by its batch), as a tensor; errors name ``V0``."""
+    V0 = _as_tensor(V0, "V0")
+    if V0.shape[-2:] != V.shape[-2:] or (V0.ndim == 3 and V.ndim == 3 and V0.shape[0] != V.shape[0]):
+        raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
+    if V0.ndim == 3 and V.ndim == 2:
+        raise MeshError(f"a batched rest pose {tuple(V0.shape)} needs a batched V, got {tuple(V.shape)}")
+    try:
+        V0, _ = check_mesh(V0, F, batched=None)
+    except MeshError as err:  # check_mesh speaks of V
+        raise MeshError("rest pose: " + re.sub(r"\bV\b", "V0", str(err))) from None
+    return V0
+
+
+def as_faces(F) -> torch.Tensor:
+    """A face array on its own (no vertices to check it against) as an int64 tensor: a tensor, array or
+    nested list of any integer dtype, shape ``(m, 3)`` with ``m > 0`` and no negative index; MeshError
+    otherwise (a float or bool array was truncated to indices before)."""
+    F = _as_tensor(F, "F")
+    if F.dtype == torch.bool or F.is_floating_point() or F.is_complex():
+        raise MeshError(f"F must have an integer dtype, got {F.dtype} with shape {tuple(F.shape)}")
+    if F.dtype in _WIDE_UNSIGNED:
+        F = _signed_faces(F)
+    if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] == 0:
+        raise MeshError(f"F must be a non-empty (m, 3) integer array, got shape {tuple(F.shape)}")
+    if int(F.min()) < 0:
+        raise MeshError(f"F holds a negative vertex index ({int(F.min())})")
+    return F.long()
 
 
 def _checked_faces(F: torch.Tensor, n: int) -> torch.Tensor:

@@ -5,7 +5,10 @@ array ``F`` of shape ``(m, 3)`` (int64; tensors, numpy arrays or nested lists), 
 Topology (edges, 1-rings) comes from :func:`meshmei.topology.mesh_topology` and is cached per face array.
 
 Degenerate meshes never produce NaN or Inf: where a division can meet zero, an ``eps`` keyword sets a
-guard that is *relative to the local squared edge lengths*, so it behaves the same at any coordinate scale.
+guard that is *relative to the local squared edge lengths*, so it behaves the same at any coordinate scale
+where squared edge lengths are representable (float32: coordinates from about 1e-18 to 1e18; the squared
+cross products, which leave float32's range beyond about 1e9 and below 1e-10, are rescaled by
+:func:`safe_norm`).
 ``eps=None`` (the default) picks a guard from the dtype (:func:`resolve_eps`).
 
 The kernels named ``*_from_*`` and :func:`corners` take tensors that are already validated (the corner
@@ -15,12 +18,13 @@ regularizers call once per optimisation step, after validating their input once.
 
 from __future__ import annotations
 
+import numbers
 from typing import NamedTuple
 
 import torch
 
 from .errors import MeshError
-from .mesh import check_mesh
+from .mesh import as_faces, check_mesh
 from .topology import MeshTopology, mesh_topology
 
 __all__ = [
@@ -62,14 +66,36 @@ def resolve_eps(eps, dtype: torch.dtype) -> float:
     That is about 1.8e-12 in float64 and 6.3e-6 in float32: small enough to leave sound triangles
     untouched, large enough that squared cotangent weights of degenerate faces cannot overflow.
     """
-    return float(eps) if eps is not None else float(torch.finfo(dtype).eps) ** 0.75
+    if eps is None:
+        return float(torch.finfo(dtype).eps) ** 0.75
+    if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not 0 <= float(eps) < float("inf"):
+        raise MeshError(f"eps must be a finite non-negative number or None, got {eps!r}")
+    return float(eps)
 
 
 def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
-    """Euclidean norm with a zero (not NaN) gradient at the zero vector."""
+    """Euclidean norm with a zero (not NaN) gradient at the zero vector, right at any scale.
+
+    Where the squared norm leaves the dtype's normal range (a face's cross product, which grows as the
+    fourth power of the mesh's size, overflows float32 beyond a size of about 1e9 and underflows below about
+    1e-10), the norm of those vectors is taken on the vector divided by its largest component instead;
+    elsewhere the value is the plain ``sqrt(x . x)``, bit for bit.
+    """
     sq = (x * x).sum(dim)
-    tiny = torch.finfo(x.dtype).tiny
-    return torch.where(sq > 0, sq.clamp_min(tiny).sqrt(), torch.zeros_like(sq))
+    fi = torch.finfo(x.dtype)
+    plain = torch.where(sq > 0, sq.clamp_min(fi.tiny).sqrt(), torch.zeros_like(sq))
+    if not sq.numel():
+        return plain
+    lo, hi = torch.aminmax(sq.detach())
+    if fi.tiny <= float(lo) and float(hi) <= fi.max:
+        return plain
+    m = x.abs().amax(dim, keepdim=True)
+    nonzero = m > 0
+    xs = x / torch.where(nonzero, m, torch.ones_like(m))
+    s = (xs * xs).sum(dim)
+    scaled = (m.squeeze(dim) * torch.where(s > 0, s, torch.ones_like(s)).sqrt()).clamp_max(fi.max)
+    out_of_range = ((sq < fi.tiny) | (sq > fi.max)) & nonzero.squeeze(dim)
+    return torch.where(out_of_range, scaled, plain)
 
 
 def _normalize(x: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:
@@ -163,16 +189,14 @@ def corners(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
 
 def edges(F) -> torch.Tensor:
     """Unique undirected edges ``(E, 2)`` int64, ``i < j``, lexicographically sorted (``igl.edges`` up to order)."""
-    F = torch.as_tensor(F)
-    if F.ndim != 2 or F.shape[1] != 3 or F.numel() == 0:
-        raise MeshError(f"F must be a non-empty (m, 3) integer array, got shape {tuple(F.shape)}")
-    return mesh_topology(F.long()).edges
+    return mesh_topology(as_faces(F)).edges
 
 
 def adjacency_list(F, n_vertices: int | None = None) -> list[list[int]]:
     """Sorted 1-ring neighbour lists (``igl.adjacency_list`` up to order within each list)."""
-    F = torch.as_tensor(F).long()
-    return mesh_topology(F, n_vertices).adjacency_list()
+    if n_vertices is not None and (isinstance(n_vertices, bool) or int(n_vertices) != n_vertices):
+        raise MeshError(f"n_vertices must be an integer, got {n_vertices!r}")
+    return mesh_topology(as_faces(F), n_vertices).adjacency_list()
 
 
 def doublearea(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
@@ -290,7 +314,23 @@ def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = Non
     """
     V, F = check_mesh(V, F, batched=None)
     C = face_terms(corners(V, F), eps).cot
-    return cot_laplacian_from_cot(V if X is None else X, F, C)
+    return cot_laplacian_from_cot(V if X is None else _values_on(X, V), F, C)
+
+
+def _values_on(X, V: torch.Tensor) -> torch.Tensor:
+    """Per-vertex values ``X`` (``(n, d)``, or ``(B, n, d)`` like a batched ``V``) as a tensor in ``V``'s
+    dtype and on its device; MeshError naming ``X`` for another shape or non-finite values."""
+    X = torch.as_tensor(X) if not isinstance(X, torch.Tensor) else X
+    if X.is_complex() or X.dtype == torch.bool:
+        raise MeshError(f"X must hold real numbers, got {X.dtype}")
+    n = V.shape[-2]
+    shapes = ("(n, d)" if V.ndim == 2 else "(B, n, d) with V's B") + f", n = {n}"
+    if X.ndim != V.ndim or X.shape[-2] != n or (V.ndim == 3 and X.shape[0] != V.shape[0]):
+        raise MeshError(f"X must have shape {shapes}; got {tuple(X.shape)}")
+    X = X.to(dtype=V.dtype, device=V.device)
+    if not bool(torch.isfinite(X).all()):
+        raise MeshError("X holds NaN or Inf values")
+    return X
 
 
 def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:

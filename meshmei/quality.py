@@ -14,7 +14,7 @@ import igl.predicates
 import torch
 
 from .errors import MeshError
-from .mesh import check_mesh, numpy_mesh
+from .mesh import as_faces, check_mesh, check_rest_pose, numpy_mesh
 from .operators import corners, doublearea_from_corners, face_normals, sq_edge_sum_from_corners
 
 __all__ = [
@@ -82,9 +82,7 @@ def count_flipped_faces(V, V0, F) -> int:
         ``V0`` is not a valid mesh with ``F`` or differs from ``V`` in shape.
     """
     V, F = check_mesh(V, F)
-    V0, _ = check_mesh(V0, F)
-    if V0.shape != V.shape:
-        raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
+    V0 = check_rest_pose(V0, V, F)
     V, V0 = V.detach().double(), V0.detach().double().to(V.device)
     dbl, _ = triangle_measures(V, F)
     dbl0, _ = triangle_measures(V0, F)
@@ -175,7 +173,7 @@ def mesh_quality(V, F, *, self_intersections: bool = True) -> dict:
 
 def edge_use(F) -> tuple[int, int]:
     """``(boundary_edges, nonmanifold_edges)``: undirected edges used by one face, and by more than two."""
-    F = torch.as_tensor(F)
+    F = as_faces(F)
     E = torch.sort(torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), dim=1).values  # (3m, 2)
     _, counts = torch.unique(E, dim=0, return_counts=True)
     return int((counts == 1).sum()), int((counts > 2).sum())

@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 
 from .errors import MeshError
-from .mesh import check_mesh
+from .mesh import check_mesh, check_rest_pose
 from .operators import (
     EPS,
     corners,
@@ -59,14 +59,7 @@ __all__ = [
 
 def _check_rest(V, V0, F):
     V, F = check_mesh(V, F, batched=None)
-    if not isinstance(V0, torch.Tensor):
-        V0 = torch.as_tensor(V0)
-    if V0.shape[-2:] != V.shape[-2:] or (V0.ndim == 3 and V.ndim == 3 and V0.shape[0] != V.shape[0]):
-        raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
-    if V0.ndim == 3 and V.ndim == 2:
-        raise MeshError(f"a batched rest pose {tuple(V0.shape)} needs a batched V, got {tuple(V.shape)}")
-    V0, _ = check_mesh(V0, F, batched=None)
-    return V, V0.to(V.dtype), F
+    return V, check_rest_pose(V0, V, F).to(V.dtype), F
 
 
 def _pow2_extent(V):

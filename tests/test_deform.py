@@ -278,3 +278,11 @@ def test_fixed_scales_in_half_precision_multiply_in_float32(dtype):
     torch.testing.assert_close(V.detach(), want)
     (grad,) = torch.autograd.grad(V.float().sum(), rbf.offsets)
     torch.testing.assert_close(grad, (W.t() @ torch.ones(V.shape)).to(dtype))
+
+
+def test_deformer_errors_name_what_arrived():
+    V, _ = icosphere(1)
+    with pytest.raises(MeshError, match="got a ndarray of dtype float64 and shape"):
+        RBFDeformer(V.numpy())
+    with pytest.raises(ValueError, match="sigma_factor must be positive and finite, got -1.0"):
+        RBFDeformer(V, sigma_factor=-1.0)

@@ -163,6 +163,26 @@ def test_int32_faces_of_a_large_mesh_give_the_int64_topology():
     assert torch.equal(t32.cot_pattern[0], t64.cot_pattern[0]) and torch.equal(t32.boundary_vertex, t64.boundary_vertex)
 
 
+@pytest.mark.parametrize("scale", [1e-12, 1e-10, 1e10, 1e15])
+def test_float32_operators_hold_at_extreme_scales(scale):
+    """Areas, normals, cotangents and masses of a float32 mesh scaled far up or down equal the float64
+    results (the squared cross products left float32's range: area 0 or inf, normals 0, cotangents 0)."""
+    V, F = icosphere(1)
+    V = V.double()
+    Vs = (V * scale).float().requires_grad_()
+    ref, got = ops.doublearea(V * scale, F) / scale ** 2, ops.doublearea(Vs, F).double() / scale ** 2
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=0)
+    torch.testing.assert_close(ops.face_normals(Vs, F).double(), ops.face_normals(V, F), rtol=0, atol=1e-5)
+    torch.testing.assert_close(ops.vertex_normals(Vs, F).double(), ops.vertex_normals(V, F), rtol=0, atol=1e-5)
+    torch.testing.assert_close(ops.cot_weights(Vs, F).double(), ops.cot_weights(V, F), rtol=0, atol=1e-4)
+    mass = ops.massmatrix(Vs, F)
+    mass = (mass.to_dense() if mass.is_sparse else mass).double() / scale ** 2
+    ref_mass = ops.massmatrix(V, F)
+    torch.testing.assert_close(mass, ref_mass.to_dense() if ref_mass.is_sparse else ref_mass, rtol=1e-5, atol=0)
+    ops.doublearea(Vs, F).sum().backward()
+    assert bool(torch.isfinite(Vs.grad).all())
+
+
 def test_topology_face_edges_and_degree():
     V, F = icosphere(2)
     topo = mesh_topology(F, V.shape[0])
@@ -308,3 +328,37 @@ def test_gather_and_index_add_equal_torchs_with_their_gradients(shape):
     assert torch.allclose(got, want, rtol=0, atol=1e-15) and got.shape == want.shape
     (gs,) = torch.autograd.grad((got * X.detach()).sum(), src)
     assert torch.equal(gs, ops.gather(X.detach(), idx.reshape(-1), dim))
+
+
+@pytest.mark.parametrize("call", [
+    lambda: ops.edges(torch.tensor([[0.5, 1.7, 2.9]])),  # truncated to [0, 1, 2] before
+    lambda: ops.adjacency_list([[0.9, 1.5, 2.2]], 3),
+    lambda: ops.edges(torch.ones(2, 3, dtype=torch.bool)),  # no edges at all before
+])
+def test_faces_alone_must_be_integers(call):
+    with pytest.raises(MeshError, match="F must have an integer dtype"):
+        call()
+
+
+def test_cot_laplacian_checks_the_values_it_is_applied_to():
+    """X of another length was accepted, and another dtype, numpy or a missing batch axis gave torch errors."""
+    V, F = icosphere(1)
+    n = V.shape[0]
+    ref = ops.cot_laplacian(V, F, V)
+    torch.testing.assert_close(ops.cot_laplacian(V, F, V.float()), ref)  # cast to V's dtype
+    torch.testing.assert_close(ops.cot_laplacian(V, F, V.numpy()), ref)
+    for X, match in ((torch.ones(n + 1, 3), r"X must have shape \(n, d\)"),
+                     (torch.full((n, 3), float("nan")), "X holds NaN"),
+                     (torch.ones(n, 3, dtype=torch.complex64), "X must hold real numbers")):
+        with pytest.raises(MeshError, match=match):
+            ops.cot_laplacian(V, F, X)
+    with pytest.raises(MeshError, match=r"\(B, n, d\)"):
+        ops.cot_laplacian(torch.stack([V, V]), F, V)
+
+
+@pytest.mark.parametrize("eps", [float("nan"), -1.0, float("inf"), "1e-9"])
+def test_a_bad_eps_is_refused(eps):
+    """eps=nan made the cotangent Laplacian loss silently 0 and the mass matrix NaN."""
+    V, F = icosphere(1)
+    with pytest.raises(MeshError, match="eps must be a finite non-negative number"):
+        ops.massmatrix(V, F, eps=eps)

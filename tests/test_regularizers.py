@@ -446,3 +446,16 @@ def test_each_loss_falls_with_resolution_about_as_its_scaling_power_says(kind):
         la, lb = (float(REGULARIZERS[name](bump(V), V, F)) for V, F in ((Va, Fa), (Vb, Fb)))
         power = math.log(la / lb) / math.log(Vb.shape[0] / Va.shape[0])
         assert band[0] < power < band[1] and band[0] <= RESOLUTION_POWERS[name] <= band[1], (name, power)
+
+
+def test_rest_pose_errors_name_the_rest_pose():
+    """A bad V0 was reported as a bad V, and a V0 with fewer vertices as an out-of-range face index."""
+    from meshmei.quality import count_flipped_faces
+
+    V, F = icosphere(1)
+    with pytest.raises(MeshError, match="rest pose: V0 holds NaN"):
+        reg.arap_loss(V, torch.full_like(V, float("nan")), F)
+    with pytest.raises(MeshError, match="rest pose: V0 must have a floating-point dtype"):
+        reg.arap_direction_loss(V, V.long(), F)
+    with pytest.raises(MeshError, match="rest pose V0 of shape .* does not match V"):
+        count_flipped_faces(V, V[:-1], F)

@@ -439,3 +439,9 @@ def test_pymeshlab_meshes_do_not_depend_on_earlier_filter_calls(sphere):
         assert np.array_equal(a, b)
     for a, b in zip(before[1], after[1]):
         assert torch.equal(a, b)
+
+
+def test_an_integer_dtype_is_refused():
+    """dtype=torch.int64 truncated every coordinate to 0."""
+    with pytest.raises(ValueError, match="dtype must be a torch floating-point dtype"):
+        initial_mesh("sphere", n_vertices=100, dtype=torch.int64)

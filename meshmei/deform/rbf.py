@@ -111,8 +111,9 @@ class _FixedMap(torch.autograd.Function):
 
 def _check_rest(V0, r_cut, headroom) -> None:
     if not isinstance(V0, torch.Tensor) or not V0.is_floating_point() or V0.ndim != 2 or V0.shape[1] != 3:
-        got = tuple(V0.shape) if hasattr(V0, "shape") else type(V0).__name__
-        raise MeshError(f"V0 must be an (n, 3) float tensor, got {got}")
+        got = (f"a {type(V0).__name__} of dtype {V0.dtype} and shape {tuple(V0.shape)}" if hasattr(V0, "shape")
+               else f"a {type(V0).__name__}")
+        raise MeshError(f"V0 must be an (n, 3) float torch tensor, got {got}")
     if V0.shape[0] == 0:
         raise MeshError("V0 is empty: shape (0, 3)")
     if not bool(torch.isfinite(V0).all()):
@@ -217,6 +218,8 @@ class RBFDeformer(torch.nn.Module):
             spacing = nn_spacing(self._c_np) if K > 1 else math.inf
             if not math.isfinite(spacing):  # one kernel, or all at one point
                 spacing = float(np.linalg.norm(self._v0_np.max(0) - self._v0_np.min(0))) or 1.0
+            if not (sigma_factor > 0 and math.isfinite(sigma_factor)):
+                raise ValueError(f"sigma_factor must be positive and finite, got {sigma_factor!r}")
             sigma = sigma_factor * spacing
         if not (sigma > 0 and math.isfinite(sigma)):
             raise ValueError(f"sigma must be positive and finite, got {sigma!r}")

@@ -178,6 +178,8 @@ def initial_mesh(
     """
     if kind not in INITIAL_KINDS:
         raise ValueError(f"kind must be one of {INITIAL_KINDS}, got {kind!r}")
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:  # an int dtype truncated every vertex to 0
+        raise ValueError(f"dtype must be a torch floating-point dtype, got {dtype!r}")
     check_positive("size", size)
     check_positive("iterations", iterations, integer=True)
     if target_edge_length is not None and n_vertices is not None:
