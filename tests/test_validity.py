@@ -151,7 +151,8 @@ def test_a_start_the_initial_noise_would_fold_runs_from_a_valid_first_iterate(mo
         return halved
 
     monkeypatch.setattr(mo, "valid_start", spy)
-    res = optimize_mei(GaborSimpleCell(), 0, (scale * V, F), steps=5, seeds=(0, 1), image_size=32)
+    with pytest.warns(UserWarning, match=f"the start's largest side is {scale:.3g}; lr"):  # lr is a world length
+        res = optimize_mei(GaborSimpleCell(), 0, (scale * V, F), steps=5, seeds=(0, 1), image_size=32)
     assert first == [None, None]  # every seed's first iterate meets the rules
     assert _clean(res.V, res.F, res.V0)
 

@@ -8,6 +8,7 @@ random initial offset, so runs differ) and the one with the lowest final loss is
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import replace
 
 import torch
@@ -76,6 +77,13 @@ def initial(init, settings: MEISettings):
     except (TypeError, ValueError):
         raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {type(init).__name__}") from None
     V0, F = remove_unreferenced(torch.as_tensor(V0).detach(), torch.as_tensor(F))
+    side = float((V0.amax(0) - V0.amin(0)).max())
+    if not 0.25 <= side <= 4.0:
+        # lr and the initial noise are lengths sized for the built-in starts (largest side 1): a start 50
+        # times smaller kept its shape but had most steps refused, one 50 times larger barely moved
+        warnings.warn(f"the start's largest side is {side:.3g}; lr ({settings.lr}) and the initial noise are "
+                      "world lengths sized for starts of about 1 (the built-in ones, and files given to "
+                      "meshmei mei --init, are scaled to 1): scale the start, or lr with it", stacklevel=3)
     return V0.to(settings.torch_dtype), F, "custom"
 
 
