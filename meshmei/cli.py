@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import torch
 
 from ._files import atomic_directory
 from .encoders import load_model, make_encoder
-from .errors import MEIError
+from .errors import MEIError, ReconstructionError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
 from .mei.optimize import start_from_file
 from .plots import diverse_figure
@@ -21,7 +22,9 @@ from .population import parse_neurons, run_population
 from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
     METHODS,
+    SOURCE_NAMES,
     ReconstructionSettings,
+    ReconstructionWarning,
     reconstruct,
     resolve_source,
     save_reconstruction,
@@ -250,9 +253,11 @@ def _add_reconstruct(sub) -> None:
                         "centred; 'torus-centred' is always centred; 'torus-through-opening' fails without an "
                         "opening")
     p.add_argument("--target", required=True, help="bunny, teapot, dumbbell, fin, cup (thin parts), or a mesh file (normalised to unit diagonal)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder (must not exist unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--method", choices=METHODS, default=d.method)
-    p.add_argument("--n-vertices", type=int, default=DEFAULT_N_VERTICES, help="vertices of a generated --init mesh")
+    p.add_argument("--n-vertices", type=int, default=None,
+                   help=f"vertices of a generated --init mesh (default {DEFAULT_N_VERTICES}; not for a mesh file)")
     p.add_argument("--steps", type=int, default=d.steps)
     p.add_argument("--time-budget", type=float, default=d.time_budget, help="seconds of optimisation")
     p.add_argument("--lr", type=float, default=d.lr)
@@ -281,24 +286,35 @@ def _add_reconstruct(sub) -> None:
 
 
 def _run_reconstruct(args) -> int:
-    # Resolve and check both meshes first: bad input fails before any optimisation starts.
+    # Check the output folder and resolve both meshes first: bad input fails before any optimisation starts.
+    if Path(args.out).exists() and not args.overwrite:
+        raise ReconstructionError(f"{args.out} exists; pass --overwrite to replace it")
+    if args.n_vertices is not None and args.init not in SOURCE_NAMES:
+        raise ReconstructionError(f"--n-vertices {args.n_vertices} sets the size of a generated --init "
+                                  f"({', '.join(SOURCE_NAMES)}), not of the mesh file {args.init}; remesh the file "
+                                  f"instead, or leave --n-vertices out")
     target = target_surface(args.target)
-    V, F, placement = resolve_source(args.init, args.n_vertices, torch.float32, target)
+    V, F, placement = resolve_source(args.init, args.n_vertices or DEFAULT_N_VERTICES, torch.float32, target)
     if placement is not None:
         print(f"{args.init}: {V.shape[0]} vertices, placed {placement}")
     stages, fractions, overrides = schedule_from_text(args.stages, args.method, V.shape[0], n_samples=args.samples)
-    res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
-                      n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
-                      eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
-                      valid_steps=args.valid_steps, w_contact=args.contact_weight,
-                      contact_edges={"auto": "auto", "on": True, "off": False}[args.contact_edges],
-                      progress=not args.no_progress)
-    out = save_reconstruction(res, args.out, init=str(args.init), target=str(args.target))
+    with warnings.catch_warnings():  # printed below, as one line each, from the result
+        warnings.simplefilter("ignore", ReconstructionWarning)
+        res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
+                          n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
+                          eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
+                          valid_steps=args.valid_steps, w_contact=args.contact_weight,
+                          contact_edges={"auto": "auto", "on": True, "off": False}[args.contact_edges],
+                          progress=not args.no_progress)
+    out = save_reconstruction(res, args.out, overwrite=args.overwrite, init=str(args.init), target=str(args.target))
     f = res.final
+    stalled = res.info["warnings"]
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
           f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
           f"target's; {f.self_intersections} self-intersecting pairs, {f.degenerate_faces} degenerate faces; "
-          f"wrote {out}")
+          f"wrote {out}" + (f"; WARNING: {len(stalled)} stage(s) accepted no step (below)" if stalled else ""))
+    for message in stalled:
+        print(f"meshmei reconstruct: warning: {message}", file=sys.stderr)
     return 0
 
 

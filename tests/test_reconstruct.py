@@ -124,7 +124,7 @@ def test_coarse_kernels_move_the_shape_further_early(sphere, bunny):
     assert ReconstructionSettings(method="largesteps").resolved().coarse_ratio == 0
     for bad, says in [(dict(coarse_ratio=1), "coarse_ratio"), (dict(coarse_ratio=-3), "coarse_ratio"),
                       (dict(coarse_ratio=2.5), "coarse_ratio"), (dict(coarse_ratio=16, coarse_lr=0.0), "coarse_lr"),
-                      (dict(method="vertex", coarse_ratio=16), "rbf method only"),
+                      (dict(method="vertex", coarse_ratio=16), "coarse_ratio=16 applies only with method='rbf'"),
                       (dict(contact_edges="yes"), "contact_edges"), (dict(contact_edges=1), "contact_edges")]:
         with pytest.raises(ValueError, match=says):
             ReconstructionSettings(**bad).resolved()
@@ -465,7 +465,7 @@ def test_stage_overrides_set_each_stages_sample_count(monkeypatch):
     assert drawn[0] == 2000  # the target pool, drawn once
     assert drawn[1:] == [300 if h["stage"] == 0 else 700 for h in res.history]
     assert {h["stage"] for h in res.history} == {0, 1}
-    with pytest.raises(ValueError, match="n_samples must be positive"):
+    with pytest.raises(ValueError, match="stage 0: n_samples must be a positive integer, got 0"):
         reconstruct(src, "bunny", "rbf", steps=2, stages=(100, 300), stage_overrides=({"n_samples": 0}, None))
 
 
@@ -585,8 +585,11 @@ def test_a_source_beyond_float32s_range_asks_to_rescale_whatever_the_schedule(sp
         kw = dict(stages=st, stage_fractions=fr, stage_overrides=ov)
     with pytest.raises(MeshError, match=r"^source: the face areas overflow torch.float32 .*rescale the mesh"):
         reconstruct((1e20 * V, F), "bunny", steps=2, **SMALL, **kw)
+    # a float64 target is normalised before it is cast: beyond float32's range it still fits once scaled
+    big = torch.cat([torch.tensor([[1e39, 0, 0]], dtype=torch.float64), V[1:].double()])
+    assert bool(torch.isfinite(target_surface((big, F))[0]).all())
     with pytest.raises(MeshError, match=r"target: coordinates up to 1e\+39 do not fit in torch.float32"):
-        target_surface((torch.cat([torch.tensor([[1e39, 0, 0]], dtype=torch.float64), V[1:].double()]), F))
+        target_surface((big, F), normalize=False)
 
 
 def test_a_bfloat16_source_runs_in_bfloat16(sphere):
@@ -594,3 +597,238 @@ def test_a_bfloat16_source_runs_in_bfloat16(sphere):
     res = reconstruct((V.bfloat16(), F), "bunny", steps=3, **SMALL)
     assert res.V.dtype == torch.bfloat16 and res.V.shape == V.shape
     assert torch.isfinite(res.V.float()).all() and res.final.chamfer_l2 > 0
+
+
+def _write_obj(path, V, F):
+    """An OBJ with every float64 digit (save_mesh rounds to what trimesh writes)."""
+    with open(path, "w") as fh:
+        fh.writelines("v %r %r %r\n" % tuple(float(x) for x in v) for v in V)
+        fh.writelines("f %d %d %d\n" % tuple(int(i) + 1 for i in t) for t in F)
+    return path
+
+
+def test_final_metrics_describe_the_returned_mesh_after_a_remesh(sphere, bunny, monkeypatch):
+    # A time-budgeted run whose last stage gets no step (its remesh spends the rest of the budget): the
+    # final metrics used to be the last evaluation's, of the mesh before the remesh.
+    import time
+
+    import importlib
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    remesh = fit._remesh_clean
+
+    def slow_remesh(*args, **kwargs):
+        time.sleep(0.6)  # past the whole budget
+        return remesh(*args, **kwargs)
+
+    monkeypatch.setattr(fit, "_remesh_clean", slow_remesh)
+    n = sphere[0].shape[0]
+    res = reconstruct(sphere, bunny, "rbf", time_budget=0.3, stages=(n, 100), eval_every=1,
+                      **dict(SMALL, eval_samples=2000))
+    assert [st["n_vertices"] for st in res.info["stages"]] == [n, res.V.shape[0]] and res.V.shape[0] < n
+    assert res.info["stages"][1]["steps"] == 0
+    assert res.metrics[-1]["n_vertices"] == res.V.shape[0]
+    assert res.final == surface_metrics(res.V, res.F, *bunny, n_samples=2000, seed=0, health=True)
+
+
+def test_a_target_far_from_the_origin_is_normalised_in_float64(tmp_path):
+    V, F = icosphere(3)
+    near = target_surface(_write_obj(tmp_path / "near.obj", V, F))[0]
+    far = target_surface(_write_obj(tmp_path / "far.obj", V + 1e5, F))[0]
+    assert near.dtype == far.dtype == torch.float32
+    torch.testing.assert_close(far, near, rtol=0, atol=1e-6)  # float32 first: shifted by up to 1e-2
+    pair = target_surface((V + 1e5, F))[0]
+    torch.testing.assert_close(pair, near, rtol=0, atol=1e-6)
+
+
+def test_a_source_file_that_float32_cannot_hold_is_refused(tmp_path):
+    V, F = icosphere(3)
+    path = _write_obj(tmp_path / "far.obj", 0.01 * V + 1e5, F)  # edges 1e-3 long, float32 steps there 8e-3
+    with pytest.raises(MeshError, match=r"source .*far.obj: \d+ of 1280 faces collapse to zero area in torch.float32"):
+        source_mesh(path)
+    Vs, _ = source_mesh(path, dtype=torch.float64)  # used as stored where the dtype holds it
+    assert torch.equal(Vs, 0.01 * V + 1e5)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e30])
+def test_normalize_unit_diagonal_takes_tiny_and_huge_float32_meshes(scale):
+    from meshmei.shapes import normalize_unit_diagonal
+
+    V, F = icosphere(2)
+    W = normalize_unit_diagonal((V * scale).float())
+    assert W.dtype == torch.float32
+    torch.testing.assert_close(W, normalize_unit_diagonal(V).float(), rtol=0, atol=1e-6)
+    torch.testing.assert_close(target_surface(((V * scale).float(), F))[0], W, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("field, value", [
+    ("lr_scale", float("inf")), ("coarse_lr", float("inf")), ("w_contact", float("inf")),
+    ("w_laplacian", float("inf")), ("w_edge", float("inf")), ("w_arap", float("inf")), ("lam", float("inf")),
+    ("eval_times", (float("nan"),)), ("eval_times", (1.0, float("inf"))), ("eval_times", (-1.0,)),
+    ("eval_samples", 2000.5), ("n_samples", 100.5), ("target_pool", True), ("eval_every", 2.5),
+])
+def test_settings_refuse_infinite_weights_and_bad_counts_up_front(sphere, field, value):
+    from meshmei.errors import ReconstructionError
+
+    with pytest.raises(ReconstructionError, match=f"^{field} must .* got {re.escape(repr(value))}$"):
+        ReconstructionSettings(**{field: value}).resolved()
+    steps = []
+    with pytest.raises(ReconstructionError, match=f"^{field} must"):  # before the first step
+        reconstruct(sphere, "bunny", steps=3, callback=lambda *a: steps.append(a), **{**SMALL, field: value})
+    assert steps == []
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    (dict(method="largesteps", lr_scale=0.01), "lr_scale=0.01 applies only with method='rbf', not with method='largesteps'"),
+    (dict(method="vertex", centers=10), "centers=10 applies only with method='rbf'"),
+    (dict(method="largesteps", sigma_factor=2.0), "sigma_factor=2.0 applies only with method='rbf'"),
+    (dict(method="vertex", r_cut=3.0), "r_cut=3.0 applies only with method='rbf'"),
+    (dict(method="vertex", coarse_lr=2.0), "coarse_lr=2.0 applies only with method='rbf'"),
+    (dict(method="rbf", lam=5.0), "lam=5.0 applies only with method='largesteps', not with method='rbf'"),
+    (dict(method="vertex", lam=5.0), "lam=5.0 applies only with method='largesteps'"),
+    (dict(coarse_lr=5.0), r"coarse_lr=5.0 applies only with coarse_ratio > 0, not with coarse_ratio=0; leave it at "
+                          r"its default \(3.0\)"),
+    (dict(w_contact=0.0, contact_distance=0.5), "contact_distance=0.5 applies only with w_contact > 0"),
+    (dict(w_contact=0.0, contact_edges=True), "contact_edges=True applies only with w_contact > 0"),
+    (dict(valid_steps=False, min_quality=0.05), "min_quality=0.05 applies only with valid_steps=True"),
+    (dict(stages=(100, 300), stage_overrides=({"method": "largesteps"}, None), lr_scale=0.01),
+     "^stage 0: lr_scale=0.01 applies only with method='rbf', not with method='largesteps'"),
+    (dict(stages=(100, 300), stage_overrides=(None, {"lam": 3.0})), "^stage 1: lam=3.0 applies only"),
+])
+def test_a_setting_the_run_would_ignore_is_refused(kwargs, says):
+    from meshmei.errors import ReconstructionError
+
+    with pytest.raises(ReconstructionError, match=says):
+        ReconstructionSettings(**kwargs).resolved()
+
+
+def test_settings_each_run_uses_are_accepted():
+    for method in ("rbf", "vertex", "largesteps"):  # every method's defaults, with or without guard and barrier
+        for extra in ({}, dict(valid_steps=False, w_contact=0.0), dict(w_contact=0.0, contact_edges=False)):
+            ReconstructionSettings(method=method, **extra).resolved()
+    ReconstructionSettings(method="rbf", lr_scale=0.01, sigma_factor=2.0, r_cut=3.0, centers=torch.arange(10),
+                           coarse_ratio=16, coarse_lr=5.0).resolved()
+    ReconstructionSettings(method="largesteps", lam=5.0, lr_scale=0.0, coarse_lr=0.0).resolved()  # its defaults
+    ReconstructionSettings(contact_distance=0.5, contact_edges=True, min_quality=0.05).resolved()
+    # per stage: each stage is checked against its own method
+    ReconstructionSettings(stages=(100, 300), stage_overrides=({"method": "largesteps", "lam": 5.0},
+                                                                {"sigma_factor": 2.0})).resolved()
+    ReconstructionSettings(method="largesteps", stages=(100, 300),
+                           stage_overrides=(None, {"method": "rbf", "lr_scale": 0.01})).resolved()
+
+
+def test_cli_refuses_options_it_would_ignore(sphere, tmp_path, capsys):
+    from meshmei.mesh import save_mesh
+
+    save_mesh(tmp_path / "start.obj", *sphere)
+    base = ["--target", "bunny", "--steps", 2, "--samples", 300, "--eval-samples", 500, "--stages", "none",
+            "--no-progress"]
+    rc, out = _cli(base + ["--init", tmp_path / "start.obj", "--n-vertices", 500, "--out", tmp_path / "a"], capsys)
+    assert rc == 2 and "--n-vertices 500 sets the size of a generated --init" in out.err
+    assert "start.obj" in out.err and not (tmp_path / "a").exists()
+    rc, out = _cli(base + ["--init", "sphere", "--n-vertices", 100, "--contact-edges", "on", "--contact-weight", 0,
+                           "--out", tmp_path / "b"], capsys)
+    assert rc == 2 and "contact_edges=True applies only with w_contact > 0" in out.err and not (tmp_path / "b").exists()
+    rc, out = _cli(base + ["--init", tmp_path / "start.obj", "--out", tmp_path / "c"], capsys)  # the file as it is
+    assert rc == 0, out.err
+    assert json.loads((tmp_path / "c" / "history.json").read_text())["n_vertices"] == sphere[0].shape[0]
+
+
+def test_save_reconstruction_writes_a_whole_folder_or_none(sphere, tmp_path, monkeypatch):
+    import importlib
+
+    from meshmei.errors import ReconstructionError
+    from meshmei.reconstruct import save_reconstruction
+
+    res = reconstruct(sphere, "bunny", steps=2, **SMALL)
+    other = tmp_path / "mei_run"  # another command's folder
+    other.mkdir()
+    (other / "summary.json").write_text("{}")
+    with pytest.raises(ReconstructionError, match="mei_run exists; pass overwrite=True"):
+        save_reconstruction(res, other)
+    assert sorted(p.name for p in other.iterdir()) == ["summary.json"]
+    save_reconstruction(res, other, overwrite=True)  # replaced whole: nothing of the old folder is left
+    assert sorted(p.name for p in other.iterdir()) == ["history.json", "loss.png", "mesh.obj", "metrics.png"]
+
+    def broken(result, out):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(importlib.import_module("meshmei.reconstruct.runs"), "reconstruction_figures", broken)
+    with pytest.raises(OSError, match="disk full"):
+        save_reconstruction(res, tmp_path / "new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mei_run"]  # no folder, no partial one
+
+
+def test_cli_refuses_an_existing_out_folder_without_overwrite(tmp_path, capsys):
+    out_dir = tmp_path / "run"
+    args = ["--init", "sphere", "--n-vertices", 100, "--target", "bunny", "--out", out_dir, "--steps", 2,
+            "--samples", 300, "--eval-samples", 500, "--stages", "none", "--no-progress"]
+    out_dir.mkdir()
+    (out_dir / "summary.json").write_text("{}")
+    rc, out = _cli(args, capsys)
+    assert rc == 2 and f"{out_dir} exists; pass --overwrite to replace it" in out.err
+    assert sorted(p.name for p in out_dir.iterdir()) == ["summary.json"]
+    rc, out = _cli(args + ["--overwrite"], capsys)
+    assert rc == 0, out.err
+    assert sorted(p.name for p in out_dir.iterdir()) == ["history.json", "loss.png", "mesh.obj", "metrics.png"]
+
+
+def test_centers_given_as_vertex_indices_are_saved_as_lists(sphere, tmp_path):
+    import numpy as np
+
+    from meshmei.reconstruct import save_reconstruction
+
+    n = sphere[0].shape[0]
+    for centers in (torch.arange(0, n, 3), np.arange(0, n, 3)):
+        res = reconstruct(sphere, "bunny", "rbf", steps=2, centers=centers, **SMALL)
+        assert res.info["stages"][0]["n_kernels"] == len(range(0, n, 3))
+        out = save_reconstruction(res, tmp_path / type(centers).__name__)
+        rec = json.loads((out / "history.json").read_text())
+        assert rec["settings"]["centers"] == list(range(0, n, 3))
+
+
+def test_a_stage_that_accepts_no_step_warns(sphere):
+    from meshmei.reconstruct import ReconstructionWarning
+
+    V, F = sphere
+    # a start 1e-3 the target's size: the learning rate is absolute, the guard's longest step scales with
+    # the mesh, so every step is refused; the run used to report success
+    with pytest.warns(ReconstructionWarning, match=r"stage 0 \(\d+ vertices\) accepted none of its 3 steps: .*"
+                                                   r"farther than the guard allows .* scale the source"):
+        res = reconstruct((V * 1e-3, F), "bunny", steps=3, **SMALL)
+    st = res.info["stages"][0]
+    assert st["steps"] == 3 and st["accepted_steps"] == 0 and torch.equal(res.V, V * 1e-3)
+    assert len(res.info["warnings"]) == 1 and "accepted none" in res.info["warnings"][0]
+    # a start with one sliver face (an edge's midpoint, rounded to float32): every step turns it over (the
+    # guard's turn rule, meshmei.validity)
+    Vd = V.double()
+    V2 = torch.cat([Vd, ((Vd[F[0, 0]] + Vd[F[0, 1]]) / 2)[None]]).float()
+    F2 = torch.cat([F, torch.tensor([[F[0, 0], F[0, 1], V.shape[0]]])])
+    with pytest.warns(ReconstructionWarning, match=r"accepted none of its 3 steps: .*'turn': \d+.* sliver"):
+        reconstruct((V2, F2), "bunny", steps=3, **SMALL)
+    # a run that moves has no warning
+    res = reconstruct(sphere, "bunny", steps=3, **SMALL)
+    assert res.info["warnings"] == [] and res.info["stages"][0]["accepted_steps"] == 3
+
+
+def test_a_start_too_small_for_the_deformation_is_a_clear_error(sphere):
+    from meshmei.errors import ReconstructionError
+
+    V, F = sphere
+    steps = []
+    with pytest.raises(ReconstructionError, match=r"^stage 0: the rbf deformation gives non-finite vertices at its "
+                                                  r"start, a mesh 1(\.\d+)?e-20 across .*scale the source"):
+        reconstruct((V * 1e-20, F), "bunny", steps=3, callback=lambda *a: steps.append(a), **SMALL)
+    assert steps == []
+
+
+def test_cli_says_when_a_stage_accepted_no_step(sphere, tmp_path, capsys):
+    from meshmei.mesh import save_mesh
+
+    save_mesh(tmp_path / "small.obj", sphere[0] * 1e-3, sphere[1])
+    rc, out = _cli(["--init", tmp_path / "small.obj", "--target", "bunny", "--out", tmp_path / "o", "--steps", 2,
+                    "--samples", 300, "--eval-samples", 500, "--stages", "none", "--no-progress"], capsys)
+    assert rc == 0, out.err
+    assert "WARNING: 1 stage(s) accepted no step" in out.out
+    assert "meshmei reconstruct: warning: stage 0" in out.err and "accepted none of its 2 steps" in out.err
+    assert json.loads((tmp_path / "o" / "history.json").read_text())["info"]["warnings"]

@@ -16,6 +16,7 @@ from .settings import (
     STAGE_FIELDS,
     ReconstructionResult,
     ReconstructionSettings,
+    ReconstructionWarning,
 )
 from .openings import find_opening, torus_through_opening
 from .sources import SOURCE_NAMES, resolve_source, source_mesh, target_surface
@@ -24,6 +25,7 @@ __all__ = [
     "reconstruct",
     "ReconstructionSettings",
     "ReconstructionResult",
+    "ReconstructionWarning",
     "METHODS",
     "STAGE_FIELDS",
     "DEFAULTS",

@@ -8,7 +8,9 @@ isotropically (pymeshlab) to the next stage's count and a fresh parameterisation
 
 from __future__ import annotations
 
+import math
 import time
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -16,15 +18,15 @@ import torch
 
 from ..contact import ContactBarrier
 from ..deform import PARAMETERISATIONS
-from ..errors import MeshError
+from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..quality import count_self_intersections
+from ..quality import count_self_intersections, triangle_quality
 from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss, scale_weights
 from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
 from ..validity import StepGuard
-from .settings import AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings
+from .settings import AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings, ReconstructionWarning
 from .sources import source_mesh, target_surface
 
 __all__ = ["reconstruct"]
@@ -67,7 +69,7 @@ class _Evaluation:
 
     def __init__(self, Vt, Ft, s: ReconstructionSettings, trace: Trace):
         self.Vt, self.Ft, self.s, self.trace = Vt, Ft, s, trace
-        self.records, self.seconds, self.last, self.last_step = [], 0.0, None, -1
+        self.records, self.seconds, self.last, self.last_mesh = [], 0.0, None, None
         self.pending = sorted(s.eval_times)
 
     def __call__(self, V, F, *, health=False):
@@ -77,7 +79,7 @@ class _Evaluation:
         self.seconds += dt
         self.records.append({"step": self.trace.step, "time": self.trace.seconds, "n_vertices": int(V.shape[0]),
                              "eval_seconds": dt, **m.as_dict()})
-        self.last, self.last_step = m, self.trace.step
+        self.last, self.last_mesh = m, (V, F)
         return m
 
     def due(self, step: int) -> bool:
@@ -88,10 +90,15 @@ class _Evaluation:
         return due
 
     def final(self, V, F):
-        """The returned mesh's metrics, with its health; an evaluation of the last step is reused."""
-        if self.last_step != self.trace.step or not self.records:
+        """The returned mesh's metrics, with its health; the last evaluation is reused when it was of this
+        very mesh (not when a remesh, or a step, came after it)."""
+        if self.last_mesh is None or not _same_mesh(self.last_mesh, (V, F)):
             return self(V, F, health=True)
         return self.last
+
+
+def _same_mesh(a, b) -> bool:
+    return all(x.shape == y.shape and torch.equal(x, y) for x, y in zip(a, b))
 
 
 def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int | None, n_source: int) -> tuple:
@@ -178,8 +185,17 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         Unknown method or a bad setting (``ReconstructionError``). ``MeshError`` (a ``ValueError``) for an
         invalid source or target (empty, NaN coordinates, zero area); ``FileNotFoundError`` for a missing
         file. All before the first step.
+    ReconstructionError
+        Also a start at a scale where the deformation gives NaN (an rbf start 1e-20 across), before its
+        stage's first step.
     FloatingPointError
         The loss or the mesh became NaN or Inf during the run (a learning rate far too large).
+
+    Warns
+    -----
+    ReconstructionWarning
+        A stage whose every step the step guard refused (it returns its start; also in
+        ``result.info["warnings"]``).
 
     Examples
     --------
@@ -206,7 +222,7 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
                    unit="step" if s.time_budget is None else "s", every=10, enabled=progress,
                    postfix=lambda rec: {"loss": f"{rec['loss']:.3e}", "stage": rec["stage"]})
     w = stage_weights(s, s, None, V.shape[0])
-    info = {"stages": [], "w_laplacian": w[0], "w_edge": w[1], "w_arap": w[2]}
+    info = {"stages": [], "w_laplacian": w[0], "w_edge": w[1], "w_arap": w[2], "warnings": []}
     t_start = time.perf_counter()
     try:
         V, F = _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info)
@@ -214,15 +230,58 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         bar.close()
     final = evaluation.final(V, F)
     info["total_seconds"] = time.perf_counter() - t_start
+    for message in info["warnings"]:
+        warnings.warn(message, ReconstructionWarning, stacklevel=2)
     return ReconstructionResult(V=V, F=F, history=trace.history, metrics=evaluation.records, settings=s,
                                 final=final, wall_time=trace.seconds, eval_time=evaluation.seconds, info=info)
 
 
-def _guard_info(guard) -> dict:
+def _guard_info(guard, records) -> dict:
+    """What the guard did in a stage whose history ``records`` are given (a step of ``step_scale`` 0 was undone)."""
     if guard is None:
         return {}
     return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds, "certified": guard.certified,
-            "refused_by": dict(guard.reasons)}
+            "refused_by": dict(guard.reasons), "steps": len(records),
+            "accepted_steps": sum(1 for rec in records if rec["step_scale"] > 0)}
+
+
+# Why a guard refuses every step of a stage, by the rule that refused most candidates.
+_STALL_CAUSES = {
+    "step": "every step moved a vertex farther than the guard allows ({max_step:.3g}, half an edge, which "
+            "scales with the mesh), while lr={lr:g} is absolute; the stage's start is {size:.3g} across (the target: "
+            "1): scale the source toward the target's size, or lower lr",
+    "turn": "every step turned a face over; the start likely holds a sliver (a near-collinear face, minimum "
+            "triangle quality {quality:.2g}), whose normal flips under any move: remesh or clean the source",
+    "quality": "every step left a triangle below the quality floor (the start's minimum quality {quality:.2g})",
+    "intersection": "every step added self-intersections",
+    "non-finite": "every step gave non-finite vertices; lower lr",
+}
+
+
+def _stall_warning(k: int, stage: dict, V, F, max_step) -> str:
+    """One line for a stage whose every step the guard refused: the mesh it returns is its start ``(V, F)``."""
+    reasons = {r: n for r, n in stage["refused_by"].items() if n}
+    cause = max(reasons, key=reasons.get) if reasons else "step"
+    Vd = V.detach().double()
+    hint = _STALL_CAUSES[cause].format(max_step=max_step or math.nan, lr=stage["lr"],
+                                       size=float((Vd.max(0).values - Vd.min(0).values).norm()),
+                                       quality=float(triangle_quality(Vd, F).min()))
+    return (f"stage {k} ({stage['n_vertices']} vertices) accepted none of its {stage['steps']} steps: the step guard "
+            f"refused {stage['refused']} of {stage['checks']} candidates {reasons}; {hint}. The stage returned its "
+            f"start unchanged")
+
+
+def _check_start(param, V, k: int, method: str) -> None:
+    """A stage's parameterisation must reproduce its start: at a scale where its arithmetic under- or
+    overflows (an rbf kernel 1e-20 wide), it gives NaN, which would otherwise surface at the first step."""
+    with torch.no_grad():
+        start = param.vertices()
+    if not bool(torch.isfinite(start).all()):
+        Vd = V.detach().double()
+        size = float((Vd.max(0).values - Vd.min(0).values).norm())
+        raise ReconstructionError(f"stage {k}: the {method} deformation gives non-finite vertices at its start, a mesh "
+                                  f"{size:.3g} across (bounding-box diagonal, {V.dtype}), too small or too large for "
+                                  f"its arithmetic; scale the source toward the target's size (unit diagonal)")
 
 
 def _guarded_step(s: ReconstructionSettings, sk: ReconstructionSettings, n_stage: int) -> ReconstructionSettings:
@@ -273,6 +332,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         sk = _guarded_step(s, sk, V.shape[0])
         param = _parameterisation(sk, V.detach(), F)
+        _check_start(param, V, k, sk.method)
         contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
                    if s.w_contact > 0 else None)
         max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
@@ -291,16 +351,21 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 with torch.no_grad():
                     evaluation(param.vertices().detach(), F, health=True)
 
+        n_before = len(trace.history)
         outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices),
                            max_halvings=0 if guard is None else guard.rules.max_halvings)
         with torch.no_grad():
-            V = param.vertices().detach()
-        info["stages"].append({"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
-                               "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
-                               **_guard_info(guard), **_contact_info(contact, edges_from[0]), **remeshed, **param.info()})
+            V_start, V = V, param.vertices().detach()
+        stage = {"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
+                 "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
+                 **_guard_info(guard, trace.history[n_before:]), **_contact_info(contact, edges_from[0]), **remeshed,
+                 **param.info()}
+        info["stages"].append(stage)
+        if guard is not None and stage["steps"] and not stage["accepted_steps"]:
+            info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
         if outcome.budget_spent:
             break
     return V, F

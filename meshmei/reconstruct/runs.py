@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from .._files import atomic_directory
+from ..errors import ReconstructionError
 from ..mesh import save_mesh
 from ..plots import reconstruction_figures
 from .settings import ReconstructionResult
@@ -12,12 +14,22 @@ from .settings import ReconstructionResult
 __all__ = ["save_reconstruction"]
 
 
-def save_reconstruction(result: ReconstructionResult, directory, **record) -> Path:
+def save_reconstruction(result: ReconstructionResult, directory, *, overwrite: bool = False, **record) -> Path:
     """Write ``mesh.obj``, ``history.json`` (:meth:`ReconstructionResult.to_json` plus ``record``, e.g. the
-    start and target names), ``loss.png`` and ``metrics.png`` into ``directory`` (created if needed)."""
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
-    save_mesh(out / "mesh.obj", result.V, result.F)
-    (out / "history.json").write_text(json.dumps({**result.to_json(), **record}, indent=1))
-    reconstruction_figures(result, out)
-    return out
+    start and target names), ``loss.png`` and ``metrics.png`` as the folder ``directory``, all at once
+    (:func:`meshmei._files.atomic_directory`): a save that fails leaves no folder, and a folder that exists
+    (another run's, another command's) is replaced only with ``overwrite``.
+
+    Raises
+    ------
+    ReconstructionError
+        ``directory`` exists and ``overwrite`` is False.
+    """
+    history = json.dumps({**result.to_json(), **record}, indent=1)  # fails, if it must, before anything is written
+
+    def write(tmp: Path) -> None:
+        save_mesh(tmp / "mesh.obj", result.V, result.F)
+        (tmp / "history.json").write_text(history)
+        reconstruction_figures(result, tmp)
+
+    return atomic_directory(directory, write, overwrite=overwrite, error=ReconstructionError)

@@ -14,7 +14,12 @@ from ..optim import OPTIMIZERS
 from ..validity import ValidityRules
 
 __all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES",
-           "ReconstructionSettings", "ReconstructionResult"]
+           "ReconstructionSettings", "ReconstructionResult", "ReconstructionWarning"]
+
+
+class ReconstructionWarning(RuntimeWarning):
+    """A run that returned a result which is not what it looks like: a stage whose every step the step guard
+    refused returned its start unchanged (also in ``ReconstructionResult.info["warnings"]``)."""
 
 METHODS = ("rbf", "vertex", "largesteps")
 # The step count of a run given neither steps nor a time budget. 1,000 since 2026-11-24 (it was 500): the
@@ -54,6 +59,12 @@ DEFAULTS = {
 @dataclass(frozen=True)
 class ReconstructionSettings:
     """Everything that determines a reconstruction run (recorded in its result and history JSON).
+
+    A setting that only some runs use (``lr_scale``, ``sigma_factor``, ``r_cut``, ``centers``,
+    ``coarse_ratio`` and ``coarse_lr`` rbf only, ``coarse_lr`` only with ``coarse_ratio``; ``lam`` large steps
+    only; ``contact_distance`` and ``contact_edges=True`` only with ``w_contact > 0``; ``min_quality`` only
+    with ``valid_steps``) must keep its default in a run, or a stage, that does not use it:
+    :meth:`resolved` refuses it rather than record it as if applied.
 
     Attributes
     ----------
@@ -212,7 +223,9 @@ class ReconstructionSettings:
         s = _resolve_stages(s)
         if s.stage_overrides is not None:
             s = replace(s, stage_overrides=_check_overrides(s.stage_overrides, s.stages))
-            self.stage_settings()  # every stage's own values are checked too
+            self.stage_settings()  # every stage's own values are checked too, against its own method
+        else:
+            _check_used(s)
         return replace(s, eval_times=tuple(float(t) for t in s.eval_times))
 
     def validity_rules(self, max_step: float | None = None) -> ValidityRules:
@@ -226,7 +239,13 @@ class ReconstructionSettings:
         Call it on the settings as given (unresolved), where unset values are still None."""
         if self.stage_overrides is None:
             return [self.resolved()]
-        return [replace(self, stage_overrides=None, **(o or {})).resolved() for o in self.stage_overrides]
+        stages = []
+        for k, o in enumerate(self.stage_overrides):
+            try:
+                stages.append(replace(self, stage_overrides=None, **(o or {})).resolved())
+            except ReconstructionError as err:
+                raise ReconstructionError(f"stage {k}: {err}") from None
+        return stages
 
 
 def _check_values(s: ReconstructionSettings) -> None:
@@ -234,9 +253,13 @@ def _check_values(s: ReconstructionSettings) -> None:
         raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
     if s.time_budget is not None and not (s.time_budget > 0 and math.isfinite(s.time_budget)):
         raise ReconstructionError(f"time_budget must be positive and finite, got {s.time_budget!r}")
-    for name in ("lr", "n_samples", "target_pool", "eval_samples", "r_cut", "sigma_factor", "contact_distance"):
+    for name in ("lr", "r_cut", "sigma_factor", "contact_distance"):
         if not (getattr(s, name) > 0 and math.isfinite(getattr(s, name))):
             raise ReconstructionError(f"{name} must be positive and finite, got {getattr(s, name)!r}")
+    for name in ("n_samples", "target_pool", "eval_samples"):  # counts: refused here, not after the run
+        n = getattr(s, name)
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ReconstructionError(f"{name} must be a positive integer, got {n!r}")
     seed = s.seed
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not SEED_MIN <= seed <= SEED_MAX:
         raise ReconstructionError(f"seed must be an integer from {SEED_MIN} to {SEED_MAX}, got {seed!r}")
@@ -245,13 +268,11 @@ def _check_values(s: ReconstructionSettings) -> None:
     cr = s.coarse_ratio
     if isinstance(cr, bool) or not isinstance(cr, (int, np.integer)) or cr < 0 or cr == 1:
         raise ReconstructionError(f"coarse_ratio must be 0 (off) or an integer of at least 2, got {cr!r}")
-    if cr and s.method != "rbf":
-        raise ReconstructionError(f"coarse_ratio applies to the rbf method only, not {s.method!r}; set it to 0")
-    if cr and not s.coarse_lr > 0:
+    if cr and s.method == "rbf" and not s.coarse_lr > 0:  # other methods: refused by _check_used
         raise ReconstructionError(f"coarse_lr must be positive with coarse kernels, got {s.coarse_lr!r}")
     for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam", "coarse_lr", "w_contact"):
-        if not getattr(s, name) >= 0:
-            raise ReconstructionError(f"{name} must be non-negative, got {getattr(s, name)!r}")
+        if not (getattr(s, name) >= 0 and math.isfinite(getattr(s, name))):
+            raise ReconstructionError(f"{name} must be non-negative and finite, got {getattr(s, name)!r}")
     ref = s.reg_ref_vertices
     if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, np.integer)) or ref < 1):
         raise ReconstructionError(f"reg_ref_vertices must be a positive integer or None, got {s.reg_ref_vertices!r}")
@@ -261,8 +282,48 @@ def _check_values(s: ReconstructionSettings) -> None:
         raise ReconstructionError(f"lr_decay must lie in (0, 1], got {s.lr_decay!r}")
     if not 0 <= s.min_quality < 1:
         raise ReconstructionError(f"min_quality must lie in [0, 1), got {s.min_quality!r}")
-    if s.eval_every is not None and not s.eval_every >= 1:
-        raise ReconstructionError(f"eval_every must be a positive integer or None, got {s.eval_every!r}")
+    every = s.eval_every
+    if every is not None and (isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1):
+        raise ReconstructionError(f"eval_every must be a positive integer or None, got {every!r}")
+    try:
+        times = [float(t) for t in s.eval_times]
+    except (TypeError, ValueError):
+        times = [math.nan]
+    if not all(t >= 0 and math.isfinite(t) for t in times):
+        raise ReconstructionError(f"eval_times must be finite, non-negative seconds, got {s.eval_times!r}")
+
+
+# Settings that only some runs use: (setting, what it needs, whether run s has that, what run s has). A value
+# other than its default where the run would not use it is refused rather than recorded as if applied.
+_RBF = ("method='rbf'", lambda s: s.method == "rbf", lambda s: f"method={s.method!r}")
+_CONDITIONAL = (
+    ("lr_scale", *_RBF), ("sigma_factor", *_RBF), ("r_cut", *_RBF), ("centers", *_RBF), ("coarse_ratio", *_RBF),
+    ("coarse_lr", *_RBF),
+    ("coarse_lr", "coarse_ratio > 0", lambda s: s.coarse_ratio > 0, lambda s: f"coarse_ratio={s.coarse_ratio!r}"),
+    ("lam", "method='largesteps'", lambda s: s.method == "largesteps", lambda s: f"method={s.method!r}"),
+    ("contact_distance", "w_contact > 0", lambda s: s.w_contact > 0, lambda s: f"w_contact={s.w_contact!r}"),
+    ("min_quality", "valid_steps=True", lambda s: s.valid_steps, lambda s: f"valid_steps={s.valid_steps!r}"),
+)
+
+
+def _default(name: str, method: str):
+    if name in DEFAULTS[method]:
+        return DEFAULTS[method][name]
+    return ReconstructionSettings.__dataclass_fields__[name].default
+
+
+def _check_used(s: ReconstructionSettings) -> None:
+    """Refuse a setting the run would ignore (one stage's settings, or a run without ``stage_overrides``)."""
+    for name, needs, has, here in _CONDITIONAL:
+        value, default = getattr(s, name), _default(name, s.method)
+        given = value is not None if default is None else value != default
+        if given and not has(s):
+            shown = repr(value) if len(repr(value)) <= 40 else f"{repr(value)[:37]}..."
+            raise ReconstructionError(f"{name}={shown} applies only with {needs}, not with {here(s)}; leave it at "
+                                      f"its default ({default!r})")
+    if s.contact_edges is True and not s.w_contact > 0:
+        raise ReconstructionError(f"contact_edges=True applies only with w_contact > 0 (the contact barrier), not with "
+                                  f"w_contact={s.w_contact!r}; leave contact_edges at 'auto'")
 
 
 def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
@@ -315,8 +376,9 @@ class ReconstructionResult:
     wall_time : float, optimisation seconds (remeshing between stages included, evaluation excluded)
     eval_time : float, seconds spent evaluating metrics
     info : dict, e.g. the regularizer weights used (``w_laplacian``, ``w_edge``, ``w_arap``, scaled to the
-        resolution) and per stage (``info["stages"]``) its method, Laplacian weight, and for rbf the
-        truncation error and pair counts
+        resolution) and per stage (``info["stages"]``) its method, Laplacian weight, with the guard its
+        ``steps`` and ``accepted_steps``, and for rbf the truncation error and pair counts; ``warnings``: one
+        line per stage whose every step the guard refused (each also a :class:`ReconstructionWarning`)
     """
 
     V: torch.Tensor
@@ -330,9 +392,10 @@ class ReconstructionResult:
     info: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        """A JSON-serialisable dict of everything except the mesh."""
+        """A JSON-serialisable dict of everything except the mesh (tensors and arrays, such as ``centers``
+        given as vertex indices, as lists)."""
         return {
-            "settings": asdict(self.settings),
+            "settings": _plain(asdict(self.settings)),
             "final": self.final.as_dict(),
             "wall_time": self.wall_time,
             "eval_time": self.eval_time,
@@ -342,3 +405,16 @@ class ReconstructionResult:
             "history": self.history,
             "metrics": self.metrics,
         }
+
+
+def _plain(value):
+    """``value`` with tensors, arrays and numpy scalars turned into lists and Python numbers, for JSON."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    if isinstance(value, tuple):
+        return tuple(_plain(v) for v in value)
+    if isinstance(value, (torch.Tensor, np.ndarray, np.generic)):
+        return value.tolist()
+    return value

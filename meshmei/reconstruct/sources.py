@@ -21,27 +21,30 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
 
     Files and pairs keep only the vertices their faces use (an unused vertex has no surface, and would
     stretch the bounding box), and are centred and scaled to unit bounding-box diagonal
-    (``normalize=True``), as the named targets are, so metrics are comparable across targets.
+    (``normalize=True``), as the named targets are, so metrics are comparable across targets. They are
+    read and normalised in float64 and cast to ``dtype`` after: in float32, a target 1e5 from the origin
+    would lose its shape to rounding before it was centred.
 
     Raises
     ------
     FileNotFoundError
         A path that does not exist.
     MeshError
-        A file that holds no mesh, an empty mesh, NaN coordinates, coordinates beyond ``dtype``'s range,
-        or a mesh of zero area.
+        A file that holds no mesh, an empty mesh, NaN coordinates, coordinates beyond ``dtype``'s range
+        (after normalisation), or a mesh of zero area.
     """
+    role = f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target"
     if isinstance(spec, str) and spec in TARGET_NAMES:
         V, F = target_mesh(spec, dtype=dtype)
     else:
         if isinstance(spec, (str, os.PathLike)):
-            V, F = _load(spec, "target", dtype)
+            V, F = _load(spec, "target", torch.float64)
         else:
             V, F = _pair(spec, "target")
-            V = cast_vertices(V, dtype, "target")
         if normalize:
-            V = normalize_unit_diagonal(V)
-    _check_area(V, F, f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target")
+            V = normalize_unit_diagonal(V.double())
+        V = cast_vertices(V, dtype, role)
+    _check_area(V, F, role)
     return V, F
 
 
@@ -90,7 +93,8 @@ def resolve_source(spec, n_vertices, dtype, target):
                 placement = "centred" + (" (the target has no through-hole that find_opening sees)"
                                          if spec == "torus" and target is not None else "")
     elif isinstance(spec, (str, os.PathLike)):
-        V, F = _load(spec, "source", dtype)
+        V, F = _load(spec, "source", torch.float64)
+        V = _cast_source(V, F, dtype, f"source {spec}")
     else:
         V, F = _pair(spec, "source")
     _check_area(V, F, f"source {spec}" if isinstance(spec, (str, os.PathLike)) else "source")
@@ -104,6 +108,19 @@ def _load(path, role, dtype):
         if str(path) in str(err):
             raise
         raise MeshError(f"{role} {path}: {err}") from None
+
+
+def _cast_source(V, F, dtype, role):
+    """A source read in float64, in ``dtype``; a MeshError when rounding to ``dtype`` collapses faces (a
+    mesh far from the origin for its size: float32 keeps about 7 digits of each coordinate)."""
+    out = cast_vertices(V, dtype, role)
+    had = doublearea(V, F) > 0
+    lost = int((had & ~(doublearea(out.double(), F) > 0)).sum())
+    if lost:
+        far = float(V.abs().max())
+        raise MeshError(f"{role}: {lost} of {F.shape[0]} faces collapse to zero area in {dtype} (coordinates up to "
+                        f"{far:.3g}, too far from the origin for that precision); centre the mesh near the origin")
+    return out
 
 
 def _pair(spec, role):

@@ -74,7 +74,8 @@ def normalize_unit_diagonal(V):
     Returns
     -------
     (n, 3) float tensor
-        A new tensor in the dtype and on the device of ``V``.
+        A new tensor in the dtype and on the device of ``V``, computed in float64 (a float32 mesh
+        1e-30 or 1e30 across has a diagonal whose squared length under- or overflows float32).
 
     Raises
     ------
@@ -87,11 +88,12 @@ def normalize_unit_diagonal(V):
     tensor([[-0.3000, -0.4000,  0.0000],
             [ 0.3000,  0.4000,  0.0000]])
     """
-    lo, hi = V.min(0).values, V.max(0).values
+    W = V.double()  # V itself when it is float64
+    lo, hi = W.min(0).values, W.max(0).values
     diag = float((hi - lo).norm())
     if not diag > 0:
         raise MeshError(f"mesh has zero extent (all {V.shape[0]} vertices coincide); cannot normalise it")
-    return (V - 0.5 * (lo + hi)) / diag
+    return ((W - 0.5 * (lo + hi)) / diag).to(V.dtype)
 
 
 def _bunny():
