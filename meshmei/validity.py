@@ -135,6 +135,10 @@ class StepGuard:
         self.F, self.rules = F, rules
         ref = V0.detach().double()
         self.normals, q = face_frame(ref, F)  # (m, 3) reference orientation
+        # faces of the reference below the quality bound (slivers of a user's start) have a normal set by
+        # rounding, which flips under any move: the turn rule leaves them out (the quality floor still holds
+        # them); None when every face counts, as in every built-in start
+        self.turn_faces = self._oriented(q)
         self.cos_bound = math.cos(math.radians(rules.max_turn_degrees))
         self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
         self.quality_floor = min(rules.min_quality, 0.5 * float(q.min()))
@@ -151,6 +155,11 @@ class StepGuard:
         # the float64 face frame of the last accepted candidate: the next objective's barrier screens its faces
         # with it (the same vertices) instead of computing the frame again
         self._accepted_frame = None
+
+    def _oriented(self, quality: torch.Tensor):
+        """The faces whose orientation the turn rule trusts, ``(m,)`` bool, or None for all."""
+        ok = quality >= self.rules.min_quality
+        return None if bool(ok.all()) else ok
 
     def _verdict(self, V: torch.Tensor, frame=None) -> tuple:
         """``(rule, message, frame)``: the rule ``V`` breaks (a key of :attr:`reasons`, None when it meets
@@ -173,6 +182,8 @@ class StepGuard:
             return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", frame
         turned = (n * self.normals).sum(-1) < self.cos_bound - 1e-12
         turned &= (n.abs().sum(-1) > 0) & (self.normals.abs().sum(-1) > 0)  # a zero-area face has no direction
+        if self.turn_faces is not None:
+            turned &= self.turn_faces
         if self.rules.max_turn_degrees < 180 and bool(turned.any()):
             why = f"{int(turned.sum())} faces turned by more than {self.rules.max_turn_degrees:g} degrees"
             return "turn", why, frame
@@ -206,6 +217,7 @@ class StepGuard:
                 self.accepted = Vd
             if self.rules.turn_from == "step":
                 self.normals = frame[0]
+                self.turn_faces = self._oriented(frame[1])
         self.seconds += time.perf_counter() - t0
         return rule is None
 
@@ -249,7 +261,8 @@ class StepGuard:
                 (n, q), tol = face_frame(V.detach(), self.F), 0.0
             inside = q - self.quality_floor < q_band + tol
             if turn:
-                inside |= (n * self.normals.to(n.dtype)).sum(-1) - self.cos_bound < band + tol
+                near = (n * self.normals.to(n.dtype)).sum(-1) - self.cos_bound < band + tol
+                inside |= near if self.turn_faces is None else near & self.turn_faces
             faces = inside.reshape(-1, self.F.shape[0]).any(0).nonzero().squeeze(1)
         total = V.sum((-2, -1)) * 0.0  # zero, with a (zero) gradient, where no face is near a bound
         if not len(faces):
@@ -258,6 +271,8 @@ class StepGuard:
         total = total + log_barrier(q - self.quality_floor, q_band).sum(-1)
         if turn:
             cos = (n * self.normals.index_select(-2, faces).to(n.dtype)).sum(-1)
+            if self.turn_faces is not None:  # no turn energy on a face the rule leaves out
+                cos = torch.where(self.turn_faces.index_select(0, faces), cos, torch.ones_like(cos))
             total = total + log_barrier(cos - self.cos_bound, band).sum(-1)
         return total
 
