@@ -8,7 +8,11 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["atomic_directory"]
+__all__ = ["atomic_directory", "RESULT_MARKERS"]
+
+# One of these files is in every folder meshmei writes (a 3D-MEI run, a diverse set, a sweep, a
+# reconstruction): a folder that holds none of them (and is not empty) is not meshmei's to replace.
+RESULT_MARKERS = ("summary.json", "diversity.json", "sweep.json", "history.json")
 
 
 def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: bool = False,
@@ -20,16 +24,22 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     ``overwrite`` it is never replaced, also when another process put it there while ``write`` ran (the
     rename onto it fails, and the new folder is removed).
 
+    ``overwrite`` replaces only what meshmei wrote: an empty folder, or one holding one of
+    :data:`RESULT_MARKERS`. A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in
+    the way is never removed.
+
     Raises
     ------
     error
-        ``directory`` exists and ``overwrite`` is False, before ``write`` or after it (the caller's
-        exception type).
+        ``directory`` exists and ``overwrite`` is False, before ``write`` or after it; or ``directory`` is
+        a file, or a folder of files meshmei did not write (the caller's exception type).
     """
     directory = Path(directory)
     exists = error(f"{directory} exists; pass overwrite=True (CLI: --overwrite) to replace it")
     if directory.exists() and not overwrite:
         raise exists
+    if directory.exists() or directory.is_symlink():
+        _check_replaceable(directory, error)
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = directory.parent / f".{directory.name}.partial-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
@@ -51,3 +61,13 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return directory
+
+
+def _check_replaceable(directory: Path, error) -> None:
+    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote."""
+    if directory.is_symlink() or not directory.is_dir():
+        raise error(f"{directory} is {'a link' if directory.is_symlink() else 'a file'}, not a result folder; "
+                    "it is not replaced, even with overwrite: choose another output path")
+    if any(directory.iterdir()) and not any((directory / name).is_file() for name in RESULT_MARKERS):
+        raise error(f"{directory} holds files meshmei did not write (none of {', '.join(RESULT_MARKERS)}); it is "
+                    "not replaced, even with overwrite: choose another output folder, or empty it yourself")

@@ -138,6 +138,25 @@ def test_a_damaged_sweep_is_one_tuning_error(tmp_path, sheet_mei, simple_cell, d
         load_sweep(bad)
 
 
+def test_overwrite_replaces_only_what_meshmei_wrote(tmp_path, sheet_mei, simple_cell):
+    """overwrite=True (CLI --overwrite) removed whatever folder was there: --out ~/data by mistake lost the
+    data. Now only an empty folder or one of meshmei's results is replaced."""
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10])
+    mine = tmp_path / "data"
+    mine.mkdir()
+    (mine / "precious.txt").write_text("keep")
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("keep")
+    for target, match in ((mine, "holds files meshmei did not write"), (a_file, "is a file, not a result folder")):
+        with pytest.raises(TuningError, match=match):
+            save_sweep(sw, target, overwrite=True, figures=False)
+    assert (mine / "precious.txt").read_text() == "keep" and a_file.read_text() == "keep"
+    first = save_sweep(sw, tmp_path / "sweep", figures=False)
+    (tmp_path / "empty").mkdir()
+    for target in (first, tmp_path / "empty"):  # an earlier sweep, and an empty folder, are replaced
+        assert load_sweep(save_sweep(sw, target, overwrite=True, figures=False)).neurons == sw.neurons
+
+
 def test_half_written_sweep_is_not_taken_for_a_finished_one(tmp_path, sheet_mei, simple_cell):
     sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10])
 
