@@ -8,7 +8,7 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["atomic_directory", "RESULT_MARKERS"]
+__all__ = ["atomic_directory", "check_replaceable", "RESULT_MARKERS"]
 
 # One of these files is in every folder meshmei writes (a 3D-MEI run, a diverse set, a sweep, a
 # reconstruction): a folder that holds none of them (and is not empty) is not meshmei's to replace.
@@ -39,7 +39,7 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     if directory.exists() and not overwrite:
         raise exists
     if directory.exists() or directory.is_symlink():
-        _check_replaceable(directory, error)
+        check_replaceable(directory, error)
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = directory.parent / f".{directory.name}.partial-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
@@ -63,8 +63,10 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     return directory
 
 
-def _check_replaceable(directory: Path, error) -> None:
-    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote."""
+def check_replaceable(directory, error) -> None:
+    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote (commands call it
+    before their work, so that a refused ``--overwrite`` costs no run)."""
+    directory = Path(directory)
     if directory.is_symlink() or not directory.is_dir():
         raise error(f"{directory} is {'a link' if directory.is_symlink() else 'a file'}, not a result folder; "
                     "it is not replaced, even with overwrite: choose another output path")

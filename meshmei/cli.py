@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from ._files import atomic_directory
+from ._files import atomic_directory, check_replaceable
 from .encoders import load_model, make_encoder
 from .errors import MEIError, ReconstructionError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
@@ -289,6 +289,8 @@ def _run_reconstruct(args) -> int:
     # Check the output folder and resolve both meshes first: bad input fails before any optimisation starts.
     if Path(args.out).exists() and not args.overwrite:
         raise ReconstructionError(f"{args.out} exists; pass --overwrite to replace it")
+    if Path(args.out).exists():
+        check_replaceable(args.out, ReconstructionError)
     if args.n_vertices is not None and args.init not in SOURCE_NAMES:
         raise ReconstructionError(f"--n-vertices {args.n_vertices} sets the size of a generated --init "
                                   f"({', '.join(SOURCE_NAMES)}), not of the mesh file {args.init}; remesh the file "

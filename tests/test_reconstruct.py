@@ -760,7 +760,7 @@ def test_save_reconstruction_writes_a_whole_folder_or_none(sphere, tmp_path, mon
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mei_run"]  # no folder, no partial one
 
 
-def test_cli_refuses_an_existing_out_folder_without_overwrite(tmp_path, capsys):
+def test_cli_refuses_an_existing_out_folder_without_overwrite(tmp_path, capsys, monkeypatch):
     out_dir = tmp_path / "run"
     args = ["--init", "sphere", "--n-vertices", 100, "--target", "bunny", "--out", out_dir, "--steps", 2,
             "--samples", 300, "--eval-samples", 500, "--stages", "none", "--no-progress"]
@@ -772,6 +772,17 @@ def test_cli_refuses_an_existing_out_folder_without_overwrite(tmp_path, capsys):
     rc, out = _cli(args + ["--overwrite"], capsys)
     assert rc == 0, out.err
     assert sorted(p.name for p in out_dir.iterdir()) == ["history.json", "loss.png", "mesh.obj", "metrics.png"]
+    # a folder of files meshmei did not write is not replaced, even with --overwrite, and no run starts
+    theirs = tmp_path / "data"
+    theirs.mkdir()
+    (theirs / "precious.txt").write_text("keep")
+    import meshmei.cli as cli_module
+
+    runs = []
+    monkeypatch.setattr(cli_module, "reconstruct", lambda *a, **k: runs.append(a))
+    rc, out = _cli(args[:7] + [theirs] + args[8:] + ["--overwrite"], capsys)
+    assert rc == 2 and "holds files meshmei did not write" in out.err and runs == []
+    assert [p.name for p in theirs.iterdir()] == ["precious.txt"]
 
 
 def test_centers_given_as_vertex_indices_are_saved_as_lists(sphere, tmp_path):
