@@ -13,7 +13,7 @@ from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
 from meshmei.reconstruct import (DEFAULT_STEPS, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
-                                 reconstruct, source_mesh, target_surface)
+                                 reconstruct, resolve_source, source_mesh, target_surface)
 from meshmei.shapes import initial_mesh, target_mesh
 
 from conftest import icosphere
@@ -848,3 +848,17 @@ def test_cli_says_when_a_stage_accepted_no_step(sphere, tmp_path, capsys):
     assert "WARNING: 1 stage(s) accepted no step" in out.out
     assert "meshmei reconstruct: warning: stage 0" in out.err and "accepted none of its 2 steps" in out.err
     assert json.loads((tmp_path / "o" / "history.json").read_text())["info"]["warnings"]
+
+
+def test_truthy_strings_and_mistyped_names_are_clear_errors(sphere):
+    """valid_steps="no" switched the guard on (a truthy string); a mistyped built-in name read as a missing
+    file without the names that exist."""
+    from meshmei.errors import ReconstructionError
+
+    for name in ("valid_steps", "reg_decay"):
+        with pytest.raises(ReconstructionError, match=f"{name} must be True or False, got 'no'"):
+            reconstruct(sphere, "bunny", steps=1, **{name: "no"})
+    with pytest.raises(FileNotFoundError, match=r"target bunnny: neither a built-in target \(bunny, teapot"):
+        reconstruct(sphere, "bunnny", steps=1)
+    with pytest.raises(FileNotFoundError, match=r"source sphre: neither a built-in source \(sheet, sphere"):
+        resolve_source("sphre", 100, torch.float32, None)

@@ -249,6 +249,9 @@ class ReconstructionSettings:
 
 
 def _check_values(s: ReconstructionSettings) -> None:
+    for name in ("valid_steps", "reg_decay"):  # "no" or 0 would switch a feature on or off by truthiness
+        if not isinstance(getattr(s, name), (bool, np.bool_)):
+            raise ReconstructionError(f"{name} must be True or False, got {getattr(s, name)!r}")
     if s.steps is not None and (isinstance(s.steps, bool) or int(s.steps) != s.steps or s.steps < 1):
         raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
     if s.time_budget is not None and not (s.time_budget > 0 and math.isfinite(s.time_budget)):

@@ -104,6 +104,11 @@ def resolve_source(spec, n_vertices, dtype, target):
 def _load(path, role, dtype):
     try:
         return remove_unreferenced(*load_mesh(path, dtype=dtype))
+    except FileNotFoundError:
+        if os.path.splitext(str(path))[1]:
+            raise
+        names = ", ".join(SOURCE_NAMES if role == "source" else TARGET_NAMES)  # a mistyped name, not a file
+        raise FileNotFoundError(f"{role} {path!s}: neither a built-in {role} ({names}) nor a mesh file") from None
     except MeshError as err:
         if str(path) in str(err):
             raise
