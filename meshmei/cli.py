@@ -74,7 +74,8 @@ def _add_mei(sub) -> None:
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
                         "(default: what its factory sets, else 100), which it is rendered at")
-    p.add_argument("--n-vertices", type=int, default=d.n_vertices)
+    p.add_argument("--n-vertices", type=int, default=None,
+                   help=f"vertex count of a built-in --init (default {d.n_vertices}); a mesh file keeps its own")
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--weight", action="append", default=[], metavar="NAME=W",
                    help="regularizer weight, e.g. --weight laplacian=1 (repeatable)")
@@ -176,15 +177,29 @@ def _mei_start(init: str):
     return start_from_file(init)
 
 
+def _mei_n_vertices(args, init) -> int:
+    """``--n-vertices`` of ``meshmei mei``: a built-in start's size, refused with a mesh file, whose own count is
+    what the run records."""
+    if isinstance(init, str):
+        return MEISettings.n_vertices if args.n_vertices is None else args.n_vertices
+    if args.n_vertices is not None:
+        raise MEIError(f"--n-vertices {args.n_vertices} sets the size of a built-in --init ({', '.join(INITIAL_KINDS)}); "
+                       f"the mesh file {args.init} keeps its own {init[0].shape[0]} vertices: leave --n-vertices out")
+    return int(init[0].shape[0])
+
+
 def _run_mei(args) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise MEIError(f"{out} exists; pass --overwrite to replace it")
+    if out.exists():  # a folder of other files is refused before the run, not after it
+        check_replaceable(out, MEIError)
     encoder = _cli_encoder(args)
     init = _mei_start(args.init)
+    n_vertices = _mei_n_vertices(args, init)
     image_size = _image_size(args, encoder)
     settings = MEISettings(steps=args.steps, seeds=tuple(args.seeds), image_size=image_size,
-                           n_vertices=args.n_vertices, lr=args.lr, weights=_weights(args.weight),
+                           n_vertices=n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
                            **_objective_settings(args))
     if args.diverse < 1:

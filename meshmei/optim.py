@@ -196,13 +196,20 @@ def _parameters(optimizer):
 
 
 def _guard(values: torch.Tensor, step: int, optimizer, error: type[Exception], where: str) -> None:
+    """Raise ``error`` where the loss ``values`` (a scalar or ``(B,)``) is NaN or Inf. Before any step
+    (``step`` 0) the learning rate cannot be the cause: the message points at the objective's inputs."""
     if bool(torch.isfinite(values).all()):
         return
     lr = optimizer.param_groups[0]["lr0"]
+    bad = [] if values.ndim == 0 else (~torch.isfinite(values)).nonzero().squeeze(1).tolist()
+    value = float(values) if values.ndim == 0 else float(values[bad[0]])
+    items = "" if values.ndim == 0 else f" for item(s) {bad} of the batch"
+    if step == 0:
+        raise error(f"the starting loss is {value}{items} (before any step{where}): check the objective's weights "
+                    f"and inputs (the start, the model, the scene); the learning rate is not the cause")
     if values.ndim == 0:
-        raise error(f"the loss became {float(values)} at step {step}{where}; lower the learning rate (lr={lr:g})")
-    bad = (~torch.isfinite(values)).nonzero().squeeze(1).tolist()
-    raise error(f"the loss became {float(values[bad[0]])} at step {step} for item(s) {bad} of the batch{where}; "
+        raise error(f"the loss became {value} at step {step}{where}; lower the learning rate (lr={lr:g})")
+    raise error(f"the loss became {value} at step {step}{items}{where}; "
                 f"lower the learning rate (lr={lr:g}) or run those items alone")
 
 
@@ -341,7 +348,9 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         the full step's update.
     max_halvings : int
     error : exception class
-        Raised when the loss is NaN or Inf.
+        Raised when the loss is NaN or Inf: at any step, and at the final evaluation when the final iterate
+        is what is kept (``keep="last"``, or ``"best"`` with nothing offered before; a non-finite final
+        iterate under keep-best yields to the best one seen).
     where : str
         Said after the step in that error (e.g. ``" of seed 2"``).
 
@@ -389,6 +398,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         return Outcome(trace.history[-1]["loss"] if trace.history else math.nan, trace.step, spent)
     with torch.no_grad():
         last = objective(StepPoint(trace.step, 1.0, schedule.factor(1.0)))[0].detach()
+    if keep == "last" or best.saved is None:  # the final iterate is what is kept: it must be finite too
+        _guard(last, trace.step, optimizer, error, where)
     if keep == "last":
         return Outcome(_as_record(last), trace.step if last.ndim == 0 else [trace.step] * last.shape[0], spent)
     loss, step = best.finish(last, trace.step)

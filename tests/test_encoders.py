@@ -134,3 +134,47 @@ def test_pixel_mei_deterministic_and_restores_mode():
     assert model.training
     assert torch.equal(a.image, b.image) and a.history == b.history
     assert model.readout.mu.grad is None  # encoder parameters get no gradient
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(step_size=-0.2), "step_size must be positive and finite, got -0.2"),
+    (dict(step_size=0.0), "step_size must be positive and finite, got 0.0"),
+    (dict(step_size=float("nan")), "step_size must be positive and finite, got nan"),
+    (dict(step_size=float("inf")), "step_size must be positive and finite, got inf"),
+    (dict(blur_sigma=-3.0), "blur_sigma must be a finite non-negative number of pixels, got -3.0"),
+    (dict(blur_sigma=float("nan")), "blur_sigma must be a finite non-negative number of pixels, got nan"),
+    (dict(init_std=0.0), "init_std must be positive and finite, got 0.0"),
+    (dict(init_std=float("inf")), "init_std must be positive and finite, got inf"),
+    (dict(seeds=0), r"seeds must be a sequence of integers, e.g. \(0,\), got 0"),
+    (dict(seeds=("a",)), r"seeds must be a sequence of integers, got \['a'\]"),
+    (dict(seeds=(1, 0, 1)), r"seeds must be distinct; \[1\] repeated"),
+    (dict(steps=None), "steps must be a positive integer, got None"),
+    (dict(dtype="float32"), "dtype must be torch.float32 or torch.float64, got 'float32'"),
+    (dict(dtype=torch.int64), "dtype must be torch.float32 or torch.float64, got torch.int64"),
+])
+def test_pixel_mei_refuses_bad_arguments_in_one_line(kw, match):
+    # a negative step_size used to minimise the response; the others failed inside torch or ran a seed twice
+    with pytest.raises(EncoderError, match=match) as err:
+        pixel_mei(GaborSimpleCell(), 0, **{"image_size": 16, "steps": 2, "seeds": (0,), **kw})
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("neuron", [[3, 5], None, "0"])
+def test_pixel_mei_takes_one_neuron_only(neuron):
+    # [3, 5] used to run neuron 3 and None neuron 0, silently; "0" failed inside torch
+    model = CoreReadoutModel(6)
+    with pytest.raises(EncoderError, match="single index|must be an integer"):
+        pixel_mei(model, neuron, image_size=16, steps=1, seeds=(0,))
+
+
+def test_pixel_mei_refuses_a_non_finite_final_response():
+    # a step of 1e308 image norms overflows on the last step, which minimize's guard (on the loss before
+    # each step) never sees: the NaN came back as the seed's response
+    with pytest.raises(EncoderError, match="the response became nan after the last step of seed 0"):
+        pixel_mei(GaborSimpleCell(), 0, image_size=16, steps=1, step_size=1e308, seeds=(0,))
+
+
+@pytest.mark.parametrize("neurons", ["0", ["0"], object()])
+def test_a_neuron_that_is_not_an_integer_is_an_encoder_error(neurons):
+    with pytest.raises(EncoderError, match="a neuron must be an integer index"):
+        GaborSimpleCell().neuron_index(neurons)

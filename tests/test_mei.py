@@ -287,3 +287,130 @@ def test_demo_neuron_3d_mei_beats_random_meshes_and_pixel_mei_is_higher_still():
     assert res.activation >= float(rand.max()), (res.activation, float(rand.max()))
     pm = pixel_mei(model, 0, image_size=res.settings.image_size, steps=300, seeds=(0,))
     assert pm.activation >= res.activation, (pm.activation, res.activation)
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+
+def test_random_mesh_responses_take_one_neuron_only():
+    from meshmei.encoders import CoreReadoutModel
+    from meshmei.mei import random_mesh_responses
+
+    model, s = CoreReadoutModel(6), MEISettings(image_size=16, n_vertices=40)
+    for neuron in ([3, 5], None):  # used to answer for neuron 3 and neuron 0, silently
+        with pytest.raises(MEIError, match="neuron must be a single index"):
+            random_mesh_responses(model, neuron, "sheet", n=2, settings=s)
+
+
+def test_keep_last_refuses_a_non_finite_final_loss():
+    # lr 1e37 overflows the one step; keep="last" used to return the NaN mesh and response as a result
+    with pytest.raises(MEIError, match=r"the loss became nan at step 1 of seed 0; lower the learning rate"):
+        optimize_mei(GaborSimpleCell(), 0, "sheet", seeds=(0,), steps=1, image_size=16, n_vertices=40, lr=1e37,
+                     valid_steps=False, keep="last")
+
+
+def test_a_seed_with_a_non_finite_end_never_wins():
+    from meshmei.mei.optimize import initial, result_from_seeds
+
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", seeds=(0,), steps=1, image_size=16, n_vertices=40)
+    run = dict(V=res.V, image=res.image, activation=res.activation, loss=res.loss_history[-1],
+               history=res.history, loss_history=res.loss_history, reg_history=res.reg_history,
+               time_history=res.time_history, deformer_state=res.deformer_state, light=res.light,
+               rotation=res.rotation, translation=res.translation)
+    V0, F, _ = initial("sheet", res.settings)
+    runs = {0: {**run, "loss": math.nan}, 1: run, 2: {**run, "loss": -1e9, "activation": math.nan}}
+    assert result_from_seeds(runs, V0, F, res.settings, 0, GaborSimpleCell(), "sheet", 1.0).seed == 1
+    with pytest.raises(MEIError, match="no seed of neuron 0 ended with a finite loss and response"):
+        result_from_seeds({0: runs[0], 2: runs[2]}, V0, F, res.settings, 0, GaborSimpleCell(), "sheet", 1.0)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(lr=1e39), "lr must be at most 3.4e[+]37"),
+    (dict(lr=1e38), "lr must be at most 3.4e[+]37"),
+    (dict(lr_scales=1e39), "lr_scales must be at most"),
+    (dict(lr_light=1e39), "lr_light must be at most"),
+    (dict(lr_pose=1e39), "lr_pose must be at most"),
+    (dict(lr_albedo=1e39), "lr_albedo must be at most"),
+    (dict(lr=1e-3, albedo=True, albedo_shape_lr=1e50), r"lr \* albedo_shape_lr must be at most"),
+    (dict(lr_decay=2.0), r"lr_decay must lie in \[0, 1\]"),
+    (dict(centers=10.0), "centers must be None or an int"),
+    (dict(fov_degrees=0), r"fov_degrees must lie in \(0, 180\), got 0"),
+    (dict(fov_degrees=180), r"fov_degrees must lie in \(0, 180\), got 180"),
+    (dict(fov_degrees=300), r"fov_degrees must lie in \(0, 180\), got 300"),
+    (dict(camera_distance=0), "camera_distance must be positive, got 0"),
+    (dict(min_quality="0.1"), r"min_quality must lie in \[0, 1\), got '0.1'"),
+    (dict(albedo_init="0.5"), r"albedo_init must lie in \(0, 1\), got '0.5'"),
+    (dict(albedo=1), "albedo must be True or False, got 1"),
+    (dict(light=5), "light must be three finite numbers or None, got 5"),
+    (dict(light="abc"), "light must be three finite numbers or None, got 'abc'"),
+    (dict(light="123"), "light must be three finite numbers or None, got '123'"),
+    (dict(reg_ref_vertices="abc"), "reg_ref_vertices must be a positive integer or None, got 'abc'"),
+    (dict(reg_ref_vertices=math.nan), "reg_ref_vertices must be a positive integer or None, got nan"),
+])
+def test_settings_that_would_fail_later_are_one_line_mei_errors(kw, match):
+    # each used to pass, or to fail as a TypeError / ValueError / RuntimeError from deep inside a run
+    with pytest.raises(MEIError, match=match) as err:
+        MEISettings(**kw)
+    assert "\n" not in str(err.value)
+
+
+def test_the_learning_rate_bound_follows_the_dtype():
+    MEISettings(lr=3e37)  # Adam's first step, 3e38, is still a float32
+    assert MEISettings(lr=1e39, dtype="float64").lr == 1e39
+
+
+def test_a_neuron_given_as_a_string_is_an_mei_error():
+    with pytest.raises(MEIError, match="a neuron must be an integer index"):
+        optimize_mei(GaborSimpleCell(), "0", "sheet", seeds=(0,), steps=1, image_size=16, n_vertices=40)
+
+
+def test_cli_refuses_n_vertices_with_a_mesh_file_and_records_the_files_count(tmp_path, capsys):
+    import trimesh
+    from meshmei.cli import main
+
+    trimesh.creation.icosphere(1).export(tmp_path / "ball.obj")  # 42 vertices
+    common = ["mei", "--init", str(tmp_path / "ball.obj"), "--steps", "1", "--seeds", "0", "--image-size", "16",
+              "--quiet"]
+    assert main([*common, "--n-vertices", "40", "--out", str(tmp_path / "a")]) == 2  # used to be ignored
+    err = capsys.readouterr().err.strip()
+    assert "--n-vertices 40" in err and "42 vertices" in err and "\n" not in err and not (tmp_path / "a").exists()
+    assert main([*common, "--out", str(tmp_path / "b")]) == 0
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["settings"]["n_vertices"] == summary["n_vertices"] == 42  # was 400, the unused default
+    assert main(["mei", "--init", "sheet", "--n-vertices", "40", "--steps", "1", "--seeds", "0", "--image-size",
+                 "16", "--quiet", "--out", str(tmp_path / "c")]) == 0
+    assert json.loads((tmp_path / "c" / "summary.json").read_text())["settings"]["n_vertices"] == 40
+
+
+def test_load_run_holds_the_rebuilt_deformer_to_the_truncation_bound(tmp_path):
+    # learnable scales that grow past the pair list's headroom at r_cut=1: the run's pair list and the rebuilt
+    # deformer's differ, and deformer()() is off V by up to exp(-r_cut^2 / 2) sum_k |offsets_k|, not equal
+    res = optimize_mei(GaborComplexCell(), 0, "sphere", steps=5, seeds=(0,), image_size=16, n_vertices=80,
+                       lr=0.02, lr_scales=0.5, r_cut=1.0)
+    bound = math.exp(-0.5) * float(res.deformer_state["offsets"].double().norm(dim=-1).sum())
+    with torch.no_grad():
+        gap = float((res.deformer()().double() - res.V.double()).abs().max())
+    assert 1e-3 < gap <= bound
+    run = save_run(res, tmp_path / "run", figures=False)
+    assert torch.equal(load_run(run).V, res.V)  # the saved vertices, not the rebuilt ones
+    state = torch.load(run / "state.pt", weights_only=True)
+    state["V"] = state["V"].clone()
+    state["V"][0, 0] += 1.5 * bound  # within the old, doubled tolerance; beyond what truncation explains
+    torch.save(state, run / "state.pt")
+    with pytest.raises(MEIError, match="does not reproduce the saved vertices"):
+        load_run(run)
+
+
+def test_cli_overwrite_never_removes_a_folder_of_other_files(tmp_path, capsys, monkeypatch):
+    """meshmei mei --out DIR --overwrite deleted every file in DIR; now refused, before the run."""
+    import meshmei.cli as cli_module
+
+    theirs = tmp_path / "data"
+    (theirs / "sub").mkdir(parents=True)
+    (theirs / "precious.txt").write_text("keep")
+    runs = []
+    monkeypatch.setattr(cli_module, "optimize_mei", lambda *a, **k: runs.append(a))
+    rc = cli_module.main(["mei", "--encoder", "gabor-simple", "--out", str(theirs), "--overwrite", "--steps", "2",
+                          "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "holds files meshmei did not write" in err and len(err.splitlines()) == 1 and runs == []
+    assert sorted(p.name for p in theirs.iterdir()) == ["precious.txt", "sub"]

@@ -94,3 +94,11 @@ def test_bad_robust_settings_are_refused():
         MEISettings(robust_pose=-1.0)
     with pytest.raises(MEIError, match="robust_points"):
         MEISettings(robust_points=0)
+
+
+def test_keep_best_with_no_iterate_offered_refuses_a_non_finite_final_one():
+    # one step, ranges widening over the first half: keep-best is offered nothing but the final iterate,
+    # which lr 1e37 overflows; it used to come back as the result, NaN response and all
+    with pytest.raises(MEIError, match="the loss became nan at step 1 of seed 0"):
+        optimize_mei(GaborSimpleCell(), 0, "sheet", seeds=(0,), steps=1, image_size=16, n_vertices=40, lr=1e37,
+                     valid_steps=False, robust_pose=10.0)

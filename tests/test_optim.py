@@ -166,3 +166,32 @@ def test_a_batched_objective_names_the_items_whose_loss_is_not_finite():
 
     with pytest.raises(FloatingPointError, match=r"item\(s\) \[1, 3\]"):
         minimize(objective, make_optimizer("adam", [{"params": [X], "lr": 0.1}]), Budget(steps=3))
+
+
+def test_a_non_finite_final_iterate_is_refused_when_it_is_the_one_kept():
+    # the step overflows x; the final evaluation used to return its NaN loss as the outcome of keep="last"
+    x = torch.ones(2, dtype=torch.float64, requires_grad=True)
+
+    def objective(point):
+        return (x * x).sum() * torch.exp(x.sum()), {}
+
+    with pytest.raises(KeyError, match=r"the loss became (nan|inf) at step 1 of seed 3; lower the learning rate"):
+        minimize(objective, torch.optim.SGD([x], lr=1e306), Budget(steps=1), keep="last", evaluate_last=True,
+                 error=KeyError, where=" of seed 3")
+    # keep="best" falls back on the best iterate seen instead
+    x.data.fill_(1.0)
+    out = minimize(objective, torch.optim.SGD([x], lr=1e306), Budget(steps=1), keep="best")
+    assert out.step == 0 and math.isfinite(out.loss) and torch.equal(x.detach(), torch.ones(2, dtype=torch.float64))
+
+
+def test_a_non_finite_starting_loss_points_at_the_inputs_not_the_learning_rate():
+    x = torch.ones(2, requires_grad=True)
+    with pytest.raises(KeyError, match=r"the starting loss is inf \(before any step of seed 7\): check the "
+                                       r"objective's weights and inputs") as err:
+        minimize(lambda p: (1e300 * torch.tensor(1e300) * (x * x).sum(), {}), torch.optim.SGD([x], lr=0.01),
+                 Budget(steps=3), error=KeyError, where=" of seed 7")
+    assert "learning rate is not the cause" in str(err.value) and "lower the learning rate" not in str(err.value)
+    X = torch.ones(3, 2, requires_grad=True)
+    with pytest.raises(FloatingPointError, match=r"the starting loss is nan for item\(s\) \[1\] of the batch"):
+        minimize(lambda p: ((X * X).sum(-1) * torch.tensor([1.0, math.nan, 1.0]), {}),
+                 make_optimizer("adam", [{"params": [X], "lr": 0.1}]), Budget(steps=3))

@@ -135,9 +135,14 @@ class Encoder(torch.nn.Module):
         n = self.n_neurons
         if neurons is None:
             return torch.arange(n, device=device)
-        if isinstance(neurons, bool):
-            raise EncoderError(f"neurons must be None, an int or a sequence of ints, got {neurons!r}")
-        idx = torch.as_tensor(neurons, device=device)
+        if isinstance(neurons, (bool, str, bytes)):
+            raise EncoderError(f"a neuron must be an integer index (neurons: None, an int or a sequence of ints), "
+                               f"got {neurons!r}")
+        try:
+            idx = torch.as_tensor(neurons, device=device)
+        except (TypeError, ValueError, RuntimeError):  # strings in a list, objects, ragged nesting
+            raise EncoderError(f"a neuron must be an integer index (neurons: None, an int or a sequence of ints), "
+                               f"got {neurons!r}") from None
         if idx.numel() == 0:
             raise EncoderError("neurons is empty; ask for at least one neuron")
         if idx.is_floating_point() or idx.dtype == torch.bool or idx.is_complex():

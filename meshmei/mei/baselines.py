@@ -13,7 +13,7 @@ from ..errors import MEIError
 from ..quality import mesh_quality
 from ..regularizers import REGULARIZERS
 from ..render import render
-from .optimize import initial, optimize_mei
+from .optimize import check_neuron, initial, optimize_mei
 from .settings import MEISettings
 
 __all__ = ["grid_search", "random_deformations", "random_mesh_responses"]
@@ -83,8 +83,10 @@ def random_mesh_responses(encoder: Encoder, neuron: int, init="sphere", n: int =
     """Responses ``(n,)`` of a neuron to ``n`` random deformations of the initial mesh, in the MEI's scene.
 
     The baseline a 3D-MEI has to beat: the same starting mesh, scene and preprocessing, with random smooth
-    deformations (:func:`random_deformations`) instead of optimised ones.
+    deformations (:func:`random_deformations`) instead of optimised ones. ``neuron`` is one neuron's index
+    (``MEIError`` otherwise, as in :func:`optimize_mei`).
     """
+    neuron = check_neuron(encoder, neuron)
     settings = MEISettings.with_overrides(settings, {})
     V0, F, _ = initial(init, settings)
     g = torch.Generator().manual_seed(int(seed))

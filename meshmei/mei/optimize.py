@@ -7,6 +7,7 @@ random initial offset, so runs differ) and the one with the lowest final loss is
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import replace
@@ -28,16 +29,16 @@ __all__ = ["optimize_mei", "initial", "start_from_file", "check_neuron", "settin
            "validity_barriers", "contact_barriers"]
 
 
-def check_neuron(encoder, neuron) -> int:
-    """The neuron's index in ``encoder`` as an int; ``MEIError`` for anything but one valid index."""
+def check_neuron(encoder, neuron, error: type[ValueError] = MEIError) -> int:
+    """The neuron's index in ``encoder`` as an int; ``error`` for anything but one valid index."""
     if not isinstance(encoder, Encoder):
-        raise MEIError(f"encoder must be a meshmei Encoder, got {type(encoder).__name__}")
+        raise error(f"encoder must be a meshmei Encoder, got {type(encoder).__name__}")
     try:
         idx = encoder.neuron_index(neuron)
     except EncoderError as err:
-        raise MEIError(str(err)) from None
+        raise error(str(err)) from None
     if idx.numel() != 1 or neuron is None:
-        raise MEIError(f"neuron must be a single index, got {neuron!r}")
+        raise error(f"neuron must be a single index, got {neuron!r}")
     return int(idx[0])
 
 
@@ -253,8 +254,14 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
 
 def result_from_seeds(runs: dict, V0, F, settings: MEISettings, neuron: int, encoder, init_name: str,
                       wall: float) -> MEIResult:
-    """The :class:`MEIResult` of one neuron from its seeds' runs (``seed -> run dict``): the lowest loss wins."""
-    seed = min(runs, key=lambda s: runs[s]["loss"])
+    """The :class:`MEIResult` of one neuron from its seeds' runs (``seed -> run dict``): the lowest loss wins,
+    among the seeds whose loss and response are finite (``MEIError`` if none is)."""
+    finite = [s for s in runs if math.isfinite(runs[s]["loss"]) and math.isfinite(runs[s]["activation"])]
+    if not finite:
+        ends = {s: (runs[s]["loss"], runs[s]["activation"]) for s in runs}
+        raise MEIError(f"no seed of neuron {neuron} ended with a finite loss and response ((loss, response) by "
+                       f"seed: {ends})")
+    seed = min(finite, key=lambda s: runs[s]["loss"])
     r = runs[seed]
     return MEIResult(
         V=r["V"], F=F, V0=V0, image=r["image"], activation=r["activation"], history=r["history"],

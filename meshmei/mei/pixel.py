@@ -10,13 +10,16 @@ back to the norm sphere. Several random starts are run and the best kept.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as TF
 
+from .._checks import check_positive
 from ..encoders import Encoder, EncoderError, frozen_encoder
 from ..optim import Budget, Progress, Schedule, Trace, minimize
+from .optimize import check_neuron
 
 __all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "NormalizedAscent"]
 
@@ -109,17 +112,37 @@ class NormalizedAscent(torch.optim.Optimizer):
                 z.copy_(norm * z / torch.linalg.vector_norm(z).clamp_min(torch.finfo(z.dtype).tiny))
 
 
-def _check_args(encoder, neuron, image_size, steps, seeds):
-    if not isinstance(encoder, Encoder):
-        raise EncoderError(f"encoder must be a meshmei Encoder, got {type(encoder).__name__}")
-    encoder.neuron_index(neuron)
+def _is_integer(v) -> bool:
+    """A finite real number of integer value (``3``, ``np.int64(3)``, ``3.0``), not a bool."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and int(v) == v
+
+
+def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma, init_std, dtype):
+    """The checked arguments of :func:`pixel_mei`: ``(neuron, H, W, steps, seeds)``; ``EncoderError`` names
+    the first bad one."""
+    neuron = check_neuron(encoder, neuron, error=EncoderError)
     H, W = _check_size(image_size)
-    if isinstance(steps, bool) or int(steps) != steps or steps < 1:
+    if not _is_integer(steps) or steps < 1:
         raise EncoderError(f"steps must be a positive integer, got {steps!r}")
+    for name, v in (("step_size", step_size), ("init_std", init_std)):
+        check_positive(name, v, error=EncoderError)
+    if isinstance(blur_sigma, bool) or not isinstance(blur_sigma, numbers.Real) or not math.isfinite(blur_sigma) \
+            or blur_sigma < 0:
+        raise EncoderError(f"blur_sigma must be a finite non-negative number of pixels, got {blur_sigma!r}")
+    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
+        raise EncoderError(f"seeds must be a sequence of integers, e.g. (0,), got {seeds!r}")
+    seeds = [s.item() if isinstance(s, torch.Tensor) and s.numel() == 1 else s for s in seeds]
+    if not all(_is_integer(s) for s in seeds):
+        raise EncoderError(f"seeds must be a sequence of integers, got {seeds!r}")
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise EncoderError("seeds is empty; give at least one seed")
-    return H, W, int(steps), seeds
+    if len(set(seeds)) != len(seeds):
+        twice = sorted({s for s in seeds if seeds.count(s) > 1})
+        raise EncoderError(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
+    if dtype not in (torch.float32, torch.float64):
+        raise EncoderError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    return neuron, H, W, int(steps), seeds
 
 
 def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 200, step_size: float = 0.2,
@@ -136,29 +159,36 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
     ----------
     encoder : Encoder
     neuron : int
+        One neuron's index.
     image_size : int or (H, W), optional
         Default: the model's own size for a :class:`~meshmei.encoders.ModelEncoder`, else 64.
     steps : int
         Steps per seed (>= 1).
     step_size : float
-        Initial step as a fraction of the image norm.
+        Initial step as a fraction of the image norm (finite, > 0).
     blur_sigma : float
-        Initial gradient blur in pixels (0 for plain gradient ascent).
+        Initial gradient blur in pixels (finite, >= 0; 0 for plain gradient ascent).
     seeds : sequence of int
-        One run per seed, from white noise with that seed; the highest final response wins.
+        One run per seed (distinct), from white noise with that seed; the highest final response wins.
     init_std : float
-        Standard deviation of the initial noise before projection (only its direction matters).
-    dtype, device : torch dtype and device of the image.
+        Standard deviation of the initial noise before projection (finite, > 0; only its direction matters).
+    dtype, device : torch dtype (``torch.float32`` or ``torch.float64``) and device of the image.
     progress : bool
         Show a tqdm progress bar.
 
     Returns
     -------
     PixelMEIResult
+
+    Raises
+    ------
+    EncoderError
+        A bad argument (the message names it), or a seed whose final response is not finite.
     """
     if image_size is None:
         image_size = getattr(encoder, "image_size", 64)
-    H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds)
+    neuron, H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma,
+                                             init_std, dtype)
     norm = encoder.preprocess.norm
     best, per_seed = None, {}
     bar = Progress(len(seeds) * steps, f"pixel MEI neuron {neuron}", enabled=progress,
@@ -179,6 +209,9 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
                      where=f" of seed {seed}")
             with torch.no_grad():
                 final = float(encoder(z, neuron, preprocessed=True)[0, 0])
+            if not math.isfinite(final):  # the last step is not checked by minimize, whose loss precedes it
+                raise EncoderError(f"the response became {final} after the last step of seed {seed}; lower "
+                                   f"step_size (step_size={step_size:g})")
             per_seed[seed] = final
             if best is None or final > best[1]:
                 best = (z.detach(), final, tuple(r["response"] for r in trace.history) + (final,), seed)

@@ -90,8 +90,9 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     """Read a run directory written by :func:`save_run` back into an :class:`MEIResult`.
 
     The vertices are recomputed from the saved rest mesh and deformer state and checked against the saved
-    ones. With ``rebuild_encoder=True`` (or ``encoder`` given), the returned result also carries the encoder
-    as ``encoder_module``.
+    ones, to within the RBF truncation bound (:meth:`MEIResult.deformer`); the saved ones are returned.
+    With ``rebuild_encoder=True`` (or ``encoder`` given), the returned result also carries the encoder as
+    ``encoder_module``.
 
     Raises
     ------
@@ -122,11 +123,13 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         raise
     except Exception as err:  # torch.load / load_state_dict errors on a damaged file
         raise MEIError(f"{directory} is corrupt: {type(err).__name__}: {err}") from None
-    # The rebuilt deformer truncates its kernels for the final scales, the optimised one for the scales at
-    # its last pair-list rebuild: each may drop weights up to exp(-r_cut^2 / 2), so the two meshes agree to
-    # twice that times the summed offset lengths (plus float round-off). The saved vertices are kept.
+    # The rebuilt deformer's pair list and the optimised one's (from its last rebuild) both hold every
+    # (vertex, kernel) pair within r_cut of the final scales; a pair only one of them holds has a weight below
+    # exp(-r_cut^2 / 2), and for a given vertex each kernel is missing from at most one of the lists. So the two
+    # meshes agree to exp(-r_cut^2 / 2) times the summed offset lengths (plus float round-off), and no closer
+    # in general (MEIResult.deformer). The saved vertices are kept.
     offsets = state["deformer"]["offsets"].double()
-    bound = 2 * math.exp(-rbf.r_cut**2 / 2) * float(offsets.norm(dim=-1).sum())
+    bound = math.exp(-rbf.r_cut**2 / 2) * float(offsets.norm(dim=-1).sum())
     bound += 1e-5 * (1 + float(state["V"].abs().max()))
     if V.shape != state["V"].shape or float((V.double() - state["V"].double()).abs().max()) > bound:
         raise MEIError(f"{directory}: the deformer state does not reproduce the saved vertices")

@@ -4,6 +4,7 @@ initial mesh, and everything a run returns (enough to rebuild its mesh and scene
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import torch
@@ -30,6 +31,11 @@ DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 800, "custom": 300}
 # (0.964-0.992 against 0.971-0.991) and its step 14 % cheaper. From the sphere two of six cells lost 0.02-0.04
 # without it, and the torus stalls (docs/mei.md, *Valid objects*). A mesh of your own keeps the barrier.
 DEFAULT_CONTACT_WEIGHT = {"sheet": 0.0, "sphere": 100.0, "torus": 100.0, "custom": 100.0}
+
+def _is_number(v) -> bool:
+    """A real number, not a bool (nor a string that spells one)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
 
 def _default_weights():
     return {"laplacian": 30.0, "edge": 30.0, "area": 1000.0, "arap": 0.0}
@@ -187,6 +193,12 @@ class MEISettings:
                 raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
         if self.lr <= 0 or self.sigma_factor <= 0 or self.r_cut <= 0:
             raise MEIError(f"lr, sigma_factor and r_cut must be positive, got {self.lr}, {self.sigma_factor}, {self.r_cut}")
+        if self.lr_decay > 1:
+            raise MEIError(f"lr_decay must lie in [0, 1] (the learning rates' final share), got {self.lr_decay!r}")
+        if self.camera_distance <= 0:
+            raise MEIError(f"camera_distance must be positive, got {self.camera_distance!r}")
+        if not 0 < self.fov_degrees < 180:
+            raise MEIError(f"fov_degrees must lie in (0, 180), got {self.fov_degrees!r}")
         seeds = tuple(self.seeds) if not isinstance(self.seeds, int) else (self.seeds,)
         if not seeds or any(isinstance(s, bool) or int(s) != s for s in seeds):
             raise MEIError(f"seeds must be a non-empty sequence of integers, got {self.seeds!r}")
@@ -203,9 +215,9 @@ class MEISettings:
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
                 raise MEIError(f"weight of {k!r} must be a finite non-negative number, got {w!r}")
         ref = self.reg_ref_vertices
-        if ref is not None and (isinstance(ref, bool) or int(ref) != ref or ref < 1):
+        if ref is not None and (not _is_number(ref) or not math.isfinite(ref) or int(ref) != ref or ref < 1):
             raise MEIError(f"reg_ref_vertices must be a positive integer or None, got {ref!r}")
-        if not 0 <= self.min_quality < 1:
+        if not _is_number(self.min_quality) or not 0 <= self.min_quality < 1:
             raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
         for name in ("barrier_weight", "contact_weight", "contact_distance"):
             v = getattr(self, name)
@@ -218,9 +230,10 @@ class MEISettings:
         r = self.albedo_resolution
         if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
             raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")
-        if not isinstance(self.albedo, bool) or not 0 < self.albedo_init < 1:
-            raise MEIError(f"albedo must be a bool and albedo_init lie in (0, 1), got {self.albedo!r}, "
-                           f"{self.albedo_init!r}")
+        if not isinstance(self.albedo, bool):
+            raise MEIError(f"albedo must be True or False, got {self.albedo!r}")
+        if not _is_number(self.albedo_init) or not 0 < self.albedo_init < 1:
+            raise MEIError(f"albedo_init must lie in (0, 1), got {self.albedo_init!r}")
         w = self.robust_widen
         if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w < 1:
             raise MEIError(f"robust_widen must lie in [0, 1), got {w!r}")
@@ -228,14 +241,25 @@ class MEISettings:
             raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
         if self.dtype not in ("float32", "float64"):
             raise MEIError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        # Adam's first step is lr / (1 - beta1) = 10 lr, which must be a number of the run's dtype
+        top = torch.finfo(self.torch_dtype).max * (1 - 0.9)
+        shape_lr = self.lr * (self.albedo_shape_lr if self.albedo else 1.0)
+        for name, v in (("lr", self.lr), ("lr_scales", self.lr_scales), ("lr_light", self.lr_light),
+                        ("lr_pose", self.lr_pose), ("lr_albedo", self.lr_albedo), ("lr * albedo_shape_lr", shape_lr)):
+            if not v <= top:
+                raise MEIError(f"{name} must be at most {top:.3g} (a tenth of {self.dtype}'s largest number: Adam's "
+                               f"first step is 10 lr), got {v!r}")
         if self.light is not None:
-            lt = tuple(float(x) for x in self.light)
+            try:  # a string is a sequence too: "123" must not pass as (1, 2, 3)
+                lt = () if isinstance(self.light, (str, bytes)) else tuple(float(x) for x in self.light)
+            except (TypeError, ValueError):
+                lt = ()
             if len(lt) != 3 or not all(math.isfinite(x) for x in lt):
                 raise MEIError(f"light must be three finite numbers or None, got {self.light!r}")
             object.__setattr__(self, "light", lt)
-        if self.centers is not None and (isinstance(self.centers, bool) or int(self.centers) != self.centers
-                                         or self.centers < 1):
-            raise MEIError(f"centers must be None or a positive integer, got {self.centers!r}")
+        c = self.centers
+        if c is not None and (isinstance(c, bool) or not isinstance(c, numbers.Integral) or c < 1):
+            raise MEIError(f"centers must be None or an int (a positive number of RBF centres), got {c!r}")
         object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
 
     def for_start(self, init_name: str) -> "MEISettings":
@@ -399,7 +423,18 @@ class MEIResult:
         return health_report(self.V, self.F, self.V0)
 
     def deformer(self) -> RBFDeformer:
-        """Rebuild the winning RBF deformer; ``deformer()()`` equals :attr:`V`."""
+        """Rebuild the winning RBF deformer from :attr:`V0` and :attr:`deformer_state`.
+
+        ``deformer()()`` reproduces :attr:`V` up to float round-off when the deformer's (vertex, kernel) pair
+        list was never rebuilt during the run (``lr_scales=0``, or scales that stayed within the list's
+        headroom). When learnable scales grew past it, the run's list and the rebuilt one keep different pairs
+        beyond ``r_cut`` scales, and the two meshes differ by at most ``exp(-r_cut^2 / 2)`` times the summed
+        offset norms, ``sum_k |offsets_k|`` (each (vertex, kernel) pair is dropped by at most one of the two
+        lists, and every dropped weight is below ``exp(-r_cut^2 / 2)``): no difference seen at the default
+        ``r_cut=4``, 0.037 in world units after five steps from the sphere at ``r_cut=1``, ``lr_scales=0.5``.
+        :attr:`V` is the mesh the run rendered and scored, and :func:`~meshmei.mei.load_run` keeps the saved
+        :attr:`V`.
+        """
         return rebuild_deformer(self.V0, self.deformer_state, self.settings)
 
 
