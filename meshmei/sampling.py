@@ -107,6 +107,10 @@ def _check_points(P, name):
         raise ValueError(f"{name} must be an (n, 3) float tensor, got {got}")
     if P.shape[0] == 0:
         raise ValueError(f"{name} is empty: shape {tuple(P.shape)}")
+    bad = ~torch.isfinite(P).all(1)
+    if bool(bad.any()):  # scipy's own message names neither argument
+        raise ValueError(f"{name} holds NaN or Inf ({int(bad.sum())} of {P.shape[0]} points, first at index "
+                         f"{int(bad.nonzero()[0, 0])})")
 
 
 def nearest_neighbors(P: torch.Tensor, Q: torch.Tensor, *, tree=None, exact_within: float | None = None,
@@ -145,7 +149,9 @@ def nearest_neighbors(P: torch.Tensor, Q: torch.Tensor, *, tree=None, exact_with
         _, idx = tree.query(Pn, k=1)
     else:
         d, idx = tree.query(Pn, k=1, eps=approx_eps, workers=-1)
-        near = np.flatnonzero(d < exact_within)
+        # the approximate distance exceeds the true one by up to (1 + approx_eps): a query truly within
+        # exact_within may be reported beyond it, so the exact search takes every one that can be within
+        near = np.flatnonzero(d < exact_within * (1.0 + approx_eps))
         if len(near):
             _, idx[near] = tree.query(Pn[near], k=1)
     return torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(P.device)
@@ -233,8 +239,14 @@ class PointIndex:
         The points, in random order (e.g. from :func:`sample_points`), so that every prefix covers the
         surface evenly.
     exact_within : float
-        Radius of exact answers (above), positive. Default: 10 times the mean spacing of ``Q`` estimated from
-        its nearest-neighbour distances (to the nearest distinct point: duplicated points do not shrink it).
+        Radius of exact answers, positive: with ``near_first``, every query within it of a point gets the
+        true nearest; the level-by-level search answers exactly the queries whose distance found at a
+        coarser level already falls below it, and may answer a query just inside it from a coarser prefix
+        (up to about 1.2 times the true distance seen in a review). Which search runs follows the previous
+        call (``near_first=None``), so the same query can get a different, equally valid, answer after a call
+        of far queries; pass ``near_first=True`` for exact answers within the radius. Default: 10 times the
+        mean spacing of ``Q`` estimated from its nearest-neighbour distances (to the nearest distinct point:
+        duplicated points do not shrink it).
     factor : int
         Size ratio of consecutive levels.
     min_points : int

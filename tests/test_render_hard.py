@@ -310,3 +310,44 @@ def test_a_scene_scaled_by_a_power_of_two_renders_the_same_image(k):
     torch.testing.assert_close(img, render(V, F, settings=st), rtol=0, atol=1e-6)
     img.sum().backward()
     assert bool(torch.isfinite(Vg.grad).all()) and float(Vg.grad.abs().max()) > 0
+
+
+def test_a_camera_follows_an_array_edited_after_it_was_made():
+    """The frame of a camera made from a numpy array or a list was cached as if immutable: editing the
+    array afterwards kept the old view, silently."""
+    V, F = initial_mesh("sphere", n_vertices=100)
+    st = RenderSettings(image_size=16)
+    for eye in (np.array([0.0, 0.0, 2.5]), [0.0, 0.0, 2.5]):
+        cam = Camera(eye=eye)
+        before = render(V, F, camera=cam, settings=st)
+        eye[0] = 1.5
+        after = render(V, F, camera=cam, settings=st)
+        assert torch.equal(after, render(V, F, camera=Camera(eye=(1.5, 0.0, 2.5)), settings=st))
+        assert not torch.equal(after, before)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda V, F, st: Renderer(torch.tensor([[0.9, 1.9, 2.9]]), settings=st)(V), "F must have an integer dtype"),
+    (lambda V, F, st: render(V, F, translation=torch.tensor([0, 0, 5j]), settings=st),
+     "translation must hold real numbers"),
+    (lambda V, F, st: render(V, F, light=[0.0, 0.0, "a"], settings=st), "light must hold real numbers"),
+    (lambda V, F, st: render(V, F, rotation=torch.eye(3, dtype=torch.complex64), settings=st),
+     "rotation must hold real numbers"),
+    (lambda V, F, st: render(V, F, albedo=torch.ones(V.shape[0], dtype=torch.bool), settings=st),
+     "albedo must hold real numbers"),
+    (lambda V, F, st: camera_from_angles(torch.tensor([90j]), 0.0), "azimuth must hold real numbers"),
+    (lambda V, F, st: camera_from_angles(torch.tensor([True]), 0.0), "azimuth must hold real numbers"),
+    (lambda V, F, st: camera_from_angles(torch.tensor([0.0, 10, 20]), torch.tensor([1.0, 2])),
+     "incompatible batch sizes"),
+])
+def test_inputs_that_were_silently_cast_or_failed_in_torch_are_render_errors(call, match):
+    """Float faces were truncated by Renderer, complex values lost their imaginary part, True read as 1 degree,
+    and unbroadcastable angle batches raised torch's RuntimeError."""
+    V, F = initial_mesh("sphere", n_vertices=100)
+    with pytest.raises((RenderError, MeshError), match=match):
+        call(V, F, RenderSettings(image_size=16))
+
+
+def test_numpy_integer_chunk_size_is_taken_as_an_int():
+    st = RenderSettings(chunk_size=np.int64(65536))
+    assert st.chunk_size == 65536 and type(st.chunk_size) is int

@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from .settings import RenderError, finite_float
-from .transforms import unit
+from .transforms import check_batch, real_numbers, unit
 
 __all__ = ["Camera", "camera_from_angles", "DEFAULT_DISTANCE", "DEFAULT_FOV_DEGREES"]
 
@@ -106,7 +106,9 @@ class Camera:
         R : (B, 3, 3) tensor
             Rows ``right``, ``up``, ``forward``; view coordinates are ``(p - eye) @ R.T``.
         """
-        fixed = not any(isinstance(getattr(self, k), torch.Tensor) for k in ("eye", "at", "up"))
+        # tuples cannot change under the camera: their frame is reused; tensors, arrays and lists can be
+        # edited in place (an array edited after the camera was made gave the old view), so are read anew
+        fixed = all(_immutable(getattr(self, k)) for k in ("eye", "at", "up"))
         key = (dtype, torch.device(device) if device is not None else torch.device("cpu"), eps)
         if fixed and key in self.__dict__.get("_frames", {}):  # sequences cannot change: reuse their frame
             return self._frames[key]
@@ -127,6 +129,11 @@ class Camera:
         if fixed:
             self.__dict__.setdefault("_frames", {})[key] = frame
         return frame
+
+
+def _immutable(x) -> bool:
+    """A tuple of numbers, or of tuples of numbers: values that cannot change after the camera is made."""
+    return isinstance(x, tuple) and all(isinstance(v, (int, float)) or _immutable(v) for v in x)
 
 
 def _batch_of(name, x):
@@ -162,8 +169,8 @@ def camera_from_angles(azimuth, elevation, distance=DEFAULT_DISTANCE, *, at=(0.0
     >>> cam.eye.shape
     torch.Size([2, 3])
     """
-    ts = [a if isinstance(a, torch.Tensor) else torch.as_tensor(a, dtype=torch.float64)
-          for a in (azimuth, elevation, distance)]
+    ts = [real_numbers(name, a, torch.float64)
+          for name, a in (("azimuth", azimuth), ("elevation", elevation), ("distance", distance))]
     dtype = next((t.dtype for t in ts if t.is_floating_point()), torch.float64)
     for name, t in zip(("azimuth", "elevation", "distance"), ts):
         if t.ndim > 1:
@@ -172,6 +179,10 @@ def camera_from_angles(azimuth, elevation, distance=DEFAULT_DISTANCE, *, at=(0.0
             raise RenderError(f"{name} holds NaN or Inf")
     if bool((ts[2] <= 0).any()):
         raise RenderError(f"distance must be > 0, got {ts[2].tolist()}")
+    sizes = {t.numel() for t in ts} - {1}
+    if len(sizes) > 1:
+        raise RenderError("azimuth, elevation and distance have incompatible batch sizes "
+                          f"{[t.numel() for t in ts]} (each one value or B)")
     az, el, dist = torch.broadcast_tensors(*[t.to(dtype).reshape(-1) for t in ts])
     if degrees:
         az, el = torch.deg2rad(az), torch.deg2rad(el)
@@ -179,5 +190,6 @@ def camera_from_angles(azimuth, elevation, distance=DEFAULT_DISTANCE, *, at=(0.0
     direction = torch.stack([ce * sa, se, ce * ca], dim=-1)  # (B, 3)
     up = torch.stack([-se * sa, ce, -se * ca], dim=-1)
     centre = _vec3("at", at, dtype, az.device)
+    check_batch("at", centre.shape[0], direction.shape[0])
     eye = centre + dist.unsqueeze(-1) * direction
     return Camera(eye=eye, at=centre.expand_as(eye), up=up, fov_degrees=fov_degrees, znear=znear, zfar=zfar)

@@ -6,6 +6,7 @@ import math
 
 import torch
 
+from ..mesh import as_faces
 from ..operators import corners, face_normals, vertex_normals_from_corners
 from .camera import Camera
 from .passes import run_passes
@@ -13,7 +14,7 @@ from .raster import Fragments, prepare_inputs
 from .settings import RenderError, RenderSettings
 from .shading import shade_samples
 from .texture import check_texture, sample_texture
-from .transforms import as_points, check_batch
+from .transforms import as_points, check_batch, real_numbers
 
 __all__ = ["render", "Renderer"]
 
@@ -27,8 +28,7 @@ def _light(light, eye, dtype, device):
 
 def _vertex_albedo(albedo, n: int, B: int, dtype, device) -> torch.Tensor:
     """Per-vertex albedo as ``(B * n,)`` for gathering by flat vertex row; RenderError for a bad one."""
-    a = albedo if isinstance(albedo, torch.Tensor) else torch.as_tensor(albedo, dtype=dtype)
-    a = a.to(dtype=dtype, device=device)
+    a = real_numbers("albedo", albedo, dtype).to(dtype=dtype, device=device)
     if a.ndim not in (1, 2) or a.shape[-1] != n or (a.ndim == 2 and a.shape[0] not in (1, B)):
         raise RenderError(f"albedo must have shape (n,) or (B, n) with n = {n} vertices and B = {B}, got "
                           f"{tuple(a.shape)}")
@@ -175,7 +175,7 @@ class Renderer:
     """
 
     def __init__(self, F, *, camera: Camera | None = None, light=None, settings: RenderSettings | None = None):
-        self.F = torch.as_tensor(F).long()
+        self.F = as_faces(F)  # float or bool faces are an error, as in render, not truncated
         self._F_on = {self.F.device: self.F}  # one copy per device, so the topology cache keeps hitting
         self.camera = camera if camera is not None else Camera()
         self.light = light

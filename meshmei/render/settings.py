@@ -96,8 +96,9 @@ class RenderSettings:
         if not isinstance(self.two_sided, bool):
             raise RenderError(f"two_sided must be a bool, got {self.two_sided!r}")
         cs = self.chunk_size
-        if isinstance(cs, bool) or not isinstance(cs, int) or cs < 1024:
+        if isinstance(cs, (bool, np.bool_)) or not isinstance(cs, numbers.Integral) or cs < 1024:
             raise RenderError(f"chunk_size must be an integer >= 1024, got {cs!r}")
+        object.__setattr__(self, "chunk_size", int(cs))
         eps = finite_float("eps", self.eps)
         if not 0 < eps < 1e-2:
             raise RenderError(f"eps must lie in (0, 1e-2), got {self.eps!r}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from .settings import RenderError
@@ -44,9 +45,25 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     return eye + a * K + b * (K @ K)
 
 
+def real_numbers(name: str, x, dtype=None) -> torch.Tensor:
+    """``x`` (a tensor, array or sequence) as a tensor (a sequence in ``dtype``, rounded once), or a
+    RenderError when it holds no real numbers: complex or bool values cast to float would lose the
+    imaginary part, or read True as 1, silently."""
+    if isinstance(x, torch.Tensor):
+        if x.is_complex() or x.dtype == torch.bool:
+            raise RenderError(f"{name} must hold real numbers, got dtype {x.dtype}")
+        return x
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise RenderError(f"{name} must be a tensor or a rectangular sequence of numbers: {err}") from None
+    if a.dtype.kind not in "fiu":
+        raise RenderError(f"{name} must hold real numbers, got {a.dtype} values")
+    return torch.as_tensor(a, dtype=dtype)
+
+
 def _rotation(rotation, dtype, device):
-    R = rotation if isinstance(rotation, torch.Tensor) else torch.as_tensor(rotation, dtype=dtype)
-    R = R.to(dtype=dtype, device=device)
+    R = real_numbers("rotation", rotation, dtype).to(dtype=dtype, device=device)
     if R.shape[-2:] != (3, 3) or R.ndim not in (2, 3):
         raise RenderError(f"rotation must be a (3, 3) or (B, 3, 3) matrix (use axis_angle_to_matrix for "
                           f"axis-angle vectors), got shape {tuple(R.shape)}")
@@ -97,8 +114,7 @@ def as_points(name: str, x, dtype, device) -> torch.Tensor:
     RenderError
         Wrong shape (the message names ``name`` and the shape), or NaN / Inf.
     """
-    t = x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=dtype)
-    t = t.to(dtype=dtype, device=device)
+    t = real_numbers(name, x, dtype).to(dtype=dtype, device=device)
     if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
         raise RenderError(f"{name} must have shape (3,) or (B, 3), got {tuple(t.shape)}")
     if not bool(torch.isfinite(t).all()):
