@@ -93,6 +93,9 @@ def test_health_report_counts_boundary_and_nonmanifold_edges_and_reports_waterti
     # a fin: three triangles on one edge make it non-manifold; the other edges are boundary edges
     fin = torch.tensor([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
     assert edge_use(fin) == (6, 1)
+    # a face repeating an index has no edge from the vertex to itself (counted as a boundary edge before,
+    # unlike the topology); its other two sides both run along (1, 3), which face 1 uses too
+    assert edge_use(torch.tensor([[0, 1, 2], [2, 1, 3], [3, 1, 1]])) == (3, 1)
 
 
 @pytest.mark.parametrize("form", ["numpy", "list"])

@@ -351,3 +351,13 @@ def test_inputs_that_were_silently_cast_or_failed_in_torch_are_render_errors(cal
 def test_numpy_integer_chunk_size_is_taken_as_an_int():
     st = RenderSettings(chunk_size=np.int64(65536))
     assert st.chunk_size == 65536 and type(st.chunk_size) is int
+
+
+def test_uv_without_a_texture_and_a_camera_inside_znear_are_errors():
+    """uv without albedo was silently ignored; camera_from_angles took a distance within znear, against its
+    docstring, and the view then lost the object's centre to the near plane."""
+    V, F = initial_mesh("sphere", n_vertices=100)
+    with pytest.raises(RenderError, match="uv gives texture coordinates for a texture albedo"):
+        render(V, F, uv=torch.rand(V.shape[0], 2), settings=RenderSettings(image_size=16))
+    with pytest.raises(RenderError, match=r"distance must be > znear \(0.1\)"):
+        camera_from_angles(0.0, 0.0, 0.05)

@@ -177,8 +177,8 @@ def camera_from_angles(azimuth, elevation, distance=DEFAULT_DISTANCE, *, at=(0.0
             raise RenderError(f"{name} must be a scalar or a (B,) tensor, got shape {tuple(t.shape)}")
         if not bool(torch.isfinite(t).all()):
             raise RenderError(f"{name} holds NaN or Inf")
-    if bool((ts[2] <= 0).any()):
-        raise RenderError(f"distance must be > 0, got {ts[2].tolist()}")
+    if bool((ts[2] <= znear).any()):  # a camera that close sees the object's centre clipped away
+        raise RenderError(f"distance must be > znear ({znear}), got {ts[2].tolist()}")
     sizes = {t.numel() for t in ts} - {1}
     if len(sizes) > 1:
         raise RenderError("azimuth, elevation and distance have incompatible batch sizes "

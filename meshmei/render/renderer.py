@@ -123,6 +123,8 @@ def render(V, F, *, camera: Camera | None = None, light=None, rotation=None, tra
     parts = [Vw.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3),
              _corner_normals(inp.posed, F, r, st, B)]  # positions and normals at the used faces' corners
     texture = None
+    if uv is not None and albedo is None:
+        raise RenderError("uv gives texture coordinates for a texture albedo (H, W); pass the texture as albedo")
     if albedo is not None and uv is not None:
         texture, uv = check_texture(albedo, uv, n, B, V.dtype, V.device)
     elif albedo is not None:
