@@ -10,6 +10,7 @@ NaN/Inf guard, keep-best, one progress bar, a timed history and callbacks. A run
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -69,7 +70,8 @@ class Budget:
     def __post_init__(self):
         if self.steps is None and self.seconds is None:
             raise ValueError("a budget needs steps, seconds or both")
-        if self.steps is not None and (isinstance(self.steps, bool) or int(self.steps) != self.steps
+        if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, numbers.Real)
+                                       or not math.isfinite(self.steps) or int(self.steps) != self.steps
                                        or self.steps < 1):
             raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
         if self.seconds is not None and not (self.seconds > 0 and math.isfinite(self.seconds)):
@@ -86,8 +88,9 @@ class Budget:
 
     def schedule_fraction(self, step: int, seconds: float, endpoint: bool) -> float:
         """The fraction a schedule reads: as :meth:`fraction`, or ``step / (steps - 1)`` with ``endpoint``."""
-        if endpoint and self.steps is not None and self.seconds is None:
-            return step / max(self.steps - 1, 1)
+        if endpoint and self.steps is not None:  # with a time limit too: whichever is further along
+            f = step / max(self.steps - 1, 1)
+            return f if self.seconds is None else max(f, seconds / self.seconds)
         return self.fraction(step, seconds)
 
 
@@ -193,6 +196,15 @@ def make_optimizer(name: str, groups: list) -> torch.optim.Optimizer:
 
 def _parameters(optimizer):
     return [p for g in optimizer.param_groups for p in g["params"]]
+
+
+def _returned(out) -> tuple:
+    """An objective's ``(loss, record)``, or a TypeError saying what it returned instead."""
+    if not (isinstance(out, tuple) and len(out) == 2 and isinstance(out[0], torch.Tensor)
+            and isinstance(out[1], dict)):
+        got = type(out).__name__ + (f" of {len(out)}" if isinstance(out, tuple) else "")
+        raise TypeError(f"the objective must return (loss tensor, record dict), got a {got}")
+    return out
 
 
 def _guard(values: torch.Tensor, step: int, optimizer, error: type[Exception], where: str) -> None:
@@ -360,6 +372,13 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     """
     if keep not in ("last", "best"):
         raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
+    for name, value, lo_open in (("stop_at", stop_at, True), ("keep_from", keep_from, False)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (
+                (0 < value <= 1) if lo_open else (0 <= value <= 1)):
+            raise ValueError(f"{name} must lie in {'(0, 1]' if lo_open else '[0, 1]'} (a share of the budget), "
+                             f"got {value!r}")
+    if isinstance(max_halvings, bool) or not isinstance(max_halvings, numbers.Integral) or max_halvings < 0:
+        raise ValueError(f"max_halvings must be a non-negative integer, got {max_halvings!r}")
     trace = trace if trace is not None else Trace()
     params = _parameters(optimizer)
     for g in optimizer.param_groups:
@@ -371,8 +390,12 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         for g in optimizer.param_groups:
             g["lr"], g["factor"] = g["lr0"] * c, c
         optimizer.zero_grad(set_to_none=True)
-        loss, record = objective(StepPoint(trace.step, f, c))
+        loss, record = _returned(objective(StepPoint(trace.step, f, c)))
         values = loss.detach()
+        if values.ndim == 1 and not getattr(optimizer, "elementwise", True):
+            raise ValueError(f"{type(optimizer).__name__} couples every entry of a parameter (one step size "
+                             "for all), so the items of a batched (B,) loss would not step as if alone; use "
+                             "an element-wise optimiser (adam) for batches")
         if values.ndim > 1:
             raise ValueError(f"the objective must return a scalar or a (B,) loss; got shape {tuple(values.shape)}")
         _guard(values, trace.step, optimizer, error, where)
@@ -395,9 +418,16 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
             cb(rec)
     spent = budget.fraction(trace.step, trace.seconds) >= 1.0
     if keep == "last" and not evaluate_last:
-        return Outcome(trace.history[-1]["loss"] if trace.history else math.nan, trace.step, spent)
+        loss = trace.history[-1]["loss"] if trace.history else math.nan
+        return Outcome(loss, [trace.step] * len(loss) if isinstance(loss, list) else trace.step, spent)
+    # the final iterate, where the run stopped: the budget's end, or stop_at's fraction of it (an objective
+    # that changes with the fraction, a continuation, scores it there, as the steps before it)
+    point = StepPoint(trace.step, 1.0, schedule.factor(1.0))
+    if not spent:
+        point = StepPoint(trace.step, budget.fraction(trace.step, trace.seconds),
+                          schedule.factor(budget.schedule_fraction(trace.step, trace.seconds, schedule.endpoint)))
     with torch.no_grad():
-        last = objective(StepPoint(trace.step, 1.0, schedule.factor(1.0)))[0].detach()
+        last = _returned(objective(point))[0].detach()
     if keep == "last" or best.saved is None:  # the final iterate is what is kept: it must be finite too
         _guard(last, trace.step, optimizer, error, where)
     if keep == "last":

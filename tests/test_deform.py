@@ -286,3 +286,39 @@ def test_deformer_errors_name_what_arrived():
         RBFDeformer(V.numpy())
     with pytest.raises(ValueError, match="sigma_factor must be positive and finite, got -1.0"):
         RBFDeformer(V, sigma_factor=-1.0)
+
+
+def test_farthest_points_are_distinct_on_duplicated_points():
+    """Once every remaining point lay on a chosen one, index 0 came back again: [0, 2, 0]."""
+    X = torch.tensor([[0.0, 0, 0], [0, 0, 0], [1, 0, 0]])
+    assert sorted(farthest_point_sampling(X, 3).tolist()) == [0, 1, 2]
+    X = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 0, 0], [2, 0, 0]])
+    assert sorted(farthest_point_sampling(X, 4).tolist()) == [0, 1, 2, 3]
+
+
+def test_a_state_of_other_centres_is_refused_and_of_the_same_reproduces():
+    """load_state_dict copied V0 and the centre indices but kept the old centres and pairs: another
+    deformation (7.4 apart), silently."""
+    V0 = torch.rand(200, 3, generator=torch.Generator().manual_seed(0))
+    a = RBFDeformer(V0, 30)
+    with torch.no_grad():
+        a.offsets.normal_()
+    with pytest.raises(ValueError, match="the state's center_index differs"):
+        RBFDeformer(V0, torch.arange(30)).load_state_dict(a.state_dict())
+    with pytest.raises(ValueError, match="the state's V0 differs"):
+        RBFDeformer(2 * V0).load_state_dict(RBFDeformer(V0).state_dict())
+    b = RBFDeformer(V0, a.center_index)
+    b.load_state_dict(a.state_dict())
+    assert torch.equal(b().detach(), a().detach())
+
+
+def test_coarse_kernels_need_a_learning_rate():
+    """coarse_ratio > 0 with the default coarse_lr 0 built kernels that never moved."""
+    from meshmei.deform import RBFParameterisation
+
+    V, _ = icosphere(2)
+    with pytest.raises(ValueError, match=r"coarse kernels \(coarse_ratio=10\) need coarse_lr > 0"):
+        RBFParameterisation(V.float(), lr=0.01, coarse_ratio=10)
+    for kw, match in ((dict(lr_scales=-0.1), "lr_scales must be"), (dict(coarse_ratio=-10), "coarse_ratio must be")):
+        with pytest.raises(ValueError, match=match):
+            RBFParameterisation(V.float(), lr=0.01, **kw)

@@ -82,3 +82,17 @@ def test_adam_uniform_step_uses_one_scale_per_tensor():
     torch.testing.assert_close(p.detach(), before - 0.2 * g / g.abs().max())
     with pytest.raises(ValueError, match="lr"):
         AdamUniform([p], lr=0.0)
+
+
+def test_adam_uniform_and_system_matrix_refuse_bad_arguments():
+    """A negative lr climbed the loss, eps=-1 and betas=(0.9,) were accepted (the latter failing in step),
+    and an out-of-range face index gave scipy's message."""
+    p = torch.zeros(3, requires_grad=True)
+    for kw, match in ((dict(lr=-0.5), "lr must be positive and finite"), (dict(lr=float("inf")), "lr must be"),
+                      (dict(eps=-1.0), "eps must be"), (dict(betas=(0.9,)), "betas must be two numbers")):
+        with pytest.raises(ValueError, match=match):
+            AdamUniform([p], **kw)
+    with pytest.raises(MeshError, match="vertex index 50, out of range for n_vertices=10"):
+        system_matrix(torch.tensor([[0, 1, 50]]), 10)
+    with pytest.raises(MeshError, match="integer dtype"):
+        system_matrix(torch.tensor([[0.0, 1.5, 2.0]]), 10)

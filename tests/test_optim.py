@@ -195,3 +195,58 @@ def test_a_non_finite_starting_loss_points_at_the_inputs_not_the_learning_rate()
     with pytest.raises(FloatingPointError, match=r"the starting loss is nan for item\(s\) \[1\] of the batch"):
         minimize(lambda p: ((X * X).sum(-1) * torch.tensor([1.0, math.nan, 1.0]), {}),
                  make_optimizer("adam", [{"params": [X], "lr": 0.1}]), Budget(steps=3))
+
+
+def _quadratic():
+    x = torch.zeros(3, requires_grad=True)
+    return x, (lambda pt: (((x - 1) ** 2).sum(), {})), make_optimizer("adam", [{"params": [x], "lr": 0.1}])
+
+
+def test_a_stage_stopped_early_scores_its_final_iterate_where_it_stopped():
+    """With stop_at < 1 the final iterate was scored at fraction 1.0: under an objective that changes with
+    the fraction, keep-best kept an older iterate (loss 1.666 at step 4 against 1.419 at step 5)."""
+    x = torch.zeros(3, requires_grad=True)
+    seen = []
+
+    def objective(pt):
+        seen.append(pt.fraction)
+        return ((x - 1) ** 2).sum() * (1 + pt.fraction), {}
+
+    out = minimize(objective, make_optimizer("adam", [{"params": [x], "lr": 0.1}]), Budget(steps=10), stop_at=0.5,
+                   keep="best", schedule=Schedule("cosine", 0.1))
+    assert seen[-1] == 0.5 and out.step == 5
+    assert out.loss == pytest.approx(float(((x.detach() - 1) ** 2).sum()) * 1.5, rel=1e-6)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(stop_at=2.0), r"stop_at must lie in \(0, 1\]"),  # ran past the budget, the cosine lr climbing back
+    (dict(stop_at=0), r"stop_at must lie in \(0, 1\]"),  # a NaN loss and no error
+    (dict(keep_from=5.0), r"keep_from must lie in \[0, 1\]"),
+    (dict(max_halvings=-1, accept=lambda: True), "max_halvings must be a non-negative integer"),  # undid every step
+])
+def test_minimize_refuses_settings_that_misbehaved_silently(kw, match):
+    x, objective, opt = _quadratic()
+    with pytest.raises(ValueError, match=match):
+        minimize(objective, opt, Budget(steps=3), **kw)
+
+
+def test_minimize_checks_what_the_objective_returns_and_the_optimiser_of_a_batch():
+    x, _, opt = _quadratic()
+    with pytest.raises(TypeError, match=r"must return \(loss tensor, record dict\), got a Tensor"):
+        minimize(lambda pt: ((x - 1) ** 2).sum(), opt, Budget(steps=1))
+    z = torch.zeros(2, 3, requires_grad=True)
+    batch = lambda pt: (((z - 1) ** 2).sum(1), {})  # noqa: E731
+    with pytest.raises(ValueError, match="AdamUniform couples every entry"):  # items stepped together before
+        minimize(batch, make_optimizer("uniform", [{"params": [z], "lr": 0.1}]), Budget(steps=2))
+    out = minimize(batch, make_optimizer("adam", [{"params": [z], "lr": 0.1}]), Budget(steps=3))
+    assert out.step == [3, 3] and len(out.loss) == 2  # one step per item, as with evaluate_last (an int before)
+    with pytest.raises(ValueError, match="steps must be a positive integer, got inf"):  # an OverflowError before
+        Budget(steps=float("inf"))
+
+
+def test_an_endpoint_schedule_reaches_its_floor_with_a_time_limit_too():
+    x, objective, opt = _quadratic()
+    trace = Trace()
+    minimize(objective, opt, Budget(steps=5, seconds=1e3), schedule=Schedule("geometric", 0.01, endpoint=True),
+             trace=trace)
+    assert trace.history[-1]["lr"] == pytest.approx(0.1 * 0.01)  # 0.0025 before: the endpoint was ignored

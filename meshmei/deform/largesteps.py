@@ -13,12 +13,16 @@ gradient that reuses the factorisation) and :class:`AdamUniform`.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
 from ..errors import MeshError
+from ..mesh import as_faces
 
 __all__ = ["system_matrix", "DifferentialSolver", "AdamUniform"]
 
@@ -39,10 +43,10 @@ def system_matrix(F, n_vertices: int, lam: float = 19.0) -> sp.csc_matrix:
     """
     if not (lam >= 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be non-negative and finite, got {lam!r}")
-    F = np.asarray(F.cpu() if isinstance(F, torch.Tensor) else F, dtype=np.int64)
-    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
-        raise MeshError(f"F must be a non-empty (m, 3) integer array, got shape {F.shape}")
+    F = as_faces(F).cpu().numpy()  # float faces are an error, not truncated
     n = int(n_vertices)
+    if int(F.max()) >= n:
+        raise MeshError(f"F holds vertex index {int(F.max())}, out of range for n_vertices={n}")
     i = F[:, [0, 1, 2]].ravel()
     j = F[:, [1, 2, 0]].ravel()
     A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
@@ -128,12 +132,28 @@ class AdamUniform(torch.optim.Optimizer):
         Added to the denominator (guards an all-zero gradient).
     """
 
+    elementwise = False  # one step size per tensor: the items of a batched loss would not step as if alone
+
     def __init__(self, params, lr: float = 1e-2, betas=(0.9, 0.999), eps: float = 1e-12):
-        if not lr > 0:
-            raise ValueError(f"lr must be positive, got {lr!r}")
-        if not all(0.0 <= b < 1.0 for b in betas):
-            raise ValueError(f"betas must lie in [0, 1), got {betas!r}")
-        super().__init__(params, dict(lr=lr, betas=tuple(betas), eps=eps))
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
+
+    def add_param_group(self, param_group: dict) -> None:
+        """Each group's ``lr`` (positive, finite), ``betas`` (two values in [0, 1)) and ``eps``
+        (non-negative, finite) are checked: a negative lr climbed the loss, silently."""
+        super().add_param_group(param_group)
+        g = self.param_groups[-1]
+        lr, betas, eps = g["lr"], g["betas"], g["eps"]
+        if isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not (0 < lr < math.inf):
+            raise ValueError(f"lr must be positive and finite, got {lr!r}")
+        try:
+            betas = tuple(float(b) for b in betas)
+        except (TypeError, ValueError):
+            betas = ()
+        if len(betas) != 2 or not all(0.0 <= b < 1.0 for b in betas):
+            raise ValueError(f"betas must be two numbers in [0, 1), got {g['betas']!r}")
+        if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not (0 <= eps < math.inf):
+            raise ValueError(f"eps must be a non-negative finite number, got {eps!r}")
+        g["betas"] = betas
 
     @torch.no_grad()
     def step(self, closure=None):

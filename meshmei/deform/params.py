@@ -5,6 +5,9 @@ groups (with learning rates) for the optimiser of :mod:`meshmei.optim`.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 
 from .largesteps import DifferentialSolver, system_matrix
@@ -84,6 +87,13 @@ class RBFParameterisation(Parameterisation):
 
     def __init__(self, V0: torch.Tensor, *, lr: float, lr_scales: float = 0.0, centers=None,
                  sigma_factor: float = 1.0, r_cut: float = 4.0, coarse_ratio: int = 0, coarse_lr: float = 0.0):
+        for name, value in (("lr", lr), ("lr_scales", lr_scales), ("coarse_lr", coarse_lr)):
+            if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 <= value < math.inf):
+                raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
+        if isinstance(coarse_ratio, bool) or not isinstance(coarse_ratio, numbers.Integral) or coarse_ratio < 0:
+            raise ValueError(f"coarse_ratio must be a non-negative integer (0: no coarse kernels), got {coarse_ratio!r}")
+        if coarse_ratio and not coarse_lr > 0:  # the coarse kernels would never move
+            raise ValueError(f"coarse kernels (coarse_ratio={coarse_ratio}) need coarse_lr > 0, got {coarse_lr!r}")
         super().__init__(V0)
         self.rbf = RBFDeformer(self.V0, centers, sigma_factor=sigma_factor, r_cut=r_cut,
                                learn_scales=lr_scales > 0)

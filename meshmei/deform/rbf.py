@@ -51,15 +51,17 @@ def farthest_point_sampling(X, k: int, *, start: int = 0) -> torch.Tensor:
     n = X.shape[0]
     if isinstance(k, bool) or int(k) != k or not 1 <= k <= n:
         raise ValueError(f"k must be an integer between 1 and {n} (the number of points), got {k!r}")
-    if not 0 <= start < n:
-        raise ValueError(f"start must index one of the {n} points, got {start}")
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or not 0 <= start < n:
+        raise ValueError(f"start must index one of the {n} points, got {start!r}")
     P = X.detach().double().cpu().numpy()
     idx = np.empty(int(k), dtype=np.int64)
     idx[0] = start
     d = ((P - P[start]) ** 2).sum(1)
+    d[start] = -1.0  # chosen: never again, also when the rest lie on chosen points (duplicates)
     for i in range(1, int(k)):
         idx[i] = int(np.argmax(d))
-        d = np.minimum(d, ((P - P[idx[i]]) ** 2).sum(1))
+        d = np.minimum(d, ((P - P[idx[i]]) ** 2).sum(1))  # chosen points stay at -1
+        d[idx[i]] = -1.0
     return torch.from_numpy(idx).to(X.device)
 
 
@@ -130,6 +132,8 @@ def _center_index(V0, centers) -> torch.Tensor:
     if centers is None:
         return torch.arange(n, device=V0.device)
     if isinstance(centers, (int, np.integer)) and not isinstance(centers, bool):
+        if not 1 <= centers <= n:
+            raise ValueError(f"centers (a kernel count) must lie between 1 and {n} (the vertices), got {centers}")
         return farthest_point_sampling(V0, int(centers))
     cidx = torch.as_tensor(centers, device=V0.device)
     if cidx.ndim != 1 or cidx.numel() == 0 or cidx.is_floating_point() or cidx.dtype == torch.bool:
@@ -248,6 +252,23 @@ class RBFDeformer(torch.nn.Module):
         return int(self._rows.numel())
 
     @torch.no_grad()
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Load offsets and scales saved from a deformer of the same rest mesh and centres.
+
+        The centres' positions, their KD-tree and the kernel pairs are built from ``V0`` and the centres
+        when the deformer is made; loading another rest mesh or other centres would leave them behind and
+        give the old deformation (silently). Build the deformer on the saved ones instead:
+        ``RBFDeformer(state["V0"], centers=state["center_index"], ...)`` (as
+        :func:`meshmei.mei.settings.rebuild_deformer` does).
+        """
+        for name in ("V0", "center_index"):
+            saved = state_dict.get(name)
+            mine = getattr(self, name)
+            if saved is not None and (saved.shape != mine.shape or not torch.equal(saved.to(mine), mine)):
+                raise ValueError(f"the state's {name} differs from this deformer's: build the deformer on it, "
+                                 "RBFDeformer(state['V0'], centers=state['center_index']), then load the state")
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
     def _build(self, sigma: torch.Tensor) -> None:
         """Rebuild the (vertex, kernel) pair list to cover ``headroom * r_cut * sigma_k`` per kernel."""
         radius = self.headroom * self.r_cut * sigma.detach().double().cpu().numpy()  # (K,)
