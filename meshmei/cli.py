@@ -445,7 +445,8 @@ def _run_population(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="meshmei", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="meshmei", description="3D maximally exciting inputs, their tuning, and mesh "
+                                     "reconstruction: meshmei demo runs the main job on built-in data.")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_regularizers, _add_demo, _add_reconstruct, _add_tune, _add_mei, _add_population):
         add(sub)

@@ -172,3 +172,37 @@ def test_help_works(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--help"])
     assert exc.value.code == 0 and "--render-only" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("mode", ["--rbf-cost", "--render-only"])
+def test_every_quick_mode_writes_outside_the_published_docs(mode, monkeypatch):
+    """--rbf-cost --quick and --render-only --quick returned before the quick redirect and rewrote docs/."""
+    import meshmei.benchmarks.reconstruct.run as run
+    from meshmei.benchmarks._report import docs_dir
+
+    published = docs_dir()
+    monkeypatch.setenv("MESHMEI_DOCS", "")  # unset for the run, and restored after the redirect sets it
+    seen = []
+    monkeypatch.setattr(run, "rbf_cost", lambda quick: seen.append(docs_dir()))
+    monkeypatch.setattr(run, "write_section", lambda name, body: seen.append(docs_dir()))
+    monkeypatch.setattr(run, "plot", lambda *a: seen.append(a[-1]))
+    monkeypatch.setattr(run, "render", lambda *a, **k: "")
+    run.main([mode, "--quick"])
+    assert seen and all(p != published and "meshmei-quick-" in str(p) for p in seen)
+
+
+@pytest.mark.parametrize("module, argv", [
+    ("meshmei.benchmarks.validity", ["--parts", "bogus"]),  # ran nothing, exit 0
+    ("meshmei.benchmarks.albedo", ["--neurons", "abc"]),  # a ValueError traceback after start-up
+    ("meshmei.benchmarks.regularizers", ["--sizes", "-5"]),  # a math domain error
+    ("meshmei.benchmarks.regularizers", ["--repeat", "0"]),  # an IndexError after the work
+    ("meshmei.benchmarks.reconstruct", ["--rbf-cost", "--problems", "nonsense"]),  # silently ignored
+    ("meshmei.benchmarks.reconstruct", ["--quick", "--resolutions", "2500"]),  # silently ignored
+])
+def test_benchmark_options_are_checked_before_any_work(module, argv, capsys):
+    import importlib
+
+    main = importlib.import_module(module).main
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and "error:" in capsys.readouterr().err

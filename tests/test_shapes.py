@@ -445,3 +445,27 @@ def test_an_integer_dtype_is_refused():
     """dtype=torch.int64 truncated every coordinate to 0."""
     with pytest.raises(ValueError, match="dtype must be a torch floating-point dtype"):
         initial_mesh("sphere", n_vertices=100, dtype=torch.int64)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: target_mesh("teapot", resolution=2, dtype=torch.int64), "dtype must be a torch floating-point dtype"),
+    (lambda: target_mesh("teapot", resolution=1), "resolution must be at least 2"),  # not edge-manifold at 1
+    (lambda: target_mesh("dumbbell", resolution=4), "resolution applies to the teapot only"),  # silently ignored
+    (lambda: initial_mesh("sphere", n_vertices=100, size=1e40), "out of torch.float32's range"),  # inf vertices
+    (lambda: initial_mesh("sphere", n_vertices=100, size=1e-50), "out of torch.float32's range"),  # all zero
+])
+def test_shape_arguments_that_gave_garbage_are_refused(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+@pytest.mark.parametrize("V, match", [
+    (torch.tensor([[0.0, 0, 0], [1, float("inf"), 0]]), "NaN or Inf"),  # NaN vertices before
+    (torch.tensor([[0.0, 0, 0], [1, float("nan"), 0]]), "NaN or Inf"),  # 'all vertices coincide' before
+    (torch.tensor([[0, 0, 0], [3, 4, 0]]), r"non-empty \(n, 3\) float tensor"),  # zeros before
+    (torch.zeros(0, 3), r"non-empty \(n, 3\) float tensor"),  # an IndexError before
+    (torch.rand(2, 5, 3), r"non-empty \(n, 3\) float tensor"),  # each member scaled wrong before
+])
+def test_normalize_unit_diagonal_checks_its_input(V, match):
+    with pytest.raises(MeshError, match=match):
+        normalize_unit_diagonal(V)

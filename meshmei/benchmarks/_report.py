@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import os
+import tempfile
 import platform
 import re
 import time
@@ -22,6 +24,42 @@ def docs_dir() -> Path:
     if env:
         return Path(env)
     return Path(__file__).resolve().parents[2] / "docs"
+
+
+def benchmark_parser(file: str, doc: str) -> argparse.ArgumentParser:
+    """The parser of the benchmark module at ``file``: ``python -m meshmei.benchmarks.NAME`` as its name, the
+    docstring's first paragraph as its description (its first line alone was cut mid-sentence)."""
+    name = Path(file).stem
+    return argparse.ArgumentParser(prog=f"python -m meshmei.benchmarks.{name}",
+                                   description=" ".join(doc.split("\n\n")[0].split()),
+                                   epilog="A full run writes its section of docs/benchmarks.md.")
+
+
+def int_list(text: str) -> list:
+    """``"0,1,3"`` as ``[0, 1, 3]``: an argparse type (a bad entry is argparse's one-line error)."""
+    try:
+        return [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a positive integer."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def keep_docs_for_full_runs(quick: bool) -> None:
+    """A quick (smoke) run writes into a fresh temporary folder, never over the published ``docs/``
+    (unless ``MESHMEI_DOCS`` names a folder already); it says where."""
+    if quick and not os.environ.get("MESHMEI_DOCS"):
+        os.environ["MESHMEI_DOCS"] = tempfile.mkdtemp(prefix="meshmei-quick-")
+        print(f"--quick: writing to {os.environ['MESHMEI_DOCS']}, not docs/")
 
 
 def machine_line() -> str:

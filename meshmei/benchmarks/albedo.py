@@ -9,12 +9,11 @@ the same with the shape at a tenth of its learning rate, from the sheet.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
 
-from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import benchmark_parser, int_list, machine_line, markdown_table, write_section
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, pixel_mei
 
@@ -64,11 +63,11 @@ def run(neurons: list[int]) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--neurons", default="0,1,3,6,9")
+    ap = benchmark_parser(__file__, __doc__)
+    ap.add_argument("--neurons", type=int_list, default="0,1,3,6,9")
     args = ap.parse_args(argv)
     t = time.perf_counter()
-    print(f"wrote {run([int(x) for x in args.neurons.split(',')])} in {time.perf_counter() - t:.0f} s")
+    print(f"wrote {run(args.neurons)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":

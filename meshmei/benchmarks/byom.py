@@ -17,13 +17,12 @@ preprocessing. meshmei's share is ``(b - a) / a``.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, median, step_intervals, timings, write_section
+from meshmei.benchmarks._report import benchmark_parser, machine_line, markdown_table, median, step_intervals, timings, write_section
 from meshmei.encoders import encoder_from_model, frozen_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.mei.optimize import initial
@@ -192,7 +191,7 @@ def run(steps: int):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=40)
     args = ap.parse_args(argv)
     t = time.perf_counter()

@@ -8,13 +8,12 @@ otherwise; ``diversity`` 0 (four runs kept at their final iterate) and 0.5 (``fl
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import benchmark_parser, machine_line, markdown_table, write_section
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell, make_encoder
 from meshmei.mei import diverse_meis
 
@@ -53,7 +52,7 @@ def run(k: int = 4) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--k", type=int, default=4)
     args = ap.parse_args(argv)
     t = time.perf_counter()

@@ -7,13 +7,12 @@ Run: ``python -m meshmei.benchmarks.mei [--steps 400] [--seeds 0]``; writes the 
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import replace
 
 import torch
 
-from meshmei.benchmarks._report import docs_dir, machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import benchmark_parser, docs_dir, machine_line, markdown_table, write_section
 from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
 from meshmei.mei import MEISettings, grid_search, optimize_mei, pixel_mei, random_mesh_responses
 from meshmei.quality import mesh_quality
@@ -171,7 +170,7 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--pixel-steps", type=int, default=200)

@@ -13,13 +13,12 @@ machine state.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, median, step_intervals, write_section
+from meshmei.benchmarks._report import benchmark_parser, machine_line, markdown_table, median, step_intervals, write_section
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, optimize_mei_batch
 
@@ -87,7 +86,7 @@ def run(steps: int) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=60)
     args = ap.parse_args(argv)
     t = time.perf_counter()

@@ -6,7 +6,6 @@ Run: ``python -m meshmei.benchmarks.regularizers [--sizes 1000 10000 100000 1000
 
 from __future__ import annotations
 
-import argparse
 import math
 
 import igl
@@ -14,7 +13,7 @@ import numpy as np
 import torch
 
 from meshmei import operators as ops
-from meshmei.benchmarks._report import machine_line, markdown_table, timeit, write_section
+from meshmei.benchmarks._report import benchmark_parser, positive_int, machine_line, markdown_table, timeit, write_section
 from meshmei.regularizers import REGULARIZER_LABELS, REGULARIZERS
 
 
@@ -160,9 +159,9 @@ and its exponent from 1.24 to 1.04; caching the cotmatrix pattern took its assem
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000, 1_000_000])
-    p.add_argument("--repeat", type=int, default=3)
+    p = benchmark_parser(__file__, __doc__)
+    p.add_argument("--sizes", type=positive_int, nargs="+", default=[1_000, 10_000, 100_000, 1_000_000])
+    p.add_argument("--repeat", type=positive_int, default=3)
     args = p.parse_args(argv)
     results, actual = run(args.sizes, args.repeat)
     print(f"wrote {report(results, actual, args.sizes)}")

@@ -19,7 +19,7 @@ import torch
 
 from ..render import RenderSettings, camera_from_angles, rasterize, render
 from ..shapes import initial_mesh, target_mesh
-from ._report import docs_dir, machine_line, markdown_table, timeit, timings, write_section
+from ._report import benchmark_parser, docs_dir, keep_docs_for_full_runs, machine_line, markdown_table, timeit, timings, write_section
 
 MESHES = {"sphere-1k": ("sphere", 500), "sphere-5k": ("sphere", 2500), "sphere-30k": ("sphere", 13000),
           "bunny": ("bunny", None)}
@@ -122,7 +122,7 @@ def speed_vs_error(size=128, repeat=5):
 
 # ---------------------------------------------------------------------------------------------
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--one", nargs=2, metavar=("MESH", "SIZE"), help=argparse.SUPPRESS)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--threads", type=int, default=torch.get_num_threads())
@@ -132,6 +132,7 @@ def main(argv=None):
     if args.one:
         print(json.dumps(run_one(args.one[0], int(args.one[1]), args.repeat)))
         return 0
+    keep_docs_for_full_runs(args.quick)  # a smoke run must not overwrite the published numbers and plots
     repeat = 2 if args.quick else args.repeat
     load = os.getloadavg()[0]
     machine = machine_line()

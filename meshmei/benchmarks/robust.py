@@ -10,13 +10,12 @@ the grid above half the sweep's peak and the response in the original scene.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
 import numpy as np
 
-from meshmei.benchmarks._report import machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import benchmark_parser, int_list, machine_line, markdown_table, write_section
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.tuning import light_sweep, pose_sweep
@@ -71,11 +70,11 @@ def run(neurons: list[int]) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--neurons", default="6,0,3")
+    ap = benchmark_parser(__file__, __doc__)
+    ap.add_argument("--neurons", type=int_list, default="6,0,3")
     args = ap.parse_args(argv)
     t = time.perf_counter()
-    print(f"wrote {run([int(x) for x in args.neurons.split(',')])} in {time.perf_counter() - t:.0f} s")
+    print(f"wrote {run(args.neurons)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":

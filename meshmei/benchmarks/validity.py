@@ -16,7 +16,6 @@ Run: ``python -m meshmei.benchmarks.validity [--steps 300] [--cells 8]``; writes
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import time
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from meshmei.benchmarks._report import machine_line, markdown_table, median, step_intervals, write_section
+from meshmei.benchmarks._report import benchmark_parser, machine_line, markdown_table, median, step_intervals, write_section
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
@@ -288,7 +287,7 @@ def run(steps: int | None, n_cells: int):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=None, help="3D-MEI steps per seed (default: by start, as MEISettings)")
     ap.add_argument("--cells", type=int, default=6)
     ap.add_argument("--parts", default="mei,reconstruction",
@@ -296,6 +295,9 @@ def main(argv=None):
                          "(targets with thin parts)")
     args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
+    known = {"mei", "mei-cost", "reconstruction", "thin"}
+    if not parts <= known:  # an unknown part ran nothing and exited 0
+        ap.error(f"--parts: unknown {', '.join(sorted(parts - known))} (known: {', '.join(sorted(known))})")
     t = time.perf_counter()
     if "mei" in parts:
         print(f"wrote {run(args.steps, args.cells)} in {time.perf_counter() - t:.0f} s")

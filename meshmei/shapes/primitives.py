@@ -148,7 +148,8 @@ def initial_mesh(
     n_vertices : int, optional
         Approximate vertex count (usually within 10 %). The edge length is derived from the surface
         area ``A`` as ``h = sqrt(2 A / (sqrt(3) n))`` (a near-equilateral closed mesh has two triangles
-        per vertex), then corrected once by ``sqrt(n_got / n)`` if the count misses by more than 10 %.
+        per vertex), then corrected by ``sqrt(n_got / n)`` (up to three times, the closest count kept) if the
+        count misses by more than 10 %.
         Default 2500 when neither argument is given.
     size : float
         Overall scale (see above).
@@ -215,4 +216,8 @@ def initial_mesh(
                 V, F = V2, F2
     V = torch.as_tensor(V * float(size), dtype=dtype, device=device)
     F = torch.as_tensor(F, dtype=torch.int64, device=device)
+    extent = (V.amax(0) - V.amin(0)).amax()
+    if not (bool(torch.isfinite(V).all()) and float(extent) > 0):  # size 1e40 gave inf, 1e-50 zeros in float32
+        raise ValueError(f"size={size!r} puts the {kind} out of {dtype}'s range (coordinates "
+                         f"{'not finite' if not bool(torch.isfinite(V).all()) else 'all zero'})")
     return V, F

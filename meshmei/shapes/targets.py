@@ -88,6 +88,11 @@ def normalize_unit_diagonal(V):
     tensor([[-0.3000, -0.4000,  0.0000],
             [ 0.3000,  0.4000,  0.0000]])
     """
+    if not isinstance(V, torch.Tensor) or not V.is_floating_point() or V.ndim != 2 or V.shape[1] != 3 or not len(V):
+        got = f"{V.dtype} of shape {tuple(V.shape)}" if isinstance(V, torch.Tensor) else type(V).__name__
+        raise MeshError(f"V must be a non-empty (n, 3) float tensor, got {got}")
+    if not bool(torch.isfinite(V).all()):  # Inf gave NaN vertices, NaN a 'coincide' error
+        raise MeshError("V holds NaN or Inf coordinates; cannot normalise it")
     W = V.double()  # V itself when it is float64
     lo, hi = W.min(0).values, W.max(0).values
     diag = float((hi - lo).norm())
@@ -239,7 +244,8 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
     name : str
         One of :data:`TARGET_NAMES`.
     resolution : int
-        Samples per patch side for the teapot (ignored for the bunny).
+        Samples per patch side for the teapot, at least 2 (at 1 the welded patches share an edge among three
+        faces); the other targets have one mesh each and take only the default.
     dtype : torch float dtype of the vertices
     device : torch device of the returned tensors
 
@@ -253,7 +259,8 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
     Raises
     ------
     ValueError
-        Unknown ``name`` or non-positive ``resolution``.
+        Unknown ``name``, a ``resolution`` below 2 or given for a target other than the teapot, or a
+        ``dtype`` that is not a floating-point one.
     FileNotFoundError
         pymeshlab's copy of the bunny is missing.
     MeshError
@@ -268,6 +275,13 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
     if name not in TARGET_NAMES:
         raise ValueError(f"name must be one of {TARGET_NAMES}, got {name!r}")
     check_positive("resolution", resolution, integer=True)
+    if resolution < 2:
+        raise ValueError(f"resolution must be at least 2 (at 1 the teapot's welded patches are not edge-manifold), "
+                         f"got {resolution!r}")
+    if name != "teapot" and resolution != 16:
+        raise ValueError(f"resolution applies to the teapot only; the {name} has one mesh (got {resolution!r})")
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:  # an int dtype zeroed every vertex
+        raise ValueError(f"dtype must be a torch floating-point dtype, got {dtype!r}")
     if name == "bunny":
         V, F = _bunny()
         if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:

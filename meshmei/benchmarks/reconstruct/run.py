@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 
@@ -15,7 +13,7 @@ from ...metrics import error_by_part, surface_metrics
 from ...reconstruct import reconstruct, source_mesh
 from ...shapes import initial_mesh, target_mesh
 from ...shapes.remeshing import mesh_arrays
-from .._report import docs_dir, write_section
+from .._report import docs_dir, keep_docs_for_full_runs, write_section
 from .curves import CHECKPOINTS
 from .figures import plot
 from .membrane import membrane_floor
@@ -108,8 +106,10 @@ def _plan(ap, args) -> _Plan:
         chosen = tuple(int(r) for r in args.resolutions.split(","))
     except ValueError:
         ap.error(f"--resolutions must be comma-separated integers, got {args.resolutions!r}")
-    if not args.quick and any(r not in RESOLUTIONS for r in chosen):
+    if any(r not in RESOLUTIONS for r in chosen):
         ap.error(f"--resolutions must be among {RESOLUTIONS}, got {args.resolutions!r}")
+    if args.quick and args.resolutions != ",".join(map(str, RESOLUTIONS)):  # it was dropped silently
+        ap.error("--quick runs at 300 vertices; --resolutions applies to full runs")
     names = [v.strip() for v in args.variants.split(",")]
     problems = [p.strip() for p in args.problems.split(",")]
     for bad in [x for x in names if x not in VARIANTS] + [x for x in problems if x not in PROBLEMS]:
@@ -205,19 +205,23 @@ def main(argv=None):
     ap = _parser()
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.render_only or args.rbf_cost:  # they read none of the run's options: refuse them, not drop them
+        run_options = ("variants", "problems", "resolutions", "extra_budgets", "merge", "skip_existing")
+        given = [f"--{o.replace('_', '-')}" for o in run_options if getattr(args, o) != ap.get_default(o)]
+        if given:
+            ap.error(f"{'--render-only' if args.render_only else '--rbf-cost'} takes none of {', '.join(given)}")
+    else:
+        plan = _plan(ap, args)  # checked before anything is made or written
+    published = docs_dir()
+    keep_docs_for_full_runs(args.quick)  # every --quick mode: a smoke run must not overwrite the published numbers
     if args.render_only:
-        raw = Records.load(docs_dir() / "reconstruction_benchmark.json").to_json()
+        raw = Records.load(published / "reconstruction_benchmark.json").to_json()
         write_section("reconstruction", render(raw["results"], raw["floors"], args.quick, membrane=raw["membrane"]))
         plot(raw["results"], raw["floors"], docs_dir())
         return
     if args.rbf_cost:
         rbf_cost(args.quick)
         return
-    if args.quick and not os.environ.get("MESHMEI_DOCS"):
-        # a smoke run must not overwrite the published numbers
-        os.environ["MESHMEI_DOCS"] = tempfile.mkdtemp(prefix="meshmei-quick-")
-        print(f"--quick: writing to {os.environ['MESHMEI_DOCS']}")
-    plan = _plan(ap, args)
     out = docs_dir()
     out.mkdir(parents=True, exist_ok=True)
     raw_path = out / "reconstruction_benchmark.json"
