@@ -60,11 +60,11 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace its contents")
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     encoder = load_demo_model() if encoder is None else encoder
     neuron = _default_neuron(encoder) if neuron is None else int(neuron)
-    encoder.neuron_index(neuron)  # clear error for an out-of-range neuron before any work
+    encoder.neuron_index(neuron)  # clear error for an out-of-range neuron before any work (and any folder)
+    out.mkdir(parents=True, exist_ok=True)
     res, pix = _optimise(encoder, neuron, init, p, log)
     run_dir = save_run(res, out / "mei", overwrite=True)
     pose, light = _sweep(res, encoder, run_dir, p, log)

@@ -322,3 +322,9 @@ def test_coarse_kernels_need_a_learning_rate():
     for kw, match in ((dict(lr_scales=-0.1), "lr_scales must be"), (dict(coarse_ratio=-10), "coarse_ratio must be")):
         with pytest.raises(ValueError, match=match):
             RBFParameterisation(V.float(), lr=0.01, **kw)
+
+
+def test_learn_scales_must_be_a_boolean():
+    V, _ = icosphere(1)
+    with pytest.raises(ValueError, match="learn_scales must be True or False, got 'no'"):  # switched them on
+        RBFDeformer(V, learn_scales="no")

@@ -42,6 +42,7 @@ def test_story_writes_every_artifact_and_they_reload(tmp_path, cell):
 def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
     with pytest.raises(EncoderError, match="out of range"):
         run_story(tmp_path / "a", encoder=cell, neuron=4, preset=QUICK)
+    assert not (tmp_path / "a").exists()  # refused before its folder is made (an empty one was left before)
     (tmp_path / "b").mkdir()
     (tmp_path / "b" / "keep.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="not empty"):

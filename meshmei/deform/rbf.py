@@ -229,6 +229,8 @@ class RBFDeformer(torch.nn.Module):
             raise ValueError(f"sigma must be positive and finite, got {sigma!r}")
         self.offsets = torch.nn.Parameter(torch.zeros(K, 3, dtype=V0.dtype, device=V0.device))
         log_sigma = torch.full((K,), math.log(sigma), dtype=V0.dtype, device=V0.device)
+        if not isinstance(learn_scales, (bool, np.bool_)):  # "no" would switch them on
+            raise ValueError(f"learn_scales must be True or False, got {learn_scales!r}")
         if learn_scales:
             self.log_sigma = torch.nn.Parameter(log_sigma)
         else:
