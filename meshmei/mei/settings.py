@@ -74,7 +74,11 @@ class MEISettings:
     r_cut : float
         RBF truncation radius in scales (see :class:`~meshmei.deform.RBFDeformer`).
     weights : dict
-        Regularizer weights by name (see :data:`REGULARIZERS`); zero weights are not evaluated.
+        Regularizer weights by name (see :data:`REGULARIZERS`); zero weights are not evaluated. The dict
+        replaces the defaults as a whole: a regularizer it leaves out has weight 0
+        (``weights={"laplacian": 100}`` drops the default edge and area terms; to change one weight, start
+        from ``MEISettings().weights``). The command line's ``--weight NAME=W`` changes one and keeps the
+        others.
     reg_ref_vertices : int or None
         When set (e.g. 400, the default mesh, for which the default weights were chosen), ``weights`` are
         stated for a mesh of this many vertices and scaled to the run's (its ``n_vertices`` for a built-in
