@@ -253,7 +253,6 @@ class RBFDeformer(torch.nn.Module):
     def n_pairs(self) -> int:
         return int(self._rows.numel())
 
-    @torch.no_grad()
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Load offsets and scales saved from a deformer of the same rest mesh and centres.
 
@@ -271,6 +270,7 @@ class RBFDeformer(torch.nn.Module):
                                  "RBFDeformer(state['V0'], centers=state['center_index']), then load the state")
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
+    @torch.no_grad()
     def _build(self, sigma: torch.Tensor) -> None:
         """Rebuild the (vertex, kernel) pair list to cover ``headroom * r_cut * sigma_k`` per kernel."""
         radius = self.headroom * self.r_cut * sigma.detach().double().cpu().numpy()  # (K,)
