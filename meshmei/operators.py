@@ -18,11 +18,11 @@ regularizers call once per optimisation step, after validating their input once.
 
 from __future__ import annotations
 
-import numbers
 from typing import NamedTuple
 
 import torch
 
+from ._checks import check_non_negative
 from .errors import MeshError
 from .mesh import as_faces, check_mesh
 from .topology import MeshTopology, mesh_topology
@@ -40,6 +40,7 @@ __all__ = [
     "cotmatrix",
     "massmatrix",
     "safe_norm",
+    "scaled_norm",
     "resolve_eps",
     "EPS",
     "gather",
@@ -68,8 +69,7 @@ def resolve_eps(eps, dtype: torch.dtype) -> float:
     """
     if eps is None:
         return float(torch.finfo(dtype).eps) ** 0.75
-    if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not 0 <= float(eps) < float("inf"):
-        raise MeshError(f"eps must be a finite non-negative number or None, got {eps!r}")
+    check_non_negative("eps", eps, error=MeshError)
     return float(eps)
 
 
@@ -89,13 +89,18 @@ def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     lo, hi = torch.aminmax(sq.detach())
     if fi.tiny <= float(lo) and float(hi) <= fi.max:
         return plain
+    out_of_range = ((sq < fi.tiny) | (sq > fi.max)) & (x != 0).any(dim)  # the zero vector keeps its zero slope
+    return torch.where(out_of_range, scaled_norm(x, dim), plain)
+
+
+def scaled_norm(x: torch.Tensor, dim: int = -1, *, keepdim: bool = False) -> torch.Tensor:
+    """Euclidean norm along ``dim`` taken on ``x`` divided by its largest component, so that no square over-
+    or underflows (a norm beyond the dtype's range is held at its largest value); the rare path of
+    :func:`safe_norm`, and of the renderer's unit vectors (a light 1e20 away in float32)."""
     m = x.abs().amax(dim, keepdim=True)
-    nonzero = m > 0
-    xs = x / torch.where(nonzero, m, torch.ones_like(m))
-    s = (xs * xs).sum(dim)
-    scaled = (m.squeeze(dim) * torch.where(s > 0, s, torch.ones_like(s)).sqrt()).clamp_max(fi.max)
-    out_of_range = ((sq < fi.tiny) | (sq > fi.max)) & nonzero.squeeze(dim)
-    return torch.where(out_of_range, scaled, plain)
+    length = torch.linalg.vector_norm(x / torch.where(m > 0, m, torch.ones_like(m)), dim=dim, keepdim=True) * m
+    length = length.clamp_max(torch.finfo(x.dtype).max)
+    return length if keepdim else length.squeeze(dim)
 
 
 def _normalize(x: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:

@@ -13,14 +13,12 @@ gradient that reuses the factorisation) and :class:`AdamUniform`.
 
 from __future__ import annotations
 
-import math
-import numbers
-
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from .._checks import check_non_negative, check_positive
 from ..errors import MeshError
 from ..mesh import as_faces
 
@@ -143,16 +141,14 @@ class AdamUniform(torch.optim.Optimizer):
         super().add_param_group(param_group)
         g = self.param_groups[-1]
         lr, betas, eps = g["lr"], g["betas"], g["eps"]
-        if isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not (0 < lr < math.inf):
-            raise ValueError(f"lr must be positive and finite, got {lr!r}")
+        check_positive("lr", lr)
         try:
             betas = tuple(float(b) for b in betas)
         except (TypeError, ValueError):
             betas = ()
         if len(betas) != 2 or not all(0.0 <= b < 1.0 for b in betas):
             raise ValueError(f"betas must be two numbers in [0, 1), got {g['betas']!r}")
-        if isinstance(eps, bool) or not isinstance(eps, numbers.Real) or not (0 <= eps < math.inf):
-            raise ValueError(f"eps must be a non-negative finite number, got {eps!r}")
+        check_non_negative("eps", eps)
         g["betas"] = betas
 
     @torch.no_grad()

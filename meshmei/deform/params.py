@@ -5,11 +5,11 @@ groups (with learning rates) for the optimiser of :mod:`meshmei.optim`.
 
 from __future__ import annotations
 
-import math
 import numbers
 
 import torch
 
+from .._checks import check_non_negative
 from .largesteps import DifferentialSolver, system_matrix
 from .rbf import RBFDeformer
 
@@ -88,8 +88,7 @@ class RBFParameterisation(Parameterisation):
     def __init__(self, V0: torch.Tensor, *, lr: float, lr_scales: float = 0.0, centers=None,
                  sigma_factor: float = 1.0, r_cut: float = 4.0, coarse_ratio: int = 0, coarse_lr: float = 0.0):
         for name, value in (("lr", lr), ("lr_scales", lr_scales), ("coarse_lr", coarse_lr)):
-            if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 <= value < math.inf):
-                raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
+            check_non_negative(name, value)
         if isinstance(coarse_ratio, bool) or not isinstance(coarse_ratio, numbers.Integral) or coarse_ratio < 0:
             raise ValueError(f"coarse_ratio must be a non-negative integer (0: no coarse kernels), got {coarse_ratio!r}")
         if coarse_ratio and not coarse_lr > 0:  # the coarse kernels would never move

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as TF
 
-from .._checks import check_positive
+from .._checks import check_non_negative, check_positive
 from ..encoders import Encoder, EncoderError, frozen_encoder
 from ..optim import Budget, Progress, Schedule, Trace, minimize
 from .optimize import check_neuron
@@ -126,9 +126,7 @@ def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma
         raise EncoderError(f"steps must be a positive integer, got {steps!r}")
     for name, v in (("step_size", step_size), ("init_std", init_std)):
         check_positive(name, v, error=EncoderError)
-    if isinstance(blur_sigma, bool) or not isinstance(blur_sigma, numbers.Real) or not math.isfinite(blur_sigma) \
-            or blur_sigma < 0:
-        raise EncoderError(f"blur_sigma must be a finite non-negative number of pixels, got {blur_sigma!r}")
+    check_non_negative("blur_sigma", blur_sigma, unit=" of pixels", error=EncoderError)
     if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
         raise EncoderError(f"seeds must be a sequence of integers, e.g. (0,), got {seeds!r}")
     seeds = [s.item() if isinstance(s, torch.Tensor) and s.numel() == 1 else s for s in seeds]

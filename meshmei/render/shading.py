@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from .transforms import scaled_length, unit
+from ..operators import scaled_norm
+from .transforms import unit
 
 __all__ = ["lambert", "shade_samples"]
 
@@ -49,7 +50,7 @@ def _dot(a, b):
 def _unit(x, eps):
     length = torch.sqrt(_dot(x, x))
     if length.numel() and not float(length.amax()) < float("inf"):  # a square overflowed: a light 1e20 away
-        length = scaled_length(x, 0)
+        length = scaled_norm(x, 0)
     norm = length.clamp_min(eps)
     return x / norm, norm, length > eps
 

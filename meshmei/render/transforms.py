@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..operators import scaled_norm
 from .settings import RenderError
 
 __all__ = ["axis_angle_to_matrix", "apply_pose", "check_batch", "as_points", "unit"]
@@ -126,14 +127,5 @@ def unit(x: torch.Tensor, eps: float) -> torch.Tensor:
     """``x / max(|x|, eps)`` along the last axis, right where ``|x|^2`` overflows (a light 1e20 away in float32)."""
     length = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
     if length.numel() and not float(length.detach().amax()) < float("inf"):
-        length = scaled_length(x, -1, keepdim=True)
+        length = scaled_norm(x, -1, keepdim=True)
     return x / length.clamp_min(eps)
-
-
-def scaled_length(x: torch.Tensor, dim: int, *, keepdim: bool = False) -> torch.Tensor:
-    """Euclidean length along ``dim`` computed on ``x`` divided by its largest component, so that no square
-    overflows (lengths beyond the dtype's range are held at its largest value)."""
-    m = x.abs().amax(dim, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
-    length = torch.linalg.vector_norm(x / m, dim=dim, keepdim=True) * m
-    length = length.clamp_max(torch.finfo(x.dtype).max)
-    return length if keepdim else length.squeeze(dim)
