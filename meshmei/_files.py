@@ -8,7 +8,7 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["atomic_directory", "check_replaceable", "RESULT_MARKERS"]
+__all__ = ["atomic_directory", "check_output", "check_replaceable", "RESULT_MARKERS"]
 
 # One of these files is in every folder meshmei writes (a 3D-MEI run, a diverse set, a sweep, a
 # reconstruction): a folder that holds none of them (and is not empty) is not meshmei's to replace.
@@ -35,11 +35,7 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
         a file, or a folder of files meshmei did not write (the caller's exception type).
     """
     directory = Path(directory)
-    exists = error(f"{directory} exists; pass overwrite=True (CLI: --overwrite) to replace it")
-    if directory.exists() and not overwrite:
-        raise exists
-    if directory.exists() or directory.is_symlink():
-        check_replaceable(directory, error)
+    check_output(directory, overwrite=overwrite, error=error)
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = directory.parent / f".{directory.name}.partial-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
@@ -55,7 +51,7 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
                 os.rename(tmp, directory)  # onto a folder that landed meanwhile: fails (it is not empty)
             except OSError:
                 if directory.exists():
-                    raise exists from None
+                    raise error(_exists(directory, _API)) from None
                 raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -63,9 +59,26 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     return directory
 
 
+_API = "overwrite=True (CLI: --overwrite)"
+
+
+def _exists(directory, how: str) -> str:
+    return f"{directory} exists; pass {how} to replace it"
+
+
+def check_output(directory, *, overwrite: bool, error, how: str = _API) -> None:
+    """Raise ``error`` unless ``directory`` may be written: it does not exist, or ``overwrite`` is given and
+    it is an empty folder or a meshmei result (:func:`check_replaceable`). Commands call it before their
+    work (``how="--overwrite"``), so that a refused output costs no run; :func:`atomic_directory` again."""
+    directory = Path(directory)
+    if directory.exists() and not overwrite:
+        raise error(_exists(directory, how))
+    if directory.exists() or directory.is_symlink():
+        check_replaceable(directory, error)
+
+
 def check_replaceable(directory, error) -> None:
-    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote (commands call it
-    before their work, so that a refused ``--overwrite`` costs no run)."""
+    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote."""
     directory = Path(directory)
     if directory.is_symlink() or not directory.is_dir():
         raise error(f"{directory} is {'a link' if directory.is_symlink() else 'a file'}, not a result folder; "

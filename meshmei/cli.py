@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from ._files import atomic_directory, check_replaceable
+from ._files import atomic_directory, check_output
 from .encoders import load_model, make_encoder
 from .errors import MEIError, ReconstructionError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
@@ -190,10 +190,7 @@ def _mei_n_vertices(args, init) -> int:
 
 def _run_mei(args) -> int:
     out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise MEIError(f"{out} exists; pass --overwrite to replace it")
-    if out.exists():  # a folder of other files is refused before the run, not after it
-        check_replaceable(out, MEIError)
+    check_output(out, overwrite=args.overwrite, error=MEIError, how="--overwrite")  # before the run, not after it
     encoder = _cli_encoder(args)
     init = _mei_start(args.init)
     n_vertices = _mei_n_vertices(args, init)
@@ -302,10 +299,7 @@ def _add_reconstruct(sub) -> None:
 
 def _run_reconstruct(args) -> int:
     # Check the output folder and resolve both meshes first: bad input fails before any optimisation starts.
-    if Path(args.out).exists() and not args.overwrite:
-        raise ReconstructionError(f"{args.out} exists; pass --overwrite to replace it")
-    if Path(args.out).exists():
-        check_replaceable(args.out, ReconstructionError)
+    check_output(args.out, overwrite=args.overwrite, error=ReconstructionError, how="--overwrite")
     if args.n_vertices is not None and args.init not in SOURCE_NAMES:
         raise ReconstructionError(f"--n-vertices {args.n_vertices} sets the size of a generated --init "
                                   f"({', '.join(SOURCE_NAMES)}), not of the mesh file {args.init}; remesh the file "

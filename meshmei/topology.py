@@ -158,7 +158,7 @@ def same_faces(F: torch.Tensor, known: torch.Tensor) -> bool:
     through ``F.numpy()`` or ``F.data`` (which leave the counter alone) and would serve a stale topology
     (an IndexError or a silently wrong image later); comparing the values does not.
     """
-    return F.shape == known.shape and torch.equal(F, known)
+    return torch.equal(F, known)  # False for another shape too
 
 
 def mesh_topology(F: torch.Tensor, n_vertices: int | None = None) -> MeshTopology:

@@ -92,13 +92,9 @@ class _Evaluation:
     def final(self, V, F):
         """The returned mesh's metrics, with its health; the last evaluation is reused when it was of this
         very mesh (not when a remesh, or a step, came after it)."""
-        if self.last_mesh is None or not _same_mesh(self.last_mesh, (V, F)):
+        if self.last_mesh is None or not all(torch.equal(a, b) for a, b in zip(self.last_mesh, (V, F))):
             return self(V, F, health=True)
         return self.last
-
-
-def _same_mesh(a, b) -> bool:
-    return all(x.shape == y.shape and torch.equal(x, y) for x, y in zip(a, b))
 
 
 def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int | None, n_source: int) -> tuple:
