@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import tempfile
 import platform
 import re
+import tempfile
 import time
 from pathlib import Path
 
 import torch
 
 __all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
-           "markdown_table"]
+           "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
