@@ -39,7 +39,9 @@ import torch
 from scipy.spatial import cKDTree
 from torch.autograd.function import once_differentiable
 
-from .mesh import check_mesh
+from ._checks import check_positive
+from .errors import MeshError
+from .mesh import as_faces, check_mesh
 from .operators import edges as mesh_edges
 
 __all__ = ["ContactBarrier", "contact_energies", "log_barrier", "point_triangle_sqdist", "segment_sqdist",
@@ -168,9 +170,14 @@ def segment_sqdist(P1: torch.Tensor, Q1: torch.Tensor, P2: torch.Tensor, Q2: tor
 def log_barrier(d: torch.Tensor, d_hat: float) -> torch.Tensor:
     """Incremental potential contact's barrier ``-(d - d_hat)^2 log(d / d_hat)`` for ``d < d_hat``, else 0,
     element by element: zero with zero slope at ``d_hat``, unbounded as ``d`` falls to 0 (``d <= 0`` is
-    clamped to the smallest positive float, a very large but finite value)."""
-    dc = d.clamp_min(torch.finfo(d.dtype).tiny)
-    return torch.where(d < d_hat, -(dc - d_hat).square() * torch.log(dc / d_hat), torch.zeros_like(d))
+    clamped to the smallest positive float, a very large but finite value).
+
+    Outside the band the formula is never evaluated on ``d`` (it is on ``d_hat``, where it is zero), so an
+    infinite ``d`` gets a zero, not a NaN, gradient; ``d_hat <= 0`` is an empty band: zero everywhere (a
+    quality floor of 0, from a start with a collapsed triangle, gives one)."""
+    inside = d < d_hat if d_hat > 0 else torch.zeros_like(d, dtype=torch.bool)
+    dc = torch.where(inside, d.clamp_min(torch.finfo(d.dtype).tiny), torch.ones_like(d))
+    return torch.where(inside, -(dc - d_hat).square() * torch.log(dc / d_hat), torch.zeros_like(d))
 
 
 def mean_edge_length(V: torch.Tensor, F: torch.Tensor) -> float:
@@ -267,15 +274,15 @@ class ContactBarrier:
 
     def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
                  edges: bool = False):
-        if not distance > 0:
-            raise ValueError(f"distance must be positive, got {distance!r}")
+        check_positive("distance", distance)
+        F = as_faces(F)
         self.F = F
         self.Fn = np.ascontiguousarray(F.detach().cpu().numpy())
         self._Ft = torch.from_numpy(self.Fn)
         self.distance = float(distance)
+        if margin is not None:
+            check_positive("margin", margin)
         self.margin = float(0.5 * distance if margin is None else margin)
-        if not self.margin > 0:
-            raise ValueError(f"margin must be positive, got {margin!r}")
         if isinstance(min_interval, bool) or not isinstance(min_interval, int) or min_interval < 1:
             raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
         self.min_interval = min_interval
@@ -392,6 +399,10 @@ class ContactBarrier:
         was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
         ``d - a - b >= distance``."""
         t0 = time.perf_counter()
+        n = int(self.Fn.max()) + 1
+        if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < n:
+            raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= {n}, got "
+                            f"{tuple(V.shape)}")
         Vn = V.detach().cpu().double().numpy()
         self._since += 1
         moved = None if self._built_at is None else np.sqrt(_sqlen(Vn - self._built_at))

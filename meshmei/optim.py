@@ -225,6 +225,17 @@ def _guard(values: torch.Tensor, step: int, optimizer, error: type[Exception], w
                 f"lower the learning rate (lr={lr:g}) or run those items alone")
 
 
+def _guard_gradients(params, step: int, error: type[Exception], where: str) -> None:
+    """Raise ``error`` where a gradient is NaN or Inf although the loss was finite: the step would carry
+    it into the parameters, and a step guard would then refuse every later step, a run that stalls
+    without a word."""
+    for p in params:
+        if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+            raise error(f"the gradient became non-finite at step {step}{where} although the loss was finite: "
+                        f"a term of the objective has no finite slope there (a parameter of shape "
+                        f"{tuple(p.shape)})")
+
+
 class _Best:
     """Keep-best: the lowest loss seen and a copy of the parameters then. For a batched objective (a loss
     vector), per item: every parameter's leading axis indexes the items."""
@@ -402,6 +413,7 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         if keep == "best" and f >= keep_from:
             best.offer(values, trace.step)
         (loss if loss.ndim == 0 else loss.sum()).backward()  # items share no parameter: one backward for all
+        _guard_gradients(params, trace.step, error, where)
         before = None if accept is None else [p.detach().clone() for p in params]
         optimizer.step()
         if accept is not None:

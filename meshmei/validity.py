@@ -17,11 +17,13 @@ turn bound rejects the inverted faces such a pass would leave behind.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import dataclass
 
 import torch
 
+from ._checks import check_positive
 from .certify import GraphCertificate, StarCertificate
 from .contact import log_barrier
 from .errors import MeshError
@@ -29,7 +31,11 @@ from .mesh import check_mesh
 from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners
 from .quality import count_self_intersections
 
-__all__ = ["ValidityRules", "StepGuard", "face_frame"]
+__all__ = ["ValidityRules", "StepGuard", "face_frame", "SLIVER_QUALITY"]
+
+SLIVER_QUALITY = 1e-4
+"""Triangle quality below which a face's orientation is left to rounding: the turn rule leaves such faces
+of the reference out (the quality floor still holds them; see :meth:`StepGuard._oriented`)."""
 
 
 def face_frame(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,16 +92,21 @@ class ValidityRules:
     max_step: float | None = None
 
     def __post_init__(self):
+        for name in ("max_turn_degrees", "min_quality"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise ValueError(f"{name} must be a number, got {value!r}")
         if not 0 < self.max_turn_degrees <= 180:
             raise ValueError(f"max_turn_degrees must lie in (0, 180], got {self.max_turn_degrees!r}")
         if self.turn_from not in ("rest", "step"):
             raise ValueError(f"turn_from must be 'rest' or 'step', got {self.turn_from!r}")
         if not 0 <= self.min_quality < 1:
             raise ValueError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
-        if isinstance(self.max_halvings, bool) or int(self.max_halvings) != self.max_halvings or self.max_halvings < 0:
+        if (isinstance(self.max_halvings, bool) or not isinstance(self.max_halvings, numbers.Integral)
+                or self.max_halvings < 0):
             raise ValueError(f"max_halvings must be a non-negative integer, got {self.max_halvings!r}")
-        if self.max_step is not None and not (self.max_step > 0 and math.isfinite(self.max_step)):
-            raise ValueError(f"max_step must be positive and finite, or None; got {self.max_step!r}")
+        if self.max_step is not None:
+            check_positive("max_step", self.max_step)
 
 
 class StepGuard:
@@ -132,12 +143,12 @@ class StepGuard:
 
     def __init__(self, V0: torch.Tensor, F: torch.Tensor, rules: ValidityRules = ValidityRules()):
         V0, F = check_mesh(V0, F)
-        self.F, self.rules = F, rules
+        self.F, self.rules, self.n_vertices = F, rules, V0.shape[0]
         ref = V0.detach().double()
         self.normals, q = face_frame(ref, F)  # (m, 3) reference orientation
-        # faces of the reference below the quality bound (slivers of a user's start) have a normal set by
-        # rounding, which flips under any move: the turn rule leaves them out (the quality floor still holds
-        # them); None when every face counts, as in every built-in start
+        # slivers of a user's start (quality below SLIVER_QUALITY) have a normal set by rounding, which flips
+        # under any move: the turn rule leaves them out (the quality floor still holds them); None when every
+        # face counts, as in every built-in start
         self.turn_faces = self._oriented(q)
         self.cos_bound = math.cos(math.radians(rules.max_turn_degrees))
         self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
@@ -157,8 +168,12 @@ class StepGuard:
         self._accepted_frame = None
 
     def _oriented(self, quality: torch.Tensor):
-        """The faces whose orientation the turn rule trusts, ``(m,)`` bool, or None for all."""
-        ok = quality >= self.rules.min_quality
+        """The faces whose orientation the turn rule trusts, ``(m,)`` bool, or None for all: every face of
+        quality at least :data:`SLIVER_QUALITY` (or ``min_quality``, if lower). Below it the corners' float32
+        rounding (a relative 6e-8) can tilt the normal by about ``6e-8 / q`` radians and more, and a face made
+        of an edge and its rounded midpoint turns over under any move; above it the normal is sound, and a
+        thin face turning over is a real flip."""
+        ok = quality >= min(self.rules.min_quality, SLIVER_QUALITY)
         return None if bool(ok.all()) else ok
 
     def _verdict(self, V: torch.Tensor, frame=None) -> tuple:
@@ -166,8 +181,9 @@ class StepGuard:
         them all), what is wrong, and ``V``'s float64 :func:`face_frame` ``(normals, quality)`` when it was
         computed (cheapest checks first; always when ``V`` meets the rules).
         ``frame``: :func:`face_frame` of ``V`` in float64, when already computed (a batch's, at once)."""
-        if V.ndim != 2 or V.shape[1] != 3:
-            raise MeshError(f"candidate vertices must have shape (n, 3), got {tuple(V.shape)}")
+        if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] != self.n_vertices:
+            raise MeshError(f"candidate vertices must have the start's shape ({self.n_vertices}, 3), got "
+                            f"{tuple(V.shape)}")
         Vd = V.detach().double()
         if not bool(torch.isfinite(Vd).all()):
             return "non-finite", "non-finite vertices", None
@@ -242,6 +258,9 @@ class StepGuard:
         face at its bound is felt whatever the mesh size. A batch ``V (B, n, 3)`` (meshes of this guard's
         start) gives the ``(B,)`` energies.
         """
+        if V.ndim not in (2, 3) or V.shape[-2:] != (self.n_vertices, 3):
+            raise MeshError(f"the barrier's vertices must have shape ({self.n_vertices}, 3) or (B, "
+                            f"{self.n_vertices}, 3), got {tuple(V.shape)}")
         q_band = quality_band * self.quality_floor
         turn = self.rules.max_turn_degrees < 180
         if turn:

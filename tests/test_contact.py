@@ -11,6 +11,7 @@ import torch
 
 from meshmei.contact import (ContactBarrier, _closest_weights, _point_triangle, _segment_segment, mean_edge_length, point_triangle_sqdist,
                              segment_sqdist)
+from meshmei.errors import MeshError
 from meshmei.shapes import initial_mesh
 
 
@@ -112,6 +113,16 @@ def test_bad_distances_are_refused():
         ContactBarrier(F, 0.0)
     with pytest.raises(ValueError, match="margin must be positive"):
         ContactBarrier(F, 0.1, margin=-1.0)
+    with pytest.raises(ValueError, match="^distance must be positive and finite, got inf$"):
+        ContactBarrier(F, math.inf)  # its energy came back inf
+    with pytest.raises(MeshError, match=r"non-empty \(m, 3\)"):
+        ContactBarrier(torch.zeros(0, 3, dtype=torch.long), 0.1)
+    n = V.shape[0]
+    with pytest.raises(MeshError, match=rf"^the contact barrier's faces need vertices of shape \(n, 3\) with "
+                                        rf"n >= {n}, got \({n - 5}, 3\)$"):
+        ContactBarrier(F, 0.1)(V[:-5])  # an IndexError from deep inside before
+    cb = ContactBarrier(F.numpy().astype("int32"), 0.1)  # any face array, as everywhere else
+    assert cb.F.dtype == torch.int64 and float(cb(V)) == float(ContactBarrier(F, 0.1)(V))
 
 
 @pytest.mark.parametrize("edges", [False, True])

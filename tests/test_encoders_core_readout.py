@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -36,3 +38,17 @@ def test_core_readout_model_eval_training_and_state_dict(tmp_path):
     core = torch.nn.Sequential(torch.nn.Conv2d(1, 3, 3, padding=1), torch.nn.ReLU())
     m2 = CoreReadoutModel(2, core, core_channels=3).eval()
     assert m2(x).shape == (3, 2)
+
+
+def test_images_of_another_dtype_than_the_weights_are_a_clear_error():
+    """A float64 run with the (float32) demo model failed inside conv2d ("Input type (double) and bias type
+    (float)"); the model now names both dtypes and both ways out, and a converted model runs."""
+    from meshmei.errors import EncoderError
+    from meshmei.mei import optimize_mei
+
+    model = CoreReadoutModel(3).eval()
+    with pytest.raises(EncoderError, match=r"^the model's weights are torch.float32 but the images are "
+                                           r"torch.float64: render in the model's dtype \(dtype='float32'\)"):
+        optimize_mei(model, 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
+    res = optimize_mei(model.double(), 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
+    assert res.V.dtype == torch.float64 and math.isfinite(res.activation)

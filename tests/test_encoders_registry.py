@@ -45,6 +45,34 @@ def test_custom_encoder_is_described_but_not_rebuilt():
         encoder_from_spec(spec)
 
 
+def test_a_demo_model_with_other_weights_is_not_rebuilt_as_the_shipped_one(tmp_path):
+    """A model from load_demo_model(another file), or the shipped one changed in place, was recorded as
+    kind "demo" alone and rebuilt as the shipped model: another encoder, silently (0.52 for 3.81)."""
+    from meshmei.encoders import DEMO_MODEL_PATH, load_demo_model
+
+    demo_or_skip()
+    spec = encoder_spec(load_demo_model())
+    assert spec["kind"] == "demo" and encoder_spec(encoder_from_spec(spec)) == spec  # the shipped one rebuilds
+    blob = torch.load(DEMO_MODEL_PATH, map_location="cpu", weights_only=True)
+    key = next(k for k in blob["state_dict"] if k.startswith("readout.features"))
+    blob["state_dict"][key] = blob["state_dict"][key] + 0.3
+    torch.save(blob, tmp_path / "mine.pt")
+    changed = load_demo_model()
+    with torch.no_grad():
+        next(changed.parameters()).add_(0.1)
+    for model in (load_demo_model(tmp_path / "mine.pt"), changed):
+        other = encoder_spec(model)
+        assert other["kind"] == "demo" and other["weights"] != spec["weights"]
+        with pytest.raises(MEIError, match=r"^the run's demo model had other weights than the shipped one"):
+            encoder_from_spec(other)
+    old = {k: v for k, v in spec.items() if k != "weights"}  # a run saved before weights were recorded
+    assert encoder_spec(encoder_from_spec(old)) == spec
+    # the shipped model's identity (a population folder's hash) is the one it had before: old folders resume
+    from meshmei.encoders.registry import encoder_identity
+
+    assert encoder_identity(load_demo_model()) == old and encoder_identity(changed)["weights"] == encoder_spec(changed)["weights"]
+
+
 def test_unknown_encoder_name_raises_mei_error():
     with pytest.raises(MEIError, match="unknown encoder 'gabor'; expected 'gabor-simple', 'gabor-complex' or 'demo'"):
         make_encoder("gabor", orientation=math.pi)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import warnings
@@ -345,12 +346,43 @@ def test_a_seed_with_a_non_finite_end_never_wins():
     (dict(light="123"), "light must be three finite numbers or None, got '123'"),
     (dict(reg_ref_vertices="abc"), "reg_ref_vertices must be a positive integer or None, got 'abc'"),
     (dict(reg_ref_vertices=math.nan), "reg_ref_vertices must be a positive integer or None, got nan"),
+    # "false" is a true string: the pose and light were optimised and the guard ran
+    (dict(optimize_pose="false"), "optimize_pose must be True or False, got 'false'"),
+    (dict(optimize_light="false"), "optimize_light must be True or False, got 'false'"),
+    (dict(valid_steps="false"), "valid_steps must be True or False, got 'false'"),
+    (dict(seeds=None), "seeds must be a non-empty sequence of integers, got None"),  # a TypeError
+    (dict(seeds=[math.inf]), r"seeds must be a non-empty sequence of integers, got \[inf\]"),  # an OverflowError
 ])
 def test_settings_that_would_fail_later_are_one_line_mei_errors(kw, match):
     # each used to pass, or to fail as a TypeError / ValueError / RuntimeError from deep inside a run
     with pytest.raises(MEIError, match=match) as err:
         MEISettings(**kw)
     assert "\n" not in str(err.value)
+
+
+def test_numpy_scalars_are_taken_as_python_numbers_and_the_run_saves(tmp_path):
+    """np.int64 centres and an np.float32 quality bound passed the checks and broke save_run's JSON after
+    the whole run."""
+    import numpy as np
+
+    s = MEISettings(centers=np.int64(20), min_quality=np.float32(0.01), reg_ref_vertices=np.int64(400),
+                    seeds=(np.int64(0),), valid_steps=np.bool_(True))
+    assert [type(v) for v in (s.centers, s.min_quality, s.reg_ref_vertices, s.seeds[0], s.valid_steps)] == [
+        int, float, int, int, bool]
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", s, steps=2, image_size=16, n_vertices=60)
+    back = load_run(save_run(res, tmp_path / "run", figures=False))
+    assert back.settings == res.settings and back.settings.centers == 20
+
+
+def test_extra_entries_may_not_overwrite_the_runs_own_fields(tmp_path):
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, image_size=16, n_vertices=60, seeds=(0,))
+    bad = dataclasses.replace(res, extra={**res.extra, "activation": 123.0, "format": 2})
+    with pytest.raises(MEIError, match=r"^result.extra holds \['activation', 'format'\], which are the run's own"):
+        save_run(bad, tmp_path / "run", figures=False)
+    assert not (tmp_path / "run").exists()
+    good = dataclasses.replace(res, extra={**res.extra, "note": "mine"})
+    back = load_run(save_run(good, tmp_path / "run", figures=False))
+    assert back.extra["note"] == "mine" and back.activation == res.activation
 
 
 def test_the_learning_rate_bound_follows_the_dtype():

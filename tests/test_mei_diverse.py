@@ -41,6 +41,36 @@ def test_a_simple_cells_members_stay_near_its_one_optimum():
     assert min(d.responses) >= 0.8 * best and best >= 0.85 * cell.upper_bound  # none drifted off the optimum
 
 
+def test_no_diversity_and_no_floor_are_independent_runs_even_below_zero():
+    """The floor used |best|: where every response was negative (a sphere's start), every member paid
+    10 |best| (floor + 1)^2, even with floor 0, and the members were not the independent runs promised."""
+    from meshmei.mei import optimize_mei
+
+    cell = GaborSimpleCell(orientation=0.5, frequency=3.0)
+    kw = dict(steps=15, image_size=32, n_vertices=100, dtype="float64", seeds=(0,))
+    d = diverse_meis(cell, 0, k=2, init="sphere", diversity=0.0, floor=0.0, **kw)
+    assert max(r.history[0] for r in d.results) < 0  # the case that went wrong: no positive response yet
+    for member in d.results:
+        alone = optimize_mei(cell, 0, "sphere", keep="last", **{**kw, "seeds": (member.seed,)})
+        torch.testing.assert_close(member.V, alone.V, rtol=1e-9, atol=1e-9)
+        assert member.loss_history[0] == pytest.approx(alone.loss_history[0], rel=1e-12)
+
+
+def test_an_encoder_that_does_not_rescale_its_images_measures_distances_as_a_share_too():
+    from meshmei.encoders import encoder_from_model
+    from meshmei.mei.diverse import image_distances
+
+    cell = GaborSimpleCell(orientation=0.4, frequency=3.0)
+    enc = encoder_from_model(lambda x: cell(x, preprocessed=True) * 50, mean=0.5, std=0.01, norm=None, image_size=32)
+    d = diverse_meis(enc, 0, k=3, init="sheet", steps=8, seeds=(0,), n_vertices=100)
+    z = torch.cat([enc.preprocess(r.image) for r in d.results])
+    assert float(z[0].norm()) > 100  # far from the norm of 25 the share was taken against (9.5 to 12.7 came out)
+    sizes = z.reshape(3, -1).norm(dim=1)
+    share = torch.cdist(z.reshape(3, -1), z.reshape(3, -1)) / (sizes[:, None] + sizes[None, :])
+    torch.testing.assert_close(d.dissimilarity, share)
+    assert 0 < float(d.dissimilarity.max()) <= 1 and torch.equal(image_distances(enc, z), d.dissimilarity)
+
+
 def test_bad_diverse_settings_are_refused():
     with pytest.raises(MEIError, match="k must be"):
         diverse_meis(GaborSimpleCell(), 0, k=1, steps=2)

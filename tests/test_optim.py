@@ -111,6 +111,18 @@ def test_non_finite_loss_raises_the_clients_error_before_the_step():
     assert calls == [0, 1, 2] and bool(torch.isfinite(x).all())
 
 
+def test_a_non_finite_gradient_of_a_finite_loss_raises_before_the_step_carries_it():
+    x = torch.zeros(2, requires_grad=True)
+
+    def objective(point):  # finite (zero) loss; sqrt's slope at 0 times 0 is NaN
+        return (x.sqrt() * 0.0).sum() + (x - 1.0).square().sum() * (point.step == 0), {}
+
+    with pytest.raises(FloatingPointError, match=r"^the gradient became non-finite at step 0 of seed 7 although the "
+                                                 r"loss was finite: .*shape \(2,\)\)$"):
+        minimize(objective, torch.optim.Adam([x], lr=0.01), Budget(steps=5), where=" of seed 7")
+    assert torch.equal(x.detach(), torch.zeros(2))  # the step was not taken
+
+
 def test_stages_share_a_trace_and_stop_at_their_share():
     x = torch.zeros(2, dtype=torch.float64, requires_grad=True)
     trace = Trace()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -60,9 +62,18 @@ def test_rules_and_candidates_are_checked():
         ValidityRules(min_quality=1.0)
     with pytest.raises(ValueError, match="max_halvings"):
         ValidityRules(max_halvings=-1)
+    for kw in ({"max_halvings": None}, {"max_halvings": 2.0}, {"max_turn_degrees": None}, {"min_quality": "0.1"},
+               {"max_step": math.inf}):  # a TypeError from a comparison, or a float minimize refused later
+        with pytest.raises(ValueError, match=f"^{next(iter(kw))} must be"):
+            ValidityRules(**kw)
     V, F = initial_mesh("sphere", n_vertices=100)
-    with pytest.raises(MeshError, match=r"shape \(n, 3\)"):
-        StepGuard(V, F).why_not(V[:, :2])
+    guard = StepGuard(V, F)
+    for W in (V[:, :2], V[:-5], torch.cat([V, V[:3]])):  # more vertices passed unseen, fewer gave an IndexError
+        with pytest.raises(MeshError, match=rf"^candidate vertices must have the start's shape \({len(V)}, 3\), got "
+                                            rf"\({W.shape[0]}, {W.shape[1]}\)$"):
+            guard.why_not(W)
+        with pytest.raises(MeshError, match=rf"^the barrier's vertices must have shape \({len(V)}, 3\)"):
+            guard.barrier(W)
 
 
 def test_minimize_halves_a_refused_step_and_undoes_one_never_accepted():
@@ -123,15 +134,17 @@ def test_mei_at_ten_times_the_learning_rate_is_clean_in_every_iterate(init, monk
     monkeypatch.setattr(mo, "SeedScene", Scene)
     monkeypatch.setattr(mo, "minimize", minimize)
     cell = GaborSimpleCell()
-    res = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2)
-    assert len(seen) == 40 and all(_clean(V, res.F, res.V0) for V in seen)
+    # three seeds, as a default run: at ten times the rate a single seed's climb depends on rounding (from the
+    # torus, seed 0 climbed on one machine and not on another, where seed 2 did)
+    res = optimize_mei(cell, 0, init, steps=40, seeds=(0, 1, 2), image_size=32, n_vertices=150, lr=3e-2)
+    assert len(seen) == 120 and all(_clean(V, res.F, res.V0) for V in seen)
     assert _clean(res.V, res.F, res.V0) and res.extra["guard"]["checks"] >= 40
     seen.clear()
     off = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
                        valid_steps=False)
     # unguarded, the same run does fold or cross itself (in some iterate: its kept result may be clean)
     assert len(seen) == 40 and not all(_clean(V, off.F, off.V0) for V in seen)
-    assert max(res.history) > res.history[0] + 0.02  # and the guarded run still climbs
+    assert max(res.history) > res.history[0] + 0.02  # and the guarded run still climbs (its best seed)
 
 
 @pytest.mark.parametrize("scale", [0.02, 1e-3])
@@ -185,6 +198,65 @@ def test_the_guard_barrier_is_zero_inside_its_band_and_grows_without_bound_at_th
     c, s_ = torch.cos(torch.tensor(1.396, dtype=V.dtype)), torch.sin(torch.tensor(1.396, dtype=V.dtype))
     R = torch.stack([torch.stack([c, -s_, c * 0]), torch.stack([s_, c, c * 0]), torch.tensor([0.0, 0, 1], dtype=V.dtype)])
     assert guard.why_not(V @ R.T) is None and float(guard.barrier(V @ R.T)) > 0
+
+
+def test_an_empty_band_and_an_infinite_distance_give_the_barrier_a_zero_finite_slope():
+    from meshmei.contact import log_barrier
+
+    d = torch.tensor([0.5, 0.0, -1.0, 2.0], dtype=torch.float64, requires_grad=True)
+    b = log_barrier(d, 0.0)  # a quality floor of 0 gives an empty quality band
+    b.sum().backward()
+    assert b.tolist() == [0.0] * 4 and d.grad.tolist() == [0.0] * 4
+    d = torch.tensor([math.inf, 0.5], dtype=torch.float64, requires_grad=True)
+    b = log_barrier(d, 1.0)
+    b.sum().backward()
+    assert float(b[0]) == 0.0 and float(d.grad[0]) == 0.0 and float(b[1]) > 0 and float(d.grad[1]) < 0
+
+
+def test_a_guard_with_a_zero_quality_floor_steps_with_finite_gradients():
+    """min_quality=0 (or a start with a collapsed triangle) sets the floor to 0: the barrier's quality
+    band was empty and its gradient NaN, which froze the run (every later candidate non-finite)."""
+    from meshmei.optim import make_optimizer
+
+    V0, F = initial_mesh("sheet", n_vertices=64, dtype=torch.float64)
+    guard = StepGuard(V0, F, ValidityRules(min_quality=0.0))
+    assert guard.quality_floor == 0.0
+    V = V0.clone()
+    i = int((V0[:, :2].abs().max(1).values < 0.3).nonzero()[0])
+    V[i, 2] += 1.0  # the faces around vertex i turn by about 80 degrees: valid, inside the turn band
+    assert guard.why_not(V) is None
+    W = V.clone().requires_grad_(True)
+    b = guard.barrier(W)
+    b.backward()
+    assert float(b) > 0 and bool(torch.isfinite(W.grad).all()) and float(W.grad.abs().max()) > 0
+    p = torch.nn.Parameter(V.clone())
+    target = V + torch.tensor([0.0, 0.0, 0.05], dtype=V.dtype)
+    opt = make_optimizer("adam", [{"params": [p], "lr": 1e-3}])
+    minimize(lambda _: (((p - target) ** 2).sum() + 0.1 * guard.barrier(p), {}), opt, Budget(steps=5),
+             accept=guard.acceptor(lambda: p))
+    assert guard.failures == 0 and float((p.detach() - V).abs().max()) > 1e-3
+
+
+def test_a_thin_but_sound_face_may_not_turn_over():
+    """A face of quality 0.009 (below min_quality, far above a rounding sliver) was left out of the turn
+    rule: one step flipped it by 112 degrees and both the MEI and reconstruction rules accepted it."""
+    from meshmei.mei import MEISettings
+    from meshmei.reconstruct import ReconstructionSettings
+    from meshmei.validity import SLIVER_QUALITY
+
+    V0 = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.004, 0]], dtype=torch.float64)
+    F = torch.tensor([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    V = V0.clone()
+    V[4] = torch.tensor([0.5, -0.004, 0.01], dtype=V.dtype)  # the apex across the base edge
+    assert SLIVER_QUALITY < float(triangle_quality(V0, F)[0]) < 0.01 and count_flipped_faces(V, V0, F) == 1
+    for rules in (MEISettings().validity_rules(), ReconstructionSettings().validity_rules()):
+        guard = StepGuard(V0, F, rules)
+        assert guard.turn_faces is None and "turned" in guard.why_not(V)
+    # a true sliver (an edge's midpoint rounded to float32 as the apex) is still left to the quality floor
+    Vs = V0.clone()
+    Vs[4] = torch.tensor([0.5, 1e-7, 0.0], dtype=V.dtype)
+    guard = StepGuard(Vs, F, ReconstructionSettings().validity_rules())
+    assert guard.turn_faces.tolist() == [False, True, True, True]
 
 
 def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_faces(ball):

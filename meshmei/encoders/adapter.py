@@ -128,6 +128,14 @@ def _cell_full(cell) -> bool:
     return True
 
 
+def hash_state(h, module: torch.nn.Module) -> None:
+    """Feed a module's parameters and buffers (names, dtypes, shapes and values) to the hash ``h``."""
+    for name, t in module.state_dict().items():
+        t = t.detach().contiguous().cpu().reshape(-1)
+        h.update(f"{name}:{t.dtype}:{t.numel()}".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes())
+
+
 def model_fingerprint(encoder: "ModelEncoder") -> str:
     """A hash of what a :class:`ModelEncoder` computes with: its modules' tree as printed (each module's
     settings), every parameter and buffer (names, dtypes, shapes and values), the code of a plain callable,
@@ -136,10 +144,7 @@ def model_fingerprint(encoder: "ModelEncoder") -> str:
     h = hashlib.sha256()
     for m in (*encoder.models, *encoder.held):
         h.update(repr(m).encode())  # the module tree with each module's settings (kernel sizes, Gabor parameters)
-        for name, t in m.state_dict().items():
-            t = t.detach().contiguous().cpu().reshape(-1)
-            h.update(f"{name}:{t.dtype}:{t.numel()}".encode())
-            h.update(t.view(torch.uint8).numpy().tobytes())
+        hash_state(h, m)
         for cls in {type(sub) for sub in m.modules()}:
             if not cls.__module__.startswith("torch."):
                 h.update(cls.__qualname__.encode())

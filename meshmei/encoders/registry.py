@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import functools
+import hashlib
+
 from ..errors import EncoderError, MEIError
-from .adapter import ModelEncoder, load_model, model_fingerprint
+from .adapter import ModelEncoder, hash_state, load_model, model_fingerprint
 from .base import Encoder
 from .core_readout import is_demo_model, load_demo_model
 from .gabor import GaborComplexCell, GaborSimpleCell
@@ -20,7 +23,7 @@ def encoder_spec(encoder: Encoder) -> dict:
         spec["kind"] = "gabor-simple" if isinstance(encoder, GaborSimpleCell) else "gabor-complex"
         spec["params"] = {k: v.tolist() for k, v in encoder.params.items()}
     elif is_demo_model(encoder):
-        spec["kind"] = "demo"
+        spec.update(kind="demo", weights=weights_hash(encoder))
     elif isinstance(encoder, ModelEncoder):
         spec.update(kind="model", source=encoder.source, image_size=list(encoder.image_size),
                     channels=encoder.channels, pixel_range=list(encoder.preprocess.pixel_range),
@@ -33,12 +36,28 @@ def encoder_spec(encoder: Encoder) -> dict:
     return spec
 
 
+def weights_hash(module) -> str:
+    """A hash of a module's parameters and buffers (names, dtypes, shapes and values): a demo model loaded
+    from another file, or changed in place, does not pass for the shipped one."""
+    h = hashlib.sha256()
+    hash_state(h, module)
+    return h.hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_demo_weights() -> str:
+    return weights_hash(load_demo_model())
+
+
 def encoder_identity(encoder: Encoder) -> dict:
     """:func:`encoder_spec` without where a lab's model was loaded from (the spec as typed and the resolved
     path): what makes two encoders compute the same, for a configuration hash. The same model file reached by
     another path (another job's working directory) has the same identity; changed weights, code or options
-    do not (its ``fingerprint`` and the file's ``sha256``)."""
+    do not (its ``fingerprint`` and the file's ``sha256``). The shipped demo model's identity has no
+    ``weights`` (as before they were recorded: its population folders resume); another demo model's has."""
     spec = encoder_spec(encoder)
+    if spec.get("kind") == "demo" and spec["weights"] == _shipped_demo_weights():
+        del spec["weights"]  # the shipped model: the identity it had before weights were recorded
     if isinstance(spec.get("source"), dict):
         spec["source"] = {k: v for k, v in spec["source"].items() if k not in ("spec", "path")}
     return spec
@@ -72,7 +91,11 @@ def encoder_from_spec(spec: dict) -> Encoder:
         return make_encoder(kind, **spec["params"], mean=spec["mean"], std=spec["std"], norm=spec["norm"],
                             eps=spec["eps"])
     if kind == "demo":
-        return make_encoder("demo")
+        enc = make_encoder("demo")
+        if spec.get("weights") not in (None, weights_hash(enc)):  # runs saved before weights were recorded: None
+            raise MEIError("the run's demo model had other weights than the shipped one (loaded from another "
+                           "file, or changed after loading); load it yourself and pass encoder=... to load_run")
+        return enc
     if kind == "model" and spec.get("source"):
         src = spec["source"]
         if src.get("unrecorded"):

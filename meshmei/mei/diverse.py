@@ -4,8 +4,9 @@ The K members are the items of one batch (:class:`meshmei.mei.batch.BatchScene`,
 first of ``settings.seeds``). Each member's loss is its usual one minus a diversity reward: the mean
 distance between its preprocessed image and the others', as a share of the largest possible one (two
 images of norm ``r`` are at most ``2 r`` apart), times the best member's response. A floor keeps every
-member near the best: a member below ``floor`` times the best response pays
-``10 * best * (floor - f / best)^2``. The final iterate is kept (a per-member best would break the set).
+member near the best: while the best response is positive, a member below ``floor`` times it pays
+``10 * best * (floor - f / best)^2``. (An encoder that does not rescale its images, a lab's model with
+``norm=None``, measures the distance as a share of the two images' norms summed.) The final iterate is kept (a per-member best would break the set).
 """
 
 from __future__ import annotations
@@ -46,19 +47,32 @@ class DiverseMEIs:
         return [r.activation for r in self.results]
 
 
-def _objective(encoder, neuron, F, scene: BatchScene, active, settings: MEISettings, weight: float, floor: float):
-    norm = float(encoder.preprocess.norm)
+def image_distances(encoder, z: torch.Tensor) -> torch.Tensor:
+    """Distances ``(K, K)`` between the preprocessed images ``z (K, ...)`` as a share of the largest possible,
+    in [0, 1]: two images ``a, b`` are at most ``|a| + |b|`` apart, ``2 r`` where the preprocessing rescales
+    every image to norm ``r`` (the built-in encoders); an encoder without that rescaling (a lab's model
+    with ``norm=None``) uses the images' own norms."""
+    flat = z.reshape(z.shape[0], -1)
+    d = torch.cdist(flat, flat)
+    pre = encoder.preprocess
+    if getattr(pre, "renorm", True):  # a lab's model made with norm=None has renorm False
+        return d / (2 * float(pre.norm))
+    size = flat.norm(dim=1)
+    return d / (size[:, None] + size[None, :]).clamp_min(torch.finfo(d.dtype).tiny)
 
+
+def _objective(encoder, neuron, F, scene: BatchScene, active, settings: MEISettings, weight: float, floor: float):
     def objective(point):
         V = scene.vertices()
         z, idx = encoder.inputs(scene.image(V, F), [neuron])
         f = encoder.respond(z, idx)[:, 0]
         K = f.shape[0]
-        flat = z.reshape(K, -1)
-        d = torch.cdist(flat, flat) / (2 * norm)  # (K, K) in [0, 1]
-        spread = d.sum(1) / max(K - 1, 1)
-        best = f.detach().max().abs().clamp_min(1e-12)
-        loss = -f - weight * best * spread + 10 * best * torch.relu(floor - f / best) ** 2
+        spread = image_distances(encoder, z).sum(1) / max(K - 1, 1)
+        best = f.detach().max()
+        scale = best.abs().clamp_min(1e-12)
+        loss = -f - weight * scale * spread
+        if floor > 0:  # a share of a positive best response; below zero there is no share to keep
+            loss = loss + 10 * scale * torch.where(best > 0, torch.relu(floor - f / scale), torch.zeros_like(f)) ** 2
         record = {"response": f.detach().tolist(), "spread": spread.detach().tolist()}
         return loss + scene.penalties(V, F, active, settings, record), record
 
@@ -74,9 +88,11 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     k : int
         Members (>= 2).
     diversity : float
-        Weight of the diversity reward (>= 0; 0: K independent runs, kept at their final iterate).
+        Weight of the diversity reward (>= 0; 0 with ``floor`` 0: K independent runs, kept at their final
+        iterate).
     floor : float
-        Share of the best member's response that every member should keep, in [0, 1].
+        Share of the best member's response that every member should keep, in [0, 1] (0: none); no bound
+        while the best response is not positive.
     """
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
     neuron = check_neuron(encoder, neuron)
@@ -105,8 +121,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
             images = scene.image(V, F, pose=True)
             z, idx = encoder.inputs(images, [neuron])
             acts = encoder.respond(z, idx)[:, 0].tolist()
-            flat = z.reshape(k, -1)
-            dissimilarity = torch.cdist(flat, flat) / (2 * float(encoder.preprocess.norm))
+            dissimilarity = image_distances(encoder, z)
     wall = (time.perf_counter() - t0) / k
     runs = scene.item_runs(V, images, acts, trace.history, trace.history[-1]["loss"], [trace.step] * k, settings)
     results = [result_from_seeds({s: run}, V0, F, settings, neuron, encoder, init_name, wall)

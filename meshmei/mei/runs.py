@@ -29,6 +29,14 @@ _SUMMARY_KEYS = {"format", "complete", "neuron", "init", "activation", "fraction
 
 
 def _summary(result: MEIResult) -> dict:
+    own = _own_summary(result)
+    clash = sorted(set(result.extra) & set(own))
+    if clash:  # load_run would read them back as the run's own (a changed activation, or a refused format)
+        raise MEIError(f"result.extra holds {clash}, which are the run's own fields in summary.json; rename them")
+    return {**own, **result.extra}
+
+
+def _own_summary(result: MEIResult) -> dict:
     return {
         "format": RUN_FORMAT,
         "complete": True,
@@ -52,7 +60,6 @@ def _summary(result: MEIResult) -> dict:
         "loss_history": result.loss_history,
         "reg_history": result.reg_history,
         "time_history": result.time_history,
-        **result.extra,
     }
 
 

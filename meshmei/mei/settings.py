@@ -7,6 +7,7 @@ import math
 import numbers
 from dataclasses import asdict, dataclass, field, fields, replace
 
+import numpy as np
 import torch
 
 from ..deform import RBFDeformer
@@ -183,6 +184,13 @@ class MEISettings:
     dtype: str = "float32"
 
     def __post_init__(self):
+        for f in fields(self):  # numpy scalars as Python numbers: compared as such, and JSON-able in a run folder
+            v = getattr(self, f.name)
+            if isinstance(v, np.generic):
+                object.__setattr__(self, f.name, v.item())
+        for name in ("valid_steps", "optimize_light", "optimize_pose", "albedo"):
+            if not isinstance(getattr(self, name), bool):  # "false" is a true string
+                raise MEIError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name in ("image_size", "n_vertices", "steps", "robust_points"):
             v = getattr(self, name)
             if name == "steps" and v is None:
@@ -203,8 +211,11 @@ class MEISettings:
             raise MEIError(f"camera_distance must be positive, got {self.camera_distance!r}")
         if not 0 < self.fov_degrees < 180:
             raise MEIError(f"fov_degrees must lie in (0, 180), got {self.fov_degrees!r}")
-        seeds = tuple(self.seeds) if not isinstance(self.seeds, int) else (self.seeds,)
-        if not seeds or any(isinstance(s, bool) or int(s) != s for s in seeds):
+        try:
+            seeds = tuple(self.seeds) if not isinstance(self.seeds, numbers.Integral) else (self.seeds,)
+        except TypeError:  # None, a float
+            seeds = ()
+        if not seeds or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) for s in seeds):
             raise MEIError(f"seeds must be a non-empty sequence of integers, got {self.seeds!r}")
         seeds = tuple(int(s) for s in seeds)
         if len(set(seeds)) != len(seeds):
@@ -234,8 +245,6 @@ class MEISettings:
         r = self.albedo_resolution
         if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
             raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")
-        if not isinstance(self.albedo, bool):
-            raise MEIError(f"albedo must be True or False, got {self.albedo!r}")
         if not _is_number(self.albedo_init) or not 0 < self.albedo_init < 1:
             raise MEIError(f"albedo_init must lie in (0, 1), got {self.albedo_init!r}")
         w = self.robust_widen
