@@ -458,6 +458,7 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
         cb.active = int(k)
     total = V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient, where no pair is near
     for rows, item, dist in kinds:
-        d = dist(*(Vf[rows[:, k]] for k in range(4))).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
+        # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
+        d = dist(*(Vf.index_select(0, rows[:, k]) for k in range(4))).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
         total = total.index_add(0, item, log_barrier(d, dh))
     return total / n

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import cross_from_corners
+from .operators import corners, cross_from_corners
 
 __all__ = [
     "sample_points",
@@ -75,7 +75,7 @@ def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False,
         raise ValueError(f"n must be a non-negative integer, got {n!r}")
     n = int(n)
     g = _generator(generator, V.device)
-    T = V[F]  # (m, 3, 3)
+    T = corners(V, F)  # (m, 3, 3); index_select, whose backward (index_add) is deterministic
     cross = cross_from_corners(T)  # (m, 3)
     dbl = cross.detach().norm(dim=-1)
     total = float(dbl.sum())
@@ -91,10 +91,10 @@ def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False,
     r = torch.rand(n, 2, dtype=V.dtype, device=V.device, generator=g)
     s = r[:, :1].sqrt()
     w = torch.cat([1 - s, s * (1 - r[:, 1:]), s * r[:, 1:]], dim=1)  # (n, 3) barycentric
-    P = (w.unsqueeze(-1) * T[face]).sum(1)
+    P = (w.unsqueeze(-1) * T.index_select(0, face)).sum(1)
     out = [P]
     if return_normals:
-        c = cross[face]
+        c = cross.index_select(0, face)
         out.append(c / c.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(V.dtype).tiny))
     if return_faces:
         out.append(face)
@@ -358,6 +358,7 @@ def chamfer_distance(P: torch.Tensor, Q: torch.Tensor, *, Q_tree=None, return_di
     _check_points(Q, "Q")
     i_pq = nearest_neighbors(P, Q, tree=Q_tree)
     i_qp = nearest_neighbors(Q, P)
-    d_pq = ((P - Q[i_pq]) ** 2).sum(-1).mean()
-    d_qp = ((Q - P[i_qp]) ** 2).sum(-1).mean()
+    # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
+    d_pq = ((P - Q.index_select(0, i_pq)) ** 2).sum(-1).mean()
+    d_qp = ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean()
     return (d_pq, d_qp) if return_directions else d_pq + d_qp

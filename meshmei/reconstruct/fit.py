@@ -61,7 +61,8 @@ class _SampledChamfer:
         samples_index = PointIndex(P)
         i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5))
         self.far_share = samples_index.far_share
-        return ((P - self.pool[i_pq]) ** 2).sum(-1).mean() + ((Q - P[i_qp]) ** 2).sum(-1).mean()
+        # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
+        return ((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean() + ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean()
 
 
 class _Evaluation:
