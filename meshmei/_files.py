@@ -8,7 +8,7 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["atomic_directory", "check_output", "check_replaceable", "RESULT_MARKERS"]
+__all__ = ["atomic_directory", "check_apart", "check_output", "check_replaceable", "RESULT_MARKERS"]
 
 # One of these files is in every folder meshmei writes (a 3D-MEI run, a diverse set, a sweep, a
 # reconstruction): a folder that holds none of them (and is not empty) is not meshmei's to replace.
@@ -75,6 +75,15 @@ def check_output(directory, *, overwrite: bool, error, how: str = _API) -> None:
         raise error(_exists(directory, how))
     if directory.exists() or directory.is_symlink():
         check_replaceable(directory, error)
+
+
+def check_apart(out, source, error, what: str = "the input") -> None:
+    """Raise ``error`` when the output folder ``out`` is ``source`` or holds it: replacing it would delete
+    ``source`` (``meshmei tune --out RUN --overwrite`` replaced the run it swept)."""
+    out, source = Path(out).resolve(), Path(source).resolve()
+    if out == source or out in source.parents:
+        raise error(f"the output folder {out} is {what} ({source}) or holds it; replacing it would delete it: "
+                    "choose another output folder")
 
 
 def check_replaceable(directory, error) -> None:

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import torch
 
-from ._files import atomic_directory, check_output
+from ._files import atomic_directory, check_apart, check_output
 from .encoders import load_model, make_encoder
-from .errors import MEIError, ReconstructionError
+from .errors import MEIError, ReconstructionError, TuningError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
 from .mei.optimize import start_from_file
 from .plots import diverse_figure
@@ -380,10 +380,15 @@ def _run_tune(args) -> int:
         members = [root / f"member_{i}" for i in range(k)]
         if not members or not all(m.is_dir() for m in members):
             raise MEIError(f"{root} should hold member_0 to member_{k - 1} ({k} diverse runs); it does not")
-    for run_dir in members:
-        out = args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name
+    outs = [args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name for run_dir in members]
+    for run_dir, out in zip(members, outs):  # every member's output checked before the first sweep
+        out = Path(out) if out is not None else run_dir / f"tuning_{args.what}"
+        for source in {root, run_dir}:
+            check_apart(out, source, TuningError, "the run being swept")
+        check_output(out, overwrite=args.overwrite, error=TuningError, how="--overwrite")
+    for run_dir, out in zip(members, outs):
         run_tuning(args.what, run_dir, out, neurons=args.neurons, distance=args.distance,
-                   overwrite=args.overwrite, **ranges)
+                   overwrite=args.overwrite, how="--overwrite", **ranges)
     return 0
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import check_output
 from .encoders import DEMO_MODEL_PATH, is_demo_model, load_demo_model
 from .mei import MEISettings, optimize_mei, pixel_mei, save_run
 from .plots import summary_sheet
@@ -60,6 +61,9 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace its contents")
+    # the run folder is replaced after the 3D-MEI and the pixel MEI: a folder there that meshmei did not
+    # write must stop the story before that work, not after it
+    check_output(out / "mei", overwrite=True, error=FileExistsError)
     t0 = time.perf_counter()
     encoder = load_demo_model() if encoder is None else encoder
     neuron = _default_neuron(encoder) if neuron is None else int(neuron)
@@ -96,13 +100,14 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
 
 def _optimise(encoder, neuron, init, p, log):
     """Steps 1 and 2: the 3D-MEI (carrying the pixel MEI's activation in its ``extra``) and the pixel MEI."""
+    size = getattr(encoder, "image_size", None) or p["image_size"]  # a lab's model renders at its own size
+    h, w = (size, size) if isinstance(size, int) else tuple(size)
     log(f"[1/5] 3D-MEI of neuron {neuron} from a {init} ({p['steps']} steps x {len(p['seeds'])} seeds, "
-        f"{p['image_size']}x{p['image_size']} px)")
+        f"{h}x{w} px)")
     st = MEISettings(image_size=p["image_size"], n_vertices=p["n_vertices"], steps=p["steps"], seeds=tuple(p["seeds"]))
     res = optimize_mei(encoder, neuron, init=init, settings=st, progress=True)
     log(f"      response {res.activation:.4f} in {res.wall_time:.1f} s")
     log("[2/5] pixel MEI in the same image space")
-    size = getattr(encoder, "image_size", None) or p["image_size"]  # a lab's model: its own size, as the 3D-MEI
     pix = pixel_mei(encoder, neuron, image_size=size, steps=p["pixel_steps"], seeds=tuple(p["seeds"]))
     log(f"      response {pix.activation:.4f}")
     res = replace(res, extra={**res.extra, "pixel_mei_activation": float(pix.activation)})

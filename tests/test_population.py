@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -71,6 +72,23 @@ def test_the_ratio_is_empty_unless_the_pixel_mei_excites():
     assert table_row({**row, "pixel_mei_activation": 4.0})["ratio"] == 0.5
     for pix in (None, 0.0, -1.0, -4.0):  # a ratio to a response <= 0 says nothing (and flips sign)
         assert table_row({**row, "pixel_mei_activation": pix})["ratio"] is None
+
+
+def test_the_population_figure_leaves_the_callers_backend_alone_and_draws_non_finite_ratios(tmp_path):
+    import matplotlib
+
+    from meshmei.population.figure import population_figure
+
+    before = matplotlib.get_backend()
+    rows = [{"neuron": 0, "mei_response": 1.0, "pixel_mei_response": 2.0, "ratio": 0.5},
+            {"neuron": 1, "mei_response": math.inf, "pixel_mei_response": 2.0, "ratio": math.inf},
+            {"neuron": 2, "mei_response": math.nan, "pixel_mei_response": 2.0, "ratio": math.nan}]
+    matplotlib.use("svg")  # a session on another backend than Agg: population_figure switched it to Agg
+    try:
+        path = population_figure(tmp_path, rows)
+        assert matplotlib.get_backend() == "svg" and path.stat().st_size > 0
+    finally:
+        matplotlib.use(before)
 
 
 def test_a_refused_call_writes_nothing_so_the_corrected_one_runs(tmp_path):

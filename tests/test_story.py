@@ -39,7 +39,7 @@ def test_story_writes_every_artifact_and_they_reload(tmp_path, cell):
     assert any(f"{h['self_intersections']} self-intersecting pairs, 0 flipped faces" in line for line in lines)
 
 
-def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
+def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell, monkeypatch):
     with pytest.raises(EncoderError, match="out of range"):
         run_story(tmp_path / "a", encoder=cell, neuron=4, preset=QUICK)
     assert not (tmp_path / "a").exists()  # refused before its folder is made (an empty one was left before)
@@ -48,6 +48,19 @@ def test_story_refuses_bad_neuron_and_nonempty_output(tmp_path, cell):
     with pytest.raises(FileExistsError, match="not empty"):
         run_story(tmp_path / "b", encoder=cell, preset=QUICK)
     assert (tmp_path / "b" / "keep.txt").read_text() == "mine"
+    # with overwrite, a mei/ folder of files meshmei did not write is refused before the 3D-MEI and the pixel
+    # MEI (it was refused when the run was saved, after both)
+    (tmp_path / "b" / "mei").mkdir()
+    (tmp_path / "b" / "mei" / "notes.txt").write_text("mine")
+    import meshmei.story as story
+
+    def fail(*a, **k):
+        pytest.fail("optimised before refusing")
+
+    monkeypatch.setattr(story, "optimize_mei", fail)
+    with pytest.raises(FileExistsError, match=r"mei holds files meshmei did not write .* not replaced, even with"):
+        run_story(tmp_path / "b", encoder=cell, preset=QUICK, overwrite=True)
+    assert (tmp_path / "b" / "mei" / "notes.txt").read_text() == "mine"
 
 
 def test_demo_cli_reports_an_occupied_output_without_traceback(tmp_path, capsys):

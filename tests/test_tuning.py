@@ -276,3 +276,54 @@ def test_turned_views_frame_the_whole_mesh(sheet_mei):
         assert np.allclose(border, border[0]) and (np.abs(img - border[0]) > 1e-3).any()
     assert np.abs(views[0][2] - views[1][2]).max() > 0.1  # turned a quarter: another picture
     np.testing.assert_allclose(views[2][2], views[0][2], atol=1e-3)  # turned all the way round: the same
+
+
+def test_a_bare_scene_keeps_its_own_light_as_the_reference(sheet_mei, simple_cell):
+    """The reference of a (V, F, scene) sweep was taken under the default light, not the scene's."""
+    from meshmei.render import render
+
+    scene = sheet_mei.scene()
+    scene["light"] = torch.tensor([2.0, 0.0, 1.0])
+    with torch.no_grad():
+        own = float(simple_cell(render(sheet_mei.V, sheet_mei.F, **scene), [0])[0, 0])
+        scene.pop("light")
+        default = float(simple_cell(render(sheet_mei.V, sheet_mei.F, **scene), [0])[0, 0])
+        scene["light"] = torch.tensor([2.0, 0.0, 1.0])
+    assert abs(own - default) > 1e-3  # the two lights differ in what the cell sees
+    sw = light_sweep((sheet_mei.V, sheet_mei.F, scene), simple_cell, neurons=[0], elevation=[90], azimuth=[0])
+    assert sw.reference["responses"][0] == pytest.approx(own, rel=1e-6)
+    assert torch.equal(scene["light"], torch.tensor([2.0, 0.0, 1.0]))  # the caller's scene is left alone
+
+
+def test_tune_refuses_an_output_that_holds_the_run_and_checks_existing_output_first(tmp_path, sheet_mei, capsys,
+                                                                                     monkeypatch):
+    import meshmei.tuning.run as tr
+
+    run = save_run(sheet_mei, tmp_path / "run", figures=False)
+    before = sorted(p.name for p in run.iterdir())
+    # --out the run itself, or its parent, with --overwrite: the sweep replaced the run it swept
+    for out in (run, tmp_path):
+        assert main(["tune", "pose", "--mei", str(run), "--out", str(out), "--overwrite", "--elevation=0:0:1",
+                     "--azimuth=0:0:1"]) == 2
+        err = capsys.readouterr().err
+        assert "is the run being swept" in err and "replacing it would delete it" in err and err.count("\n") == 1
+        assert sorted(p.name for p in run.iterdir()) == before
+    # an existing output is refused before the sweep (it was refused after about 40 s of rendering)
+    (run / "tuning_pose").mkdir()
+    (run / "tuning_pose" / "sweep.json").write_text("{}")
+    monkeypatch.setattr(tr, "pose_sweep", lambda *a, **k: pytest.fail("swept before refusing"))
+    assert main(["tune", "pose", "--mei", str(run)]) == 2
+    assert "tuning_pose exists; pass --overwrite to replace it" in capsys.readouterr().err
+
+
+def test_a_grid_of_too_many_conditions_is_one_line_before_any_work(tmp_path, sheet_mei, capsys):
+    from meshmei.tuning.grids import MAX_GRID_CONDITIONS
+
+    with pytest.raises(TuningError, match=r"^the grid has 3601 x 3601 x 2 = 25,934,402 conditions; at most"):
+        pose_rotations(np.zeros(3601), np.zeros(3601), np.zeros(2))
+    assert pose_rotations(np.zeros(3601), np.zeros(3601)).shape[:2] == (3601, 3601)  # the bound itself passes
+    assert MAX_GRID_CONDITIONS == 3601 * 3601
+    run = save_run(sheet_mei, tmp_path / "run", figures=False)
+    rc = main(["tune", "pose", "--mei", str(run), "--elevation=0:1:3601", "--azimuth=0:1:3601", "--roll=0:1:3601"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("meshmei tune: error: the grid has 3601 x 3601 x 3601") and err.count("\n") == 1

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+from ..plots import _figure
 
 __all__ = ["population_figure"]
 
@@ -10,14 +13,10 @@ __all__ = ["population_figure"]
 def population_figure(out, rows: list[dict]) -> Path:
     """Write ``population.png``: a scatter of 3D-MEI against pixel-MEI response per neuron (with the
     diagonal) and a histogram of their ratio; without pixel MEIs, the 3D-MEI responses by neuron."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     path = Path(out) / "population.png"
     paired = [r for r in rows if r.get("pixel_mei_response") is not None]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+    fig = _figure(figsize=(9, 4))  # no pyplot, no backend switch in the caller's session (meshmei.plots)
+    axes = fig.subplots(1, 2)
     if paired:
         x = [r["pixel_mei_response"] for r in paired]
         y = [r["mei_response"] for r in paired]
@@ -27,7 +26,7 @@ def population_figure(out, rows: list[dict]) -> Path:
         axes[0].set_xlabel("pixel-MEI response")
         axes[0].set_ylabel("3D-MEI response")
         axes[0].legend(loc="upper left", frameon=False)
-        ratios = [r["ratio"] for r in paired if r["ratio"] is not None]
+        ratios = [r["ratio"] for r in paired if r["ratio"] is not None and math.isfinite(r["ratio"])]
         axes[1].hist(ratios, bins=max(5, min(30, len(ratios))), color="C1")
         axes[1].set_xlabel("3D-MEI / pixel-MEI response")
         axes[1].set_ylabel("neurons")
@@ -39,5 +38,4 @@ def population_figure(out, rows: list[dict]) -> Path:
     fig.suptitle(f"{len(rows)} neurons")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -51,6 +51,7 @@ def pose_rotations(elevation, azimuth, roll=None, *, dtype=torch.float32) -> tor
     """
     el, az = check_angles("elevation", elevation), check_angles("azimuth", azimuth)
     rl = np.zeros(1) if roll is None else check_angles("roll", roll)
+    check_grid_size(len(el), len(az), len(rl))
     Ry = _rot(1, az, dtype)  # (A, 3, 3)
     Rx = _rot(0, -el, dtype)  # (E, 3, 3)
     Rz = _rot(2, rl, dtype)  # (R, 3, 3)
@@ -64,9 +65,23 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32)
     az = np.radians(check_angles("azimuth", azimuth))
     if not (isinstance(distance, (int, float)) and math.isfinite(distance) and distance > 0):
         raise TuningError(f"light distance must be a positive number, got {distance!r}")
+    check_grid_size(len(el), len(az))
     E, A = np.meshgrid(el, az, indexing="ij")
     P = distance * np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
     return torch.as_tensor(P, dtype=dtype)
+
+
+# the most conditions (renders per neuron) of one grid: two full axes at a tenth of a degree
+MAX_GRID_CONDITIONS = 3601 * 3601
+
+
+def check_grid_size(*counts: int) -> None:
+    """Raise TuningError when a grid of these axis lengths has more than :data:`MAX_GRID_CONDITIONS`
+    conditions (three axes of 3,601 angles asked for 1.7 TB of rotations and failed inside torch)."""
+    total = math.prod(counts)
+    if total > MAX_GRID_CONDITIONS:
+        raise TuningError(f"the grid has {' x '.join(map(str, counts))} = {total:,} conditions; at most "
+                          f"{MAX_GRID_CONDITIONS:,} (each is a render): use coarser ranges")
 
 
 # the most angles one range may give (a 3,601-step axis is a tenth of a degree over a full turn); a grid's

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._files import check_apart, check_output
 from ..errors import MEIError, TuningError
 from ..mei import load_run
 from .files import save_sweep
@@ -14,7 +15,7 @@ __all__ = ["run_tuning"]
 
 
 def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, azimuth=None, roll=None,
-               distance=None, overwrite=False, log=print) -> tuple[Sweep, Path]:
+               distance=None, overwrite=False, log=print, how: str = "overwrite=True") -> tuple[Sweep, Path]:
     """Load a run, sweep its pose or light, and save arrays and plots; the body of ``meshmei tune``.
 
     Parameters
@@ -28,8 +29,11 @@ def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, az
         As in :func:`pose_sweep` / :func:`light_sweep`; None keeps their defaults (``roll`` and ``distance``
         belong to one sweep each).
     overwrite : bool
+        Replace an existing ``out`` (checked before the sweep; never ``mei_dir`` or a folder holding it).
     log : callable
         Receives one line per neuron and the output directory.
+    how : str
+        How the caller passes ``overwrite``, for the message when ``out`` exists (the CLI: ``--overwrite``).
 
     Returns
     -------
@@ -41,12 +45,14 @@ def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, az
         raise TuningError("roll is a pose sweep's axis; a light sweep takes elevation, azimuth and distance")
     if what == "pose" and distance is not None:
         raise TuningError("distance places the light of a light sweep; a pose sweep takes elevation, azimuth and roll")
+    out = Path(out) if out is not None else Path(mei_dir) / f"tuning_{what}"
+    check_apart(out, mei_dir, TuningError, "the run being swept")
+    check_output(out, overwrite=overwrite, error=TuningError, how=how)  # before the sweep's work, not after it
     try:
         run = load_run(mei_dir, rebuild_encoder=True)
     except MEIError as err:
         raise TuningError(str(err)) from None
     encoder = run.encoder_module
-    out = Path(out) if out is not None else Path(mei_dir) / f"tuning_{what}"
     grid = {k: v for k, v in (("elevation", elevation), ("azimuth", azimuth)) if v is not None}
     if what == "pose":
         sweep = pose_sweep(run, encoder, neurons=neurons, roll=roll, **grid)

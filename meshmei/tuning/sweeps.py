@@ -168,11 +168,12 @@ def light_sweep(result, encoder, *, neurons=None, elevation=np.linspace(0, 90, 1
     if distance is None:
         distance = camera_distance(scene)
     P = light_positions(elevation, azimuth, distance, dtype=V.dtype)
-    scene.pop("light", None)
+    orig = scene.pop("light", None)  # the reference keeps the scene's own light: a run's, or a bare scene's
+    if orig is None and hasattr(result, "light"):
+        orig = result.light
     t = time.perf_counter()
     resp = _respond(encoder, V, F, neurons, scene, batch_size, light=P.reshape(-1, 3))
     seconds = time.perf_counter() - t
-    orig = result.light if hasattr(result, "light") else None
     ref_scene = dict(scene)
     if orig is not None:
         ref_scene["light"] = orig
