@@ -99,13 +99,14 @@ def check_mesh(V, F, *, batched: bool | None = False):
     # (a new tensor each call rebuilt the topology every call: about 150 ms at 20,000 faces)
     key = (id(source), n, V.device)
     known = _CHECKED_FACES.get(key)
-    if known is not None and known[0] is source and same_faces(F, known[1]):
+    # the int64 tensor handed out may have been edited in place since (its indices then unchecked): compared too
+    if known is not None and known[0] is source and same_faces(F, known[1]) and same_faces(known[2], known[3]):
         _CHECKED_FACES.move_to_end(key)
         F = known[2]
     else:
         G = _checked_faces(F, n).to(device=V.device, dtype=torch.int64)
         if isinstance(source, (torch.Tensor, np.ndarray)):  # a list is built anew each call: nothing to reuse
-            _CHECKED_FACES[key] = (source, F.clone(), G)
+            _CHECKED_FACES[key] = (source, F.clone(), G, G.clone())
             while len(_CHECKED_FACES) > 16:
                 _CHECKED_FACES.popitem(last=False)
         F = G
@@ -224,7 +225,8 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     file stores every triangle's corners separately, and an OBJ with texture coordinates or normals
     repeats a vertex along every seam, so without welding a closed surface would read as loose triangles
     with coincident copies. Nothing else changes: faces keep their order and orientation, zero-area and
-    duplicate faces stay, and vertices no face uses are kept.
+    duplicate faces stay, and vertices no face uses are kept (except in OBJ files, whose reader, trimesh's,
+    drops them).
 
     Parameters
     ----------
@@ -275,8 +277,10 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
         if n_points:
             raise MeshError(f"{path} holds {n_points} points and no faces; a triangle mesh is needed")
         raise MeshError(f"{path} holds an empty mesh (0 vertices, 0 faces)")
+    if V.ndim != 2 or V.shape[1] != 3:  # an OBJ of 2-D vertices: reshape's own ValueError before
+        raise MeshError(f"{path}: vertices must have 3 coordinates, got an array of shape {V.shape}")
     try:
-        V, F = check_mesh(V.reshape(-1, 3), F.reshape(-1, 3))
+        V, F = check_mesh(V, F.reshape(-1, 3))
     except MeshError as err:
         raise MeshError(f"{path}: {err}") from None
     V, F = _weld(V, F)

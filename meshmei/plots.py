@@ -15,15 +15,17 @@ import torch
 from .render import camera_from_angles, render
 
 __all__ = ["mei_figures", "diverse_figure", "albedo_figure", "reconstruction_figures", "plot_pose_heatmap", "plot_light_polar",
-           "summary_sheet"]
+           "summary_sheet", "new_figure"]
 
 # the three extra views of a 3D-MEI run's mesh: the camera orbits the origin at these angles (degrees)
 ORBIT_AZIMUTHS = (0, 45, 90)
 ORBIT_ELEVATION = 30
 
 
-def _figure(**kwargs):
-    # matplotlib is imported only when a figure is drawn: importing meshmei stays quick and needs no display
+def new_figure(**kwargs):
+    """A :class:`matplotlib.figure.Figure` with no pyplot state and no backend switch (every figure of
+    meshmei's is one); matplotlib is imported only when a figure is drawn: importing meshmei stays quick
+    and needs no display."""
     from matplotlib.figure import Figure
 
     return Figure(**kwargs)
@@ -69,12 +71,12 @@ def mei_figures(result, out) -> None:
     out : Path
         An existing folder.
     """
-    import matplotlib.image  # deferred with the rest of matplotlib (see _figure)
+    import matplotlib.image  # deferred with the rest of matplotlib (see new_figure)
 
     out = Path(out)
     image = result.image[0, 0].detach().cpu().numpy()  # (H, W)
     matplotlib.image.imsave(out / "render.png", image, cmap="gray", vmin=0, vmax=1)
-    fig = _figure(figsize=(12, 3.2))
+    fig = new_figure(figsize=(12, 3.2))
     axes = fig.subplots(1, 4)
     axes[0].imshow(image, cmap="gray", vmin=0, vmax=1)
     axes[0].set_title(f"MEI render, response {result.activation:.3f}")
@@ -85,7 +87,7 @@ def mei_figures(result, out) -> None:
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(out / "views.png", dpi=100)
-    fig = _figure(figsize=(5, 3.2))
+    fig = new_figure(figsize=(5, 3.2))
     ax = fig.subplots()
     ub = result.encoder.get("upper_bound")
     y = [h / ub for h in result.history] if ub else result.history
@@ -112,7 +114,7 @@ def albedo_figure(result, path) -> Path:
               (shading, "shading alone (albedo 1)")]
     if result.albedo.ndim == 2:  # a texture over the sheet's grid, row 0 at v = 0
         panels.append((result.albedo.flip(0)[None, None], f"texture {result.albedo.shape[0]} x {result.albedo.shape[1]}"))
-    fig = _figure(figsize=(2.6 * len(panels), 2.8))
+    fig = new_figure(figsize=(2.6 * len(panels), 2.8))
     for ax, (img, title) in zip(fig.subplots(1, len(panels)), panels):
         _gray(ax, img[0, 0].detach().cpu().numpy(), title, fontsize=9)
     path = Path(path)
@@ -124,7 +126,7 @@ def diverse_figure(diverse, path) -> Path:
     """The K diverse 3D-MEIs' renders side by side, with their responses, and their dissimilarity matrix."""
     results = diverse.results
     k = len(results)
-    fig = _figure(figsize=(2.2 * (k + 1), 2.6))
+    fig = new_figure(figsize=(2.2 * (k + 1), 2.6))
     axes = fig.subplots(1, k + 1)
     for ax, r in zip(axes, results):
         _gray(ax, r.image[0, 0].detach().cpu().numpy(), f"seed {r.seed}: {r.activation:.3f}", fontsize=9)
@@ -165,7 +167,7 @@ def reconstruction_figures(result, out_dir) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     h = result.history
-    fig = _figure(figsize=(5, 3.5))
+    fig = new_figure(figsize=(5, 3.5))
     ax = fig.subplots()
     ax.semilogy([r["time"] for r in h], [r["loss"] for r in h], lw=0.8)
     ax.set_xlabel("optimisation time (s)")
@@ -175,7 +177,7 @@ def reconstruction_figures(result, out_dir) -> list[Path]:
     p1 = out_dir / "loss.png"
     fig.savefig(p1, dpi=120)
     m = result.metrics
-    fig = _figure(figsize=(12, 3.5))
+    fig = new_figure(figsize=(12, 3.5))
     axs = fig.subplots(1, 3)
     t = [r["time"] for r in m]
     axs[0].semilogy(t, [r["chamfer_l2"] for r in m], "o-")
@@ -208,7 +210,7 @@ def plot_pose_heatmap(sweep, neuron: int, stem) -> list[Path]:
     """
     r = sweep.of(neuron)
     if r.ndim == 3:  # a roll axis: show its mean, and the roll curve beside it
-        fig = _figure(figsize=(10, 4.2))
+        fig = new_figure(figsize=(10, 4.2))
         ax, ax2 = fig.subplots(1, 2)
         curve = r.mean(axis=(0, 1))
         ax2.plot(sweep.axis("roll"), curve, "o-", ms=3)
@@ -217,7 +219,7 @@ def plot_pose_heatmap(sweep, neuron: int, stem) -> list[Path]:
         ax2.set_title("in-plane rotation")
         r = r.mean(axis=2)
     else:
-        fig = _figure(figsize=(5.4, 4.2))
+        fig = new_figure(figsize=(5.4, 4.2))
         ax = fig.subplots()
     az, el = sweep.axis("azimuth"), sweep.axis("elevation")
     m = ax.pcolormesh(_edges(az), _edges(el), r, shading="flat", cmap="viridis")
@@ -250,7 +252,7 @@ def plot_light_polar(sweep, neuron: int, stem, images: dict | None = None) -> li
     r = sweep.of(neuron)
     az, el = sweep.axis("azimuth"), sweep.axis("elevation")
     ncol = 1 + (3 if images else 0)
-    fig = _figure(figsize=(5.0 + 2.6 * (ncol - 1), 4.4), layout="constrained")
+    fig = new_figure(figsize=(5.0 + 2.6 * (ncol - 1), 4.4), layout="constrained")
     ax = fig.add_subplot(1, ncol, 1, projection="polar")
     theta = np.radians(_edges(az))
     rad = 90.0 - np.clip(_edges(el), 0.0, 90.0)  # radius: angle away from the camera axis
@@ -289,7 +291,7 @@ def summary_sheet(run, stem, views, *, pixel_image=None, pixel_activation=None) 
     pixel_activation : float, optional
         Its response, drawn as a second bar.
     """
-    fig = _figure(figsize=(13, 6.2))
+    fig = new_figure(figsize=(13, 6.2))
     gs = fig.add_gridspec(2, 4)
     _gray(fig.add_subplot(gs[0, 0]), run.image[0, 0].cpu().numpy(),
           f"3D-MEI render\nneuron {run.neuron}, response {run.activation:.3f}", fontsize=9)

@@ -222,3 +222,24 @@ def test_numpy_faces_with_negative_strides_are_taken():
     Fn = F.numpy()
     _, Fr = check_mesh(V.numpy()[:, ::-1], Fn[:, ::-1])
     assert torch.equal(Fr, F.flip(1))
+
+
+def test_faces_handed_out_and_edited_in_place_are_checked_again():
+    """check_mesh hands back one int64 tensor per unchanged int32 or numpy source (for the topology cache);
+    an in-place edit of that tensor was handed back, unchecked, by the next call (index 999 on 4 vertices)."""
+    import numpy as np
+
+    V = torch.rand(4, 3)
+    F32 = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+    _, G = check_mesh(V, F32)
+    assert check_mesh(V, F32)[1] is G  # the cache hits while nothing changed
+    G[0, 0] = 999
+    _, again = check_mesh(V, F32)
+    assert again is not G and again.tolist() == [[0, 1, 2], [0, 2, 3]]
+
+
+def test_an_obj_of_two_dimensional_vertices_is_a_mesh_error(tmp_path):
+    p = tmp_path / "flat.obj"
+    p.write_text("v 0 0\nv 1 0\nv 0 1\nv 1 1\nf 1 2 3\nf 2 4 3\n")  # a plain ValueError from a reshape before
+    with pytest.raises(MeshError, match=r"flat.obj: vertices must have 3 coordinates, got an array of shape \(4, 2\)$"):
+        load_mesh(p)

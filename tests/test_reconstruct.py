@@ -425,6 +425,13 @@ def test_regularizer_weights_follow_each_stages_resolution(sphere, bunny):
     got = [w for st in res.info["stages"] for w in (st["w_laplacian"], st["w_edge"])]
     want = [w for c in (100, 100, 400) for w in (10 * (c / 2500) ** 2, 2 * c / 2500)]
     assert got == pytest.approx(want, rel=1e-12)
+    # A later stage coarser than the second takes its own count (it took the larger of the two)
+    from meshmei.reconstruct import stage_weights
+
+    for stages, counts in (((625, 2500, 1000), (2500, 2500, 1000)), ((10000, 2500, 625), (2500, 2500, 625))):
+        st = ReconstructionSettings(stages=stages, steps=10).resolved()
+        got = [stage_weights(st, st, k, 2500)[0] for k in range(3)]
+        assert got == pytest.approx([10.0 * (c / 2500) ** 2 for c in counts], rel=1e-12)
     # None: the weights as given.
     res = reconstruct(sphere, bunny, "vertex", steps=1, w_laplacian=10.0, reg_ref_vertices=None, **SMALL)
     assert res.info["w_laplacian"] == 10.0
@@ -667,6 +674,8 @@ def test_normalize_unit_diagonal_takes_tiny_and_huge_float32_meshes(scale):
     ("w_laplacian", float("inf")), ("w_edge", float("inf")), ("w_arap", float("inf")), ("lam", float("inf")),
     ("eval_times", (float("nan"),)), ("eval_times", (1.0, float("inf"))), ("eval_times", (-1.0,)),
     ("eval_samples", 2000.5), ("n_samples", 100.5), ("target_pool", True), ("eval_every", 2.5),
+    # each ran as something else, failed after the run had started, or raised a TypeError / OverflowError
+    ("eval_times", "10"), ("centers", -5), ("centers", 2.5), ("centers", True), ("time_budget", "10"),
 ])
 def test_settings_refuse_infinite_weights_and_bad_counts_up_front(sphere, field, value):
     from meshmei.errors import ReconstructionError
@@ -677,6 +686,23 @@ def test_settings_refuse_infinite_weights_and_bad_counts_up_front(sphere, field,
     with pytest.raises(ReconstructionError, match=f"^{field} must"):  # before the first step
         reconstruct(sphere, "bunny", steps=3, callback=lambda *a: steps.append(a), **{**SMALL, field: value})
     assert steps == []
+
+
+def test_stage_settings_that_failed_late_are_refused_up_front():
+    from meshmei.errors import ReconstructionError
+
+    with pytest.raises(ReconstructionError, match=r"^centers=150 exceeds the smallest stage's 100 vertices"):
+        ReconstructionSettings(centers=150, stages=(300, 100)).resolved()  # stage 1 failed after stage 0 ran
+    with pytest.raises(ReconstructionError, match=r"^stage_fractions must give one positive, finite share"):
+        ReconstructionSettings(stages=(100, 100), stage_fractions=(1e308, 1e308)).resolved()  # summed to inf: (0, 0)
+    with pytest.raises(ReconstructionError, match=r"^stage_fractions must give one positive, finite share"):
+        ReconstructionSettings(stages=(100, 200), stage_fractions=0.5).resolved()  # a TypeError
+    with pytest.raises(ReconstructionError, match=r"^steps must be a positive integer, got inf$"):
+        ReconstructionSettings(steps=float("inf")).resolved()  # an OverflowError
+    for stages in (500, (float("inf"),), (100.7, 500.9)):  # a TypeError, an OverflowError, truncated to (100, 500)
+        with pytest.raises(ReconstructionError, match=rf"^stages must be integer vertex counts of at least 32, got "
+                                                      rf"{re.escape(repr(stages))} \(stages=None"):
+            ReconstructionSettings(stages=stages).resolved()
 
 
 @pytest.mark.parametrize("kwargs, says", [
@@ -876,3 +902,34 @@ def test_a_run_repeats_exactly_on_two_threads():
         torch.set_num_threads(threads)
     losses = [[h["loss"] for h in r.history] for r in runs]
     assert all(torch.equal(r.V, runs[0].V) and x == losses[0] for r, x in zip(runs[1:], losses[1:]))
+
+
+def test_a_remesh_that_welds_pieces_is_refused_between_stages():
+    """pymeshlab's remesh welds the teapot's handle to its body at a shared point (a bow-tie vertex, one piece
+    fewer); the stage check compared intersection counts only and took it. It now keeps the topology."""
+    from meshmei.metrics import face_components
+    from meshmei.quality import topology
+    from meshmei.shapes import remesh
+
+    V, F = target_mesh("teapot", resolution=4)
+    welded = remesh(V, F, 500)
+    before, after = topology(F, V.shape[0]), topology(welded[1], welded[0].shape[0])
+    assert before["nonmanifold_vertices"] == 0 and after["nonmanifold_vertices"] > 0 and after["euler"] != before["euler"]
+    res = reconstruct((V, F), "bunny", "vertex", steps=2, stages=(700,), n_samples=300, target_pool=1000,
+                      eval_samples=500)
+    st = res.info["stages"][0]
+    assert st["remesh_iterations"] is None and "nonmanifold_vertices" in st["remesh_refused_topology"]
+    assert topology(res.F, res.V.shape[0]) == before
+    assert face_components(res.F, res.V.shape[0]).max() == face_components(F, V.shape[0]).max()
+
+
+def test_a_results_settings_replay_a_run_whose_stages_change_the_method():
+    """The recorded (resolved) settings hold rbf's defaults; replayed, a largesteps stage refused rbf's
+    coarse_lr (and would have taken rbf's learning rate)."""
+    src = initial_mesh("sphere", n_vertices=100)
+    kw = dict(n_samples=300, target_pool=1000, eval_samples=500)
+    r = reconstruct(src, "bunny", steps=2, stages=(100, 100), stage_overrides=({"method": "largesteps"}, None), **kw)
+    again = reconstruct(src, "bunny", settings=r.settings)
+    assert [(st["method"], st["lr"]) for st in again.info["stages"]] == [("largesteps", 0.05), ("rbf", 0.006)]
+    assert [(st["method"], st["lr"]) for st in r.info["stages"]] == [("largesteps", 0.05), ("rbf", 0.006)]
+    assert torch.equal(again.V, r.V)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from ..plots import _figure
+from ..plots import new_figure
 
 __all__ = ["population_figure"]
 
@@ -15,7 +15,7 @@ def population_figure(out, rows: list[dict]) -> Path:
     diagonal) and a histogram of their ratio; without pixel MEIs, the 3D-MEI responses by neuron."""
     path = Path(out) / "population.png"
     paired = [r for r in rows if r.get("pixel_mei_response") is not None]
-    fig = _figure(figsize=(9, 4))  # no pyplot, no backend switch in the caller's session (meshmei.plots)
+    fig = new_figure(figsize=(9, 4))  # no pyplot, no backend switch in the caller's session (meshmei.plots)
     axes = fig.subplots(1, 2)
     if paired:
         x = [r["pixel_mei_response"] for r in paired]

@@ -21,7 +21,7 @@ from ..deform import PARAMETERISATIONS
 from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..quality import count_self_intersections, triangle_quality
+from ..quality import count_self_intersections, topology, triangle_quality
 from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss, scale_weights
 from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
@@ -107,7 +107,8 @@ def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int 
     if k is None:
         n_k = s.stages[-1] if s.stages else n_source
     else:
-        n_k = max(s.stages[k], s.stages[min(1, len(s.stages) - 1)])
+        n_k = s.stages[1] if k == 0 and len(s.stages) > 1 else s.stages[k]  # (max of the two gave a later,
+        # smaller stage the larger one's weights: (625, 2500, 1000) had 10, 10, 10 for 10, 10, 1.6)
     w = scale_weights({"laplacian": sk.w_laplacian, "edge": sk.w_edge, "arap": sk.w_arap}, n_k, s.reg_ref_vertices)
     return w["laplacian"], w["edge"], w["arap"]
 
@@ -301,18 +302,21 @@ def _contact_info(contact, edges_from) -> dict:
 
 def _remesh_clean(V, F, n: int, clean: bool):
     """Remesh to ``n`` vertices; with ``clean``, retry (other iteration counts) when the remesh adds
-    intersecting pairs, and keep the mesh as it is when no try is clean. Returns ``(V, F, record)``."""
+    intersecting pairs or changes the topology (:func:`~meshmei.quality.topology`: pieces welded at a vertex,
+    a new non-manifold edge or vertex), and keep the mesh as it is when no try is clean. Returns
+    ``(V, F, record)``."""
     V2, F2 = remesh(V, F, n)
     if not clean:
         return V2, F2, {}
-    before = count_self_intersections(V, F)
+    before, shape = count_self_intersections(V, F), topology(F, V.shape[0])
     for iterations in (None, 10, 3):
         if iterations is not None:
             V2, F2 = remesh(V, F, n, iterations=iterations)
         added = count_self_intersections(V2, F2) - before
-        if added <= 0:
+        changed = sorted(k for k, v in topology(F2, V2.shape[0]).items() if v != shape[k])
+        if added <= 0 and not changed:
             return V2, F2, {"remesh_iterations": iterations or 5}
-    return V, F, {"remesh_iterations": None, "remesh_refused_pairs": added}
+    return V, F, {"remesh_iterations": None, "remesh_refused_pairs": max(added, 0), "remesh_refused_topology": changed}
 
 
 def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):

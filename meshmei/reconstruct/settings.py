@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -241,21 +242,50 @@ class ReconstructionSettings:
             return [self.resolved()]
         stages = []
         for k, o in enumerate(self.stage_overrides):
+            base = self
+            method = (o or {}).get("method", self.method)
+            if self.method in DEFAULTS and method != self.method:
+                # settings already resolved (a result's, replayed) hold the run method's defaults: a stage of
+                # another method takes its own (they made a largesteps stage refuse rbf's coarse_lr, or run
+                # at rbf's lr)
+                base = replace(self, **{k2: None for k2, v in DEFAULTS[self.method].items() if getattr(self, k2) == v})
             try:
-                stages.append(replace(self, stage_overrides=None, **(o or {})).resolved())
+                stages.append(replace(base, stage_overrides=None, **(o or {})).resolved())
             except ReconstructionError as err:
                 raise ReconstructionError(f"stage {k}: {err}") from None
         return stages
+
+
+def _is_real(x) -> bool:
+    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+
+
+def _is_count(x) -> bool:
+    """An integer, or an integral finite float (10.0), not a bool."""
+    return _is_real(x) and math.isfinite(x) and int(x) == x
+
+
+def _sequence(x):
+    """``x`` as a tuple, or None where it is not a sequence (a number, a string)."""
+    if isinstance(x, (str, bytes)) or not hasattr(x, "__iter__"):
+        return None
+    return tuple(x)
 
 
 def _check_values(s: ReconstructionSettings) -> None:
     for name in ("valid_steps", "reg_decay"):  # "no" or 0 would switch a feature on or off by truthiness
         if not isinstance(getattr(s, name), (bool, np.bool_)):
             raise ReconstructionError(f"{name} must be True or False, got {getattr(s, name)!r}")
-    if s.steps is not None and (isinstance(s.steps, bool) or int(s.steps) != s.steps or s.steps < 1):
+    if s.steps is not None and not (_is_count(s.steps) and s.steps >= 1):  # inf: an OverflowError before
         raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
-    if s.time_budget is not None and not (s.time_budget > 0 and math.isfinite(s.time_budget)):
+    if s.time_budget is not None and not (_is_real(s.time_budget) and s.time_budget > 0 and math.isfinite(s.time_budget)):
         raise ReconstructionError(f"time_budget must be positive and finite, got {s.time_budget!r}")
+    c = s.centers
+    # a number of kernels (vertex indices, an array, are checked by the deformer); -5, 2.5 or True failed
+    # after the target was loaded
+    if isinstance(c, (numbers.Number, np.bool_, str)) and not (_is_count(c) and c >= 1):
+        raise ReconstructionError(f"centers must be None, a positive integer (a number of RBF kernels) or vertex "
+                                  f"indices, got {c!r}")
     for name in ("lr", "r_cut", "sigma_factor", "contact_distance"):
         if not (getattr(s, name) > 0 and math.isfinite(getattr(s, name))):
             raise ReconstructionError(f"{name} must be positive and finite, got {getattr(s, name)!r}")
@@ -288,8 +318,8 @@ def _check_values(s: ReconstructionSettings) -> None:
     every = s.eval_every
     if every is not None and (isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1):
         raise ReconstructionError(f"eval_every must be a positive integer or None, got {every!r}")
-    try:
-        times = [float(t) for t in s.eval_times]
+    try:  # a string is a sequence too: "10" ran as (1.0, 0.0)
+        times = [math.nan] if isinstance(s.eval_times, (str, bytes)) else [float(t) for t in s.eval_times]
     except (TypeError, ValueError):
         times = [math.nan]
     if not all(t >= 0 and math.isfinite(t) for t in times):
@@ -334,12 +364,18 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
         if s.stage_fractions is not None:
             raise ReconstructionError("stage_fractions needs stages")
         return s
-    stages = tuple(int(x) for x in s.stages)
-    if not stages or min(stages) < MIN_STAGE_VERTICES:
-        raise ReconstructionError(f"stages must be vertex counts of at least {MIN_STAGE_VERTICES}, got {s.stages!r} "
-                                  f"(stages=None runs one stage at the source's own size)")
-    fr = s.stage_fractions or tuple(1.0 / len(stages) for _ in stages)
-    if len(fr) != len(stages) or not all(f > 0 and math.isfinite(f) for f in fr):
+    # counts, each an integer (100.7 was truncated, inf an OverflowError, 500 alone a TypeError)
+    counts = _sequence(s.stages)
+    if not counts or not all(_is_count(x) and x >= MIN_STAGE_VERTICES for x in counts):
+        raise ReconstructionError(f"stages must be integer vertex counts of at least {MIN_STAGE_VERTICES}, got "
+                                  f"{s.stages!r} (stages=None runs one stage at the source's own size)")
+    stages = tuple(int(x) for x in counts)
+    if _is_count(s.centers) and s.centers > min(stages):  # the later stage failed after the earlier had run
+        raise ReconstructionError(f"centers={s.centers!r} exceeds the smallest stage's {min(stages)} vertices; "
+                                  f"a stage has at most one kernel per vertex")
+    fr = _sequence(s.stage_fractions) if s.stage_fractions is not None else tuple(1.0 / len(stages) for _ in stages)
+    if (fr is None or len(fr) != len(stages) or not all(_is_real(f) and f > 0 and math.isfinite(f) for f in fr)
+            or not math.isfinite(float(sum(fr)))):  # (1e308, 1e308) summed to inf and became (0, 0)
         raise ReconstructionError(f"stage_fractions must give one positive, finite share per stage, "
                                   f"got {s.stage_fractions!r}")
     tot = float(sum(fr))
