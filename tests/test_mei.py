@@ -446,3 +446,22 @@ def test_cli_overwrite_never_removes_a_folder_of_other_files(tmp_path, capsys, m
     err = capsys.readouterr().err
     assert rc == 2 and "holds files meshmei did not write" in err and len(err.splitlines()) == 1 and runs == []
     assert sorted(p.name for p in theirs.iterdir()) == ["precious.txt", "sub"]
+
+
+def test_bad_inputs_of_the_batch_diverse_and_baseline_helpers_are_mei_errors():
+    """Each escaped as a bare TypeError from inside, or ran as something else ('10' as weights 1 and 0)."""
+    from meshmei.mei import diverse_meis, optimize_mei_batch, random_mesh_responses
+
+    enc = GaborSimpleCell(orientation=[0.0, 0.5])
+    base = dict(steps=2, image_size=16, seeds=(0,), n_vertices=64)
+    cases = [
+        (lambda: optimize_mei_batch(enc, 1, "sheet", **base), r"^neurons must be a sequence of neuron indices \(e.g. \[1\]\)"),
+        (lambda: diverse_meis(enc, 0, k=2, diversity="a", **base), r"^need diversity >= 0 and floor in \[0, 1\], got 'a'"),
+        (lambda: diverse_meis(enc, 0, k=2, floor=None, **base), r"^need diversity >= 0 and floor in \[0, 1\], got 0.5, None"),
+        (lambda: random_mesh_responses(enc, 0, "sheet", n=0, settings=MEISettings(**base)), r"^n must be a positive integer"),
+        (lambda: random_mesh_responses(enc, 0, "sheet", n=2.5, settings=MEISettings(**base)), r"^n must be a positive integer"),
+        (lambda: grid_search(enc, 0, "sheet", grid={"edge": "10"}, **base), r"^grid entry 'edge' must be a sequence"),
+    ]
+    for call, match in cases:
+        with pytest.raises(MEIError, match=match):
+            call()

@@ -691,6 +691,8 @@ def test_settings_refuse_infinite_weights_and_bad_counts_up_front(sphere, field,
 def test_stage_settings_that_failed_late_are_refused_up_front():
     from meshmei.errors import ReconstructionError
 
+    with pytest.raises(ReconstructionError, match=r"^centers given as vertex indices name the source's vertices"):
+        ReconstructionSettings(centers=[0, 3, 6], stages=(100, 200)).resolved()  # reused on remeshed stages
     with pytest.raises(ReconstructionError, match=r"^centers=150 exceeds the smallest stage's 100 vertices"):
         ReconstructionSettings(centers=150, stages=(300, 100)).resolved()  # stage 1 failed after stage 0 ran
     with pytest.raises(ReconstructionError, match=r"^stage_fractions must give one positive, finite share"):

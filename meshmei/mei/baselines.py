@@ -4,6 +4,7 @@ deformations of the starting mesh in the same scene."""
 from __future__ import annotations
 
 import itertools
+import numbers
 from dataclasses import replace
 
 import torch
@@ -13,7 +14,7 @@ from ..errors import MEIError
 from ..quality import mesh_quality
 from ..regularizers import REGULARIZERS
 from ..render import render
-from .optimize import check_neuron, initial, optimize_mei
+from .optimize import check_neuron, initial, optimize_mei, settings_for_encoder
 from .settings import MEISettings
 
 __all__ = ["grid_search", "random_deformations", "random_mesh_responses"]
@@ -42,6 +43,8 @@ def grid_search(encoder: Encoder, neuron: int, init="sphere", grid: dict | None 
     for k, ws in grid.items():
         if k not in REGULARIZERS:
             raise MEIError(f"unknown regularizer {k!r} in grid; expected one of {sorted(REGULARIZERS)}")
+        if isinstance(ws, (str, bytes)) or not hasattr(ws, "__iter__"):  # "10" ran weights 1 and 0
+            raise MEIError(f"grid entry {k!r} must be a sequence of weights, got {ws!r}")
         if len(list(ws)) == 0:
             raise MEIError(f"grid entry {k!r} is empty")
     names = list(grid)
@@ -87,7 +90,9 @@ def random_mesh_responses(encoder: Encoder, neuron: int, init="sphere", n: int =
     (``MEIError`` otherwise, as in :func:`optimize_mei`).
     """
     neuron = check_neuron(encoder, neuron)
-    settings = MEISettings.with_overrides(settings, {})
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:  # 0 failed in torch.cat, 2.5 in range
+        raise MEIError(f"n must be a positive integer (deformations to draw), got {n!r}")
+    settings = settings_for_encoder(MEISettings.with_overrides(settings, {}), encoder)  # the MEI's image size
     V0, F, _ = initial(init, settings)
     g = torch.Generator().manual_seed(int(seed))
     out = []

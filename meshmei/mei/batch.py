@@ -259,7 +259,10 @@ def optimize_mei_batch(encoder: Encoder, neurons, init="sheet", settings: MEISet
     """
     s = MEISettings.with_overrides(settings, overrides).for_start(start_name(init))
     check_batch_size(batch_size)
-    neurons = list(neurons)
+    try:
+        neurons = list(neurons)
+    except TypeError:  # a single index: list(1) raised a bare TypeError
+        raise MEIError(f"neurons must be a sequence of neuron indices (e.g. [{neurons!r}]), got {neurons!r}") from None
     bar = Progress(s.steps * -(-len(neurons) * len(s.seeds) // batch_size), "3D-MEI batches", enabled=progress)
     try:
         return dict(mei_batches(encoder, neurons, init, s, batch_size=batch_size, progress=bar))

@@ -11,6 +11,8 @@ member near the best: while the best response is positive, a member below ``floo
 
 from __future__ import annotations
 
+import math
+import numbers
 import time
 from dataclasses import dataclass
 
@@ -98,7 +100,8 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     neuron = check_neuron(encoder, neuron)
     if isinstance(k, bool) or not isinstance(k, int) or k < 2:
         raise MEIError(f"k must be an integer >= 2, got {k!r}")
-    if not (diversity >= 0 and 0 <= floor <= 1):
+    if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in (diversity, floor)) or not (
+            diversity >= 0 and math.isfinite(diversity) and 0 <= floor <= 1):
         raise MEIError(f"need diversity >= 0 and floor in [0, 1], got {diversity!r}, {floor!r}")
     if settings.robust_pose > 0 or settings.robust_light > 0:  # the batch renders one view per member
         raise MEIError("diverse 3D-MEIs take no robust objective (robust_pose, robust_light); make them "

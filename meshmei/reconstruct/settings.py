@@ -370,6 +370,10 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
         raise ReconstructionError(f"stages must be integer vertex counts of at least {MIN_STAGE_VERTICES}, got "
                                   f"{s.stages!r} (stages=None runs one stage at the source's own size)")
     stages = tuple(int(x) for x in counts)
+    if s.centers is not None and not isinstance(s.centers, (numbers.Number, np.bool_, str)):
+        # indices of the source's vertices: a remeshed stage has other vertices (they were reused, silently)
+        raise ReconstructionError("centers given as vertex indices name the source's vertices; with stages every "
+                                  "stage is remeshed: give a number of kernels instead")
     if _is_count(s.centers) and s.centers > min(stages):  # the later stage failed after the earlier had run
         raise ReconstructionError(f"centers={s.centers!r} exceeds the smallest stage's {min(stages)} vertices; "
                                   f"a stage has at most one kernel per vertex")
