@@ -380,7 +380,8 @@ def _run_tune(args) -> int:
         members = [root / f"member_{i}" for i in range(k)]
         if not members or not all(m.is_dir() for m in members):
             raise MEIError(f"{root} should hold member_0 to member_{k - 1} ({k} diverse runs); it does not")
-    outs = [args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name for run_dir in members]
+    outs = [args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name
+            for run_dir in members]
     for run_dir, out in zip(members, outs):  # every member's output checked before the first sweep
         out = Path(out) if out is not None else run_dir / f"tuning_{args.what}"
         for source in {root, run_dir}:

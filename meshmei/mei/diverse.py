@@ -6,7 +6,8 @@ distance between its preprocessed image and the others', as a share of the large
 images of norm ``r`` are at most ``2 r`` apart), times the best member's response. A floor keeps every
 member near the best: while the best response is positive, a member below ``floor`` times it pays
 ``10 * best * (floor - f / best)^2``. (An encoder that does not rescale its images, a lab's model with
-``norm=None``, measures the distance as a share of the two images' norms summed.) The final iterate is kept (a per-member best would break the set).
+``norm=None``, measures the distance as a share of the two images' norms summed.) The final iterate is kept
+(a per-member best would break the set).
 """
 
 from __future__ import annotations

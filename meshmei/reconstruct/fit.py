@@ -62,7 +62,8 @@ class _SampledChamfer:
         i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5))
         self.far_share = samples_index.far_share
         # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
-        return ((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean() + ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean()
+        return (((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean()
+                + ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean())
 
 
 class _Evaluation:

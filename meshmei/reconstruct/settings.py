@@ -278,7 +278,8 @@ def _check_values(s: ReconstructionSettings) -> None:
             raise ReconstructionError(f"{name} must be True or False, got {getattr(s, name)!r}")
     if s.steps is not None and not (_is_count(s.steps) and s.steps >= 1):  # inf: an OverflowError before
         raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
-    if s.time_budget is not None and not (_is_real(s.time_budget) and s.time_budget > 0 and math.isfinite(s.time_budget)):
+    tb = s.time_budget
+    if tb is not None and not (_is_real(tb) and tb > 0 and math.isfinite(tb)):
         raise ReconstructionError(f"time_budget must be positive and finite, got {s.time_budget!r}")
     c = s.centers
     # a number of kernels (vertex indices, an array, are checked by the deformer); -5, 2.5 or True failed
