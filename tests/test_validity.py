@@ -134,10 +134,11 @@ def test_mei_at_ten_times_the_learning_rate_is_clean_in_every_iterate(init, monk
     monkeypatch.setattr(mo, "SeedScene", Scene)
     monkeypatch.setattr(mo, "minimize", minimize)
     cell = GaborSimpleCell()
-    # three seeds, as a default run: at ten times the rate a single seed's climb depends on rounding (from the
-    # torus, seed 0 climbed on one machine and not on another, where seed 2 did)
-    res = optimize_mei(cell, 0, init, steps=40, seeds=(0, 1, 2), image_size=32, n_vertices=150, lr=3e-2)
-    assert len(seen) == 120 and all(_clean(V, res.F, res.V0) for V in seen)
+    # from the torus three seeds, as a default run: at ten times the rate a single seed's climb depends on
+    # rounding (seed 0 climbed on one machine and not on another, where seed 2 did)
+    seeds = (0,) if init == "sheet" else (0, 1, 2)
+    res = optimize_mei(cell, 0, init, steps=40, seeds=seeds, image_size=32, n_vertices=150, lr=3e-2)
+    assert len(seen) == 40 * len(seeds) and all(_clean(V, res.F, res.V0) for V in seen)
     assert _clean(res.V, res.F, res.V0) and res.extra["guard"]["checks"] >= 40
     seen.clear()
     off = optimize_mei(cell, 0, init, steps=40, seeds=(0,), image_size=32, n_vertices=150, lr=3e-2,
