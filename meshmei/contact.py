@@ -172,8 +172,8 @@ def log_barrier(d: torch.Tensor, d_hat: float) -> torch.Tensor:
     element by element: zero with zero slope at ``d_hat``, unbounded as ``d`` falls to 0 (``d <= 0`` is
     clamped to the smallest positive float, a very large but finite value).
 
-    Outside the band the formula is never evaluated on ``d`` (it is on ``d_hat``, where it is zero), so an
-    infinite ``d`` gets a zero, not a NaN, gradient; ``d_hat <= 0`` is an empty band: zero everywhere (a
+    Outside the band the formula is never evaluated on ``d`` (it is on a stand-in of 1, and discarded), so
+    an infinite ``d`` gets a zero, not a NaN, gradient; ``d_hat <= 0`` is an empty band: zero everywhere (a
     quality floor of 0, from a start with a collapsed triangle, gives one)."""
     inside = d < d_hat if d_hat > 0 else torch.zeros_like(d, dtype=torch.bool)
     dc = torch.where(inside, d.clamp_min(torch.finfo(d.dtype).tiny), torch.ones_like(d))
