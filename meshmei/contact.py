@@ -279,6 +279,7 @@ class ContactBarrier:
         self.F = F
         self.Fn = np.ascontiguousarray(F.detach().cpu().numpy())
         self._Ft = torch.from_numpy(self.Fn)
+        self._least_vertices = int(self.Fn.max()) + 1  # the vertex count the faces need (checked every call)
         self.distance = float(distance)
         if margin is not None:
             check_positive("margin", margin)
@@ -399,10 +400,9 @@ class ContactBarrier:
         was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
         ``d - a - b >= distance``."""
         t0 = time.perf_counter()
-        n = int(self.Fn.max()) + 1
-        if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < n:
-            raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= {n}, got "
-                            f"{tuple(V.shape)}")
+        if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices:
+            raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= "
+                            f"{self._least_vertices}, got {tuple(V.shape)}")
         Vn = V.detach().cpu().double().numpy()
         self._since += 1
         moved = None if self._built_at is None else np.sqrt(_sqlen(Vn - self._built_at))

@@ -17,7 +17,7 @@ import torch
 
 from .errors import MeshError
 from .mesh import as_faces, check_mesh, check_rest_pose, numpy_mesh
-from .operators import corners, doublearea_from_corners, face_normals, sq_edge_sum_from_corners
+from .operators import corners, doublearea_from_corners, edges, face_normals, sq_edge_sum_from_corners
 
 __all__ = [
     "topology",
@@ -183,19 +183,16 @@ def edge_use(F) -> tuple[int, int]:
     return int((counts == 1).sum()), int((counts > 2).sum())
 
 
-def topology(F, n_vertices: int | None = None) -> dict:
+def topology(F) -> dict:
     """What a remesh must keep: the Euler characteristic ``V - E + F`` over the vertices the faces use
     (genus and boundary loops, per piece), and the non-manifold edges and vertices. Welding two pieces at a
     vertex (a bow-tie) changes the first and adds to the last."""
     F = as_faces(F)
     used = torch.unique(F)
-    E = torch.unique(torch.sort(torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), dim=1).values, dim=0)
     _, nonmanifold = edge_use(F)
-    n = int(F.max()) + 1 if n_vertices is None else int(n_vertices)
     ok = np.asarray(igl.is_vertex_manifold(np.ascontiguousarray(F.cpu().numpy())), dtype=bool).reshape(-1)
-    ok = ok[: n][used.cpu().numpy()]
-    return {"euler": int(len(used)) - int(len(E)) + int(F.shape[0]), "nonmanifold_edges": nonmanifold,
-            "nonmanifold_vertices": int((~ok).sum())}
+    return {"euler": int(len(used)) - len(edges(F)) + int(F.shape[0]), "nonmanifold_edges": nonmanifold,
+            "nonmanifold_vertices": int((~ok[used.cpu().numpy()]).sum())}
 
 
 def health_report(V, F, V0=None, *, self_intersections: bool = True) -> dict:

@@ -309,12 +309,12 @@ def _remesh_clean(V, F, n: int, clean: bool):
     V2, F2 = remesh(V, F, n)
     if not clean:
         return V2, F2, {}
-    before, shape = count_self_intersections(V, F), topology(F, V.shape[0])
+    before, shape = count_self_intersections(V, F), topology(F)
     for iterations in (None, 10, 3):
         if iterations is not None:
             V2, F2 = remesh(V, F, n, iterations=iterations)
         added = count_self_intersections(V2, F2) - before
-        changed = sorted(k for k, v in topology(F2, V2.shape[0]).items() if v != shape[k])
+        changed = sorted(k for k, v in topology(F2).items() if v != shape[k])
         if added <= 0 and not changed:
             return V2, F2, {"remesh_iterations": iterations or 5}
     return V, F, {"remesh_iterations": None, "remesh_refused_pairs": max(added, 0), "remesh_refused_topology": changed}
