@@ -265,6 +265,11 @@ def _is_count(x) -> bool:
     return _is_real(x) and math.isfinite(x) and int(x) == x
 
 
+def _is_scalar(x) -> bool:
+    """A single value (a number, a bool, a string), not a sequence of them: ``centers`` as a count."""
+    return isinstance(x, (numbers.Number, np.bool_, str))
+
+
 def _sequence(x):
     """``x`` as a tuple, or None where it is not a sequence (a number, a string)."""
     if isinstance(x, (str, bytes)) or not hasattr(x, "__iter__"):
@@ -284,7 +289,7 @@ def _check_values(s: ReconstructionSettings) -> None:
     c = s.centers
     # a number of kernels (vertex indices, an array, are checked by the deformer); -5, 2.5 or True failed
     # after the target was loaded
-    if isinstance(c, (numbers.Number, np.bool_, str)) and not (_is_count(c) and c >= 1):
+    if _is_scalar(c) and not (_is_count(c) and c >= 1):
         raise ReconstructionError(f"centers must be None, a positive integer (a number of RBF kernels) or vertex "
                                   f"indices, got {c!r}")
     for name in ("lr", "r_cut", "sigma_factor", "contact_distance"):
@@ -371,7 +376,7 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
         raise ReconstructionError(f"stages must be integer vertex counts of at least {MIN_STAGE_VERTICES}, got "
                                   f"{s.stages!r} (stages=None runs one stage at the source's own size)")
     stages = tuple(int(x) for x in counts)
-    if s.centers is not None and not isinstance(s.centers, (numbers.Number, np.bool_, str)):
+    if s.centers is not None and not _is_scalar(s.centers):
         # indices of the source's vertices: a remeshed stage has other vertices (they were reused, silently)
         raise ReconstructionError("centers given as vertex indices name the source's vertices; with stages every "
                                   "stage is remeshed: give a number of kernels instead")
