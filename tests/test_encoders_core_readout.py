@@ -40,15 +40,21 @@ def test_core_readout_model_eval_training_and_state_dict(tmp_path):
     assert m2(x).shape == (3, 2)
 
 
-def test_images_of_another_dtype_than_the_weights_are_a_clear_error():
+def test_images_of_another_dtype_than_the_weights_are_fed_in_the_models_dtype():
     """A float64 run with the (float32) demo model failed inside conv2d ("Input type (double) and bias type
-    (float)"); the model now names both dtypes and both ways out, and a converted model runs."""
-    from meshmei.errors import EncoderError
+    (float)"), then with meshmei's own error; dtype comes from the inputs (DESIGN), so the model now sees the
+    images in its dtype and answers in theirs, gradient included, and a converted model runs as before."""
     from meshmei.mei import optimize_mei
 
     model = CoreReadoutModel(3).eval()
-    with pytest.raises(EncoderError, match=r"^the model's weights are torch.float32 but the images are "
-                                           r"torch.float64: render in the model's dtype \(dtype='float32'\)"):
-        optimize_mei(model, 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
+    x = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(0))
+    x64 = x.double().requires_grad_()
+    out = model(x64)
+    assert out.dtype == torch.float64
+    torch.testing.assert_close(out, model(x).double(), rtol=1e-5, atol=1e-6)  # float32 inside (preprocessed in float64)
+    out.sum().backward()
+    assert x64.grad.dtype == torch.float64 and bool(torch.isfinite(x64.grad).all()) and float(x64.grad.abs().sum()) > 0
+    res = optimize_mei(model, 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
+    assert res.V.dtype == torch.float64 and math.isfinite(res.activation)
     res = optimize_mei(model.double(), 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
     assert res.V.dtype == torch.float64 and math.isfinite(res.activation)

@@ -361,3 +361,21 @@ def test_uv_without_a_texture_and_a_camera_inside_znear_are_errors():
         render(V, F, uv=torch.rand(V.shape[0], 2), settings=RenderSettings(image_size=16))
     with pytest.raises(RenderError, match=r"distance must be > znear \(0.1\)"):
         camera_from_angles(0.0, 0.0, 0.05)
+
+
+def test_a_renderer_given_new_faces_renders_them():
+    """The per-device copy of the faces was filled once: after ``r.F = ...`` (a remesh) the old faces were
+    drawn, or checked against the new vertices."""
+    V, F = initial_mesh("sphere", n_vertices=200)
+    st = RenderSettings(image_size=16)
+    r = Renderer(F, settings=st)
+    before = r(V)
+    half = F[: F.shape[0] // 2]
+    r.F = half
+    torch.testing.assert_close(r(V), render(V, half, settings=st), rtol=0, atol=0)
+    assert not torch.equal(r(V), before)
+    V2, F2 = initial_mesh("sphere", n_vertices=100)  # another vertex count too
+    r.F = F2
+    torch.testing.assert_close(r(V2), render(V2, F2, settings=st), rtol=0, atol=0)
+    with pytest.raises(MeshError):
+        r.F = F2.double()  # faces are checked on the way in, as at construction

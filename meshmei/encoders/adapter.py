@@ -29,12 +29,13 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as nnf
 
 from .._checks import check_positive
 from ..errors import EncoderError
-from .base import DEFAULT_NORM, Encoder, Preprocess, eval_mode
+from .base import DEFAULT_NORM, Encoder, Preprocess, _check_images, eval_mode
 
 __all__ = ["ModelEncoder", "PixelPreprocess", "encoder_from_model", "load_model", "model_source", "model_fingerprint"]
 
@@ -136,27 +137,140 @@ def hash_state(h, module: torch.nn.Module) -> None:
         h.update(t.view(torch.uint8).numpy().tobytes())
 
 
+_PLAIN = (str, int, float, bool, complex, type(None))
+
+
+def _feed(h, value, depth: int = 4, seen: set | None = None) -> None:
+    """Feed a value that a model computes with to the hash ``h``: numbers and strings by ``repr``, tensors and
+    arrays by value, containers item by item, a function by its code and the values it holds (closure cells,
+    defaults), a ``functools.partial`` by its function and arguments, other objects by their type and
+    attributes, ``depth`` levels deep. Modules only leave a mark: their state is hashed where they are held."""
+    seen = set() if seen is None else seen
+    if isinstance(value, _PLAIN):
+        h.update(f"{type(value).__name__}:{value!r};".encode())
+        return
+    if isinstance(value, torch.nn.Module):
+        h.update(b"module;")
+        return
+    if depth < 0 or id(value) in seen:
+        h.update(b"...;")
+        return
+    seen.add(id(value))
+    if isinstance(value, torch.Tensor):
+        t = value.detach().contiguous().cpu().reshape(-1)
+        h.update(f"tensor:{t.dtype}:{tuple(value.shape)};".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes())
+    elif isinstance(value, np.ndarray):
+        h.update(f"array:{value.dtype}:{value.shape};".encode())
+        h.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, (list, tuple)):
+        h.update(f"{type(value).__name__}:{len(value)};".encode())
+        for v in value:
+            _feed(h, v, depth - 1, seen)
+    elif isinstance(value, dict):
+        h.update(f"dict:{len(value)};".encode())
+        for k in sorted(value, key=repr):
+            _feed(h, k, depth - 1, seen)
+            _feed(h, value[k], depth - 1, seen)
+    elif isinstance(value, functools.partial):
+        h.update(b"partial;")
+        for v in (value.func, value.args, value.keywords):
+            _feed(h, v, depth - 1, seen)
+    elif inspect.ismethod(value):
+        h.update(b"method;")
+        _feed(h, value.__func__, depth - 1, seen)
+        _feed(h, value.__self__, depth - 1, seen)
+    elif inspect.isfunction(value):
+        code = value.__code__
+        h.update(f"function:{value.__qualname__};".encode() + code.co_code + repr(code.co_consts).encode())
+        _feed(h, _held_values(value), depth - 1, seen)
+    else:
+        h.update(f"object:{type(value).__qualname__};".encode())
+        _feed(h, _attributes(value), depth - 1, seen)
+
+
+def _held_values(fn) -> list:
+    """What a function holds beyond its code: its closure cells' contents and its defaults."""
+    return ([c.cell_contents for c in (fn.__closure__ or ()) if _cell_full(c)] + list(fn.__defaults__ or ())
+            + [fn.__kwdefaults__ or {}])
+
+
+def _attributes(obj) -> dict:
+    """An object's own attributes, without private ones and a module's ``training`` flag."""
+    return {k: v for k, v in getattr(obj, "__dict__", {}).items() if not k.startswith("_") and k != "training"}
+
+
+def _hash_module(h, m: torch.nn.Module) -> None:
+    """Feed a module to ``h``: its tree as printed, its parameters and buffers, and for each module class
+    defined outside torch its source and its instances' plain attributes (``self.gain = 2.0``), which neither
+    the print nor the state holds."""
+    h.update(repr(m).encode())  # the module tree with each module's settings (kernel sizes, Gabor parameters)
+    hash_state(h, m)
+    for cls in {type(sub) for sub in m.modules()}:
+        if not cls.__module__.startswith("torch."):
+            h.update(cls.__qualname__.encode())
+            try:
+                h.update(inspect.getsource(cls).encode())
+            except (OSError, TypeError):
+                pass
+    for sub in m.modules():
+        attrs = _attributes(sub) if not type(sub).__module__.startswith("torch.") else None
+        if attrs:  # fed only where there are some: the fingerprints of models without any stay as they were
+            _feed(h, attrs)
+
+
 def model_fingerprint(encoder: "ModelEncoder") -> str:
     """A hash of what a :class:`ModelEncoder` computes with: its modules' tree as printed (each module's
-    settings), every parameter and buffer (names, dtypes, shapes and values), the code of a plain callable,
-    and the source of module classes defined outside torch. Two encoders with the same fingerprint and options give the same responses; a changed
-    weight or forward gives another fingerprint (a population folder then refuses to mix them)."""
+    settings), every parameter and buffer (names, dtypes, shapes and values), the source and plain attributes
+    of module classes defined outside torch, the code of a plain callable and the values it holds (closure
+    cells, defaults, a partial's arguments, a callable object's attributes), and the ``output`` and
+    ``forward_kwargs`` options. Two encoders with the same fingerprint and options give the same responses;
+    a changed weight, attribute, held value or forward gives another fingerprint (a population folder then
+    refuses to mix them)."""
     h = hashlib.sha256()
     for m in (*encoder.models, *encoder.held):
-        h.update(repr(m).encode())  # the module tree with each module's settings (kernel sizes, Gabor parameters)
-        hash_state(h, m)
-        for cls in {type(sub) for sub in m.modules()}:
-            if not cls.__module__.startswith("torch."):
-                h.update(cls.__qualname__.encode())
-                try:
-                    h.update(inspect.getsource(cls).encode())
-                except (OSError, TypeError):
-                    pass
+        _hash_module(h, m)
     for c in encoder.callables:
         code = getattr(c, "__code__", None) or getattr(getattr(c, "func", None), "__code__", None)
         h.update(getattr(c, "__qualname__", type(c).__qualname__).encode())
         if code is not None:
             h.update(code.co_code + repr(code.co_consts).encode())
+        held = _callable_values(c)
+        if held:  # fed only where there are some, as above
+            _feed(h, held)
+    options = {"forward_kwargs": {k: v for k, v in encoder.forward_kwargs.items() if not isinstance(v, _PLAIN)}}
+    if encoder.output is not None:
+        options["output"] = encoder.output
+    if options["forward_kwargs"] or "output" in options:  # plain keyword values are in the spec already
+        _feed(h, options)
+    return h.hexdigest()[:16]
+
+
+def _callable_values(c) -> list:
+    """The values a plain callable computes with besides its code and the modules it holds (hashed with
+    those): a partial's arguments (keywords as ``(name, value)``), a function's closure cells and defaults, a
+    callable object's or bound method's object's attributes."""
+    if isinstance(c, functools.partial):
+        values = [*c.args, *sorted(c.keywords.items()), *_callable_values(c.func)]
+    elif inspect.ismethod(c):
+        values = [] if isinstance(c.__self__, torch.nn.Module) else [_attributes(c.__self__)]
+    elif inspect.isfunction(c):
+        values = [*_held_values(c)[:-1], *sorted((c.__kwdefaults__ or {}).items())]
+    else:
+        values = [_attributes(c)]
+
+    def nothing(v):  # a module (hashed as held), a keyword holding one, an object without attributes
+        return (isinstance(v, torch.nn.Module) or (isinstance(v, tuple) and len(v) == 2 and isinstance(v[1], torch.nn.Module))
+                or (isinstance(v, dict) and not v))
+
+    return [v for v in values if not nothing(v)]
+
+
+def encoder_fingerprint(encoder: torch.nn.Module) -> str:
+    """A hash of a user's own :class:`~meshmei.encoders.Encoder` subclass: as :func:`_hash_module` (its
+    parameters and buffers, class source and plain attributes)."""
+    h = hashlib.sha256()
+    _hash_module(h, encoder)
     return h.hexdigest()[:16]
 
 
@@ -219,20 +333,26 @@ class ModelEncoder(Encoder):
         return torch.device("cpu")
 
     def inputs(self, images: torch.Tensor, neurons=None, *, preprocessed: bool = False) -> tuple:
-        if isinstance(images, torch.Tensor) and images.ndim == 4 and tuple(images.shape[-2:]) != self.image_size:
+        _check_images(images)  # before the resize, whose own errors come from deep inside torch
+        if tuple(images.shape[-2:]) != self.image_size:
             if preprocessed:
                 raise EncoderError(f"preprocessed images must be {self.image_size[0]} x {self.image_size[1]}, "
                                    f"the model's size; got {tuple(images.shape[-2:])}")
             images = nnf.interpolate(images, size=self.image_size, mode="bilinear", antialias=True,
                                      align_corners=False)
-        if isinstance(images, torch.Tensor) and images.device != self.device:
+        if images.device != self.device:
             raise EncoderError(f"images are on {images.device} but the model is on {self.device}; render on the "
                                f"model's device or move the model")
         return super().inputs(images, neurons, preprocessed=preprocessed)
 
     def all_responses(self, z: torch.Tensor) -> torch.Tensor:
-        """Every neuron's response ``(B, N)`` to preprocessed images ``z`` ``(B, 1, H, W)`` (the ensemble mean)."""
-        x = z.expand(-1, self.channels, -1, -1) if self.channels != 1 else z
+        """Every neuron's response ``(B, N)`` to preprocessed images ``z`` ``(B, 1, H, W)`` (the ensemble mean),
+        in ``z``'s dtype. The models see the images in their own (floating) dtype: a float64 run feeds a float32
+        model float32 images, and gets its responses back in float64 (with their gradient)."""
+        dtype = self.model_dtype
+        x = z if dtype is None or z.dtype == dtype else z.to(dtype)
+        # a copy, not an expanded view: a model that edits its input in place (x.sub_(mean)) can write to it
+        x = x.repeat(1, self.channels, 1, 1) if self.channels != 1 else x
         outs = []
         for i, m in enumerate((*self.models, *self.callables)):
             try:
@@ -245,7 +365,17 @@ class ModelEncoder(Encoder):
             outs.append(self._checked(out, x, i))
         if len(outs) > 1 and len({o.shape for o in outs}) > 1:
             raise EncoderError(f"the ensemble's models return different shapes: {[tuple(o.shape) for o in outs]}")
-        return outs[0] if len(outs) == 1 else torch.stack(outs).mean(0)
+        out = outs[0] if len(outs) == 1 else torch.stack(outs).mean(0)
+        return out if out.dtype == z.dtype else out.to(z.dtype)
+
+    @property
+    def model_dtype(self) -> torch.dtype | None:
+        """The dtype of the models' first floating parameter or buffer (None for a model without any): what
+        the models are fed."""
+        for t in (*self.models.parameters(), *self.held.parameters(), *self.models.buffers(), *self.held.buffers()):
+            if t.is_floating_point():
+                return t.dtype
+        return None
 
     def _member(self, i: int) -> str:
         n = len(self.models) + len(self.callables)
@@ -345,6 +475,8 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
         if not callable(m):
             raise EncoderError(f"model must be a torch.nn.Module or a callable, got {type(m).__name__}")
     size = (image_size, image_size) if isinstance(image_size, int) and not isinstance(image_size, bool) else image_size
+    if isinstance(size, (str, bytes)):  # iterated, a string would be read character by character
+        raise EncoderError(f"image_size must be an int or (H, W), got {image_size!r}")
     try:
         size = tuple(_positive_int("image_size", s) for s in size)
     except TypeError:

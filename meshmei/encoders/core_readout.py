@@ -151,10 +151,8 @@ class CoreReadoutModel(Encoder):
 
     def respond(self, z, idx):
         w = next(self.readout.parameters(), None)
-        if w is not None and z.dtype != w.dtype:  # conv2d's own message names a bias, deep inside torch
-            raise EncoderError(f"the model's weights are {w.dtype} but the images are {z.dtype}: render in "
-                               f"the model's dtype (dtype={str(w.dtype).removeprefix('torch.')!r}) or convert the "
-                               f"model (model.to({z.dtype}))")
+        if w is not None and z.dtype != w.dtype:  # the model computes in its own dtype; responses in z's
+            return self.readout(self.core(z.to(w.dtype)), idx).to(z.dtype)
         return self.readout(self.core(z), idx)
 
     @classmethod

@@ -6,7 +6,7 @@ import functools
 import hashlib
 
 from ..errors import EncoderError, MEIError
-from .adapter import ModelEncoder, hash_state, load_model, model_fingerprint
+from .adapter import ModelEncoder, encoder_fingerprint, hash_state, load_model, model_fingerprint
 from .base import Encoder
 from .core_readout import is_demo_model, load_demo_model
 from .gabor import GaborComplexCell, GaborSimpleCell
@@ -31,8 +31,8 @@ def encoder_spec(encoder: Encoder) -> dict:
                     forward_kwargs={k: v for k, v in encoder.forward_kwargs.items()
                                     if isinstance(v, (str, int, float, bool, type(None)))},
                     fingerprint=model_fingerprint(encoder))
-    else:
-        spec["kind"] = "custom"
+    else:  # a user's own Encoder subclass: what it computes with, so that a changed one is not taken for it
+        spec.update(kind="custom", fingerprint=encoder_fingerprint(encoder))
     return spec
 
 

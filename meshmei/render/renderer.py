@@ -177,13 +177,22 @@ class Renderer:
     """
 
     def __init__(self, F, *, camera: Camera | None = None, light=None, settings: RenderSettings | None = None):
-        self.F = as_faces(F)  # float or bool faces are an error, as in render, not truncated
-        self._F_on = {self.F.device: self.F}  # one copy per device, so the topology cache keeps hitting
+        self.F = F
         self.camera = camera if camera is not None else Camera()
         self.light = light
         self.settings = settings if settings is not None else RenderSettings()
         if not isinstance(self.settings, RenderSettings):
             raise RenderError(f"settings must be a RenderSettings, got {type(self.settings).__name__}")
+
+    @property
+    def F(self) -> torch.Tensor:
+        """The faces, ``(m, 3)`` int64; setting them (a remesh) replaces the per-device copies."""
+        return self._F
+
+    @F.setter
+    def F(self, F) -> None:
+        self._F = as_faces(F)  # float or bool faces are an error, as in render, not truncated
+        self._F_on = {self._F.device: self._F}  # one copy per device, so the topology cache keeps hitting
 
     def __call__(self, V, **kw):
         kw.setdefault("camera", self.camera)

@@ -1,0 +1,179 @@
+"""What tells two lab models apart (the fingerprint a population folder and a saved run are checked against),
+and the model's side of the boundary: its dtype, its channels, the images it is given."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import pytest
+import torch
+
+from meshmei.encoders import Encoder, Preprocess, encoder_from_model, encoder_identity, model_fingerprint
+from meshmei.errors import EncoderError, MEIError
+from meshmei.population.store import config_hash
+
+SIZE = 16
+
+
+def _weights(seed, n=4):
+    return torch.randn(n, SIZE * SIZE, generator=torch.Generator().manual_seed(seed))
+
+
+def _closure(seed):
+    w = _weights(seed)
+    return lambda x: x.flatten(1) @ w.T  # the weights live in the closure, not in a module
+
+
+def _scaled(x, scale):
+    return scale * x.flatten(1)[:, :3]
+
+
+class Gain(torch.nn.Module):
+    """A module whose plain attribute (not a parameter or buffer) changes its responses."""
+
+    def __init__(self, g):
+        super().__init__()
+        self.g = g
+        self.conv = torch.nn.Conv2d(1, 3, 3)
+        with torch.no_grad():
+            self.conv.weight.copy_(torch.linspace(-1, 1, 27).reshape(3, 1, 3, 3))
+            self.conv.bias.zero_()
+
+    def forward(self, x):
+        return self.g * self.conv(x).mean((2, 3))
+
+
+class Lin(Encoder):
+    """A user's own Encoder subclass."""
+
+    def __init__(self, seed):
+        super().__init__(Preprocess(0.5, 0.2))
+        self.w = torch.nn.Parameter(_weights(seed))
+
+    @property
+    def n_neurons(self):
+        return 4
+
+    def respond(self, z, idx):
+        return (z.flatten(1) @ self.w.T).index_select(1, idx)
+
+
+def _enc(model, **kw):
+    return encoder_from_model(model, mean=0.5, std=0.2, image_size=SIZE, **kw)
+
+
+def _two_heads(x):
+    return x.flatten(1)[:, :3], -x.flatten(1)[:, :3]
+
+
+def _kw_model(x, scale):
+    return scale * x.flatten(1)[:, :3]
+
+
+PAIRS = {  # two encoders that answer differently, in each way a review found them taken for one another
+    "closure weights": lambda: (_enc(_closure(0)), _enc(_closure(1))),
+    "partial argument": lambda: (_enc(functools.partial(_scaled, scale=1.0)), _enc(functools.partial(_scaled, scale=-1.0))),
+    "module attribute": lambda: (_enc(Gain(1.0)), _enc(Gain(-1.0))),
+    "custom encoder": lambda: (Lin(0), Lin(1)),
+    "output picked": lambda: (_enc(_two_heads, output=0), _enc(_two_heads, output=1)),
+    "tensor keyword": lambda: (_enc(_kw_model, forward_kwargs={"scale": torch.tensor(1.0)}),
+                               _enc(_kw_model, forward_kwargs={"scale": torch.tensor(-1.0)})),
+}
+
+
+@pytest.mark.parametrize("case", list(PAIRS))
+def test_encoders_that_answer_differently_have_different_identities_and_equal_ones_the_same(case):
+    a, b = PAIRS[case]()
+    a2, _ = PAIRS[case]()  # built again the same way: the same model
+    x = torch.rand(2, 1, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
+    assert not torch.allclose(a(x), b(x))
+    assert config_hash(encoder_identity(a)) != config_hash(encoder_identity(b))
+    torch.testing.assert_close(a(x), a2(x), rtol=0, atol=0)
+    assert config_hash(encoder_identity(a)) == config_hash(encoder_identity(a2))
+
+
+def test_models_without_held_values_keep_the_fingerprint_they_had():
+    """The fingerprint grew to cover held values; models that hold none (most) keep their old fingerprint, so
+    their population folders resume: the values here are the fingerprints before the change."""
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(1, 4, 3), torch.nn.ReLU(), torch.nn.AdaptiveAvgPool2d(1),
+                              torch.nn.Flatten())
+    assert model_fingerprint(_enc(net)) == "4dae3dcd64fbc24d"
+    assert model_fingerprint(_enc(net, forward_kwargs={})) == "4dae3dcd64fbc24d"
+    assert model_fingerprint(_enc([net, net])) == "7c1190be5c33aeb8"
+
+
+def test_a_population_folder_refuses_another_model_with_the_same_code(tmp_path):
+    """A closure over other weights resumed a folder and mixed its results into the table."""
+    from meshmei.population.run import run_population
+
+    kw = dict(steps=2, seeds=(0,), image_size=SIZE, n_vertices=64, pixel_steps=0, progress=False, batch_size=2)
+    run_population(_enc(_closure(0)), [0], tmp_path / "pop", **kw)
+    with pytest.raises(MEIError):
+        run_population(_enc(_closure(1)), [0, 1], tmp_path / "pop", **kw)
+    rows = run_population(_enc(_closure(0)), [0, 1], tmp_path / "pop", **kw)  # the same model resumes
+    assert [r["neuron"] for r in rows] == [0, 1]
+
+
+class Net(torch.nn.Module):
+    def __init__(self, channels=1):
+        super().__init__()
+        torch.manual_seed(0)
+        self.c = torch.nn.Conv2d(channels, 4, 3)
+
+    def forward(self, x):
+        return self.c(x).mean((2, 3))
+
+
+def test_a_float64_run_feeds_a_float32_model_in_its_dtype_and_a_float64_model_is_taken():
+    from meshmei.mei import optimize_mei
+
+    enc = _enc(Net())
+    x = torch.rand(2, 1, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
+    x64 = x.double().requires_grad_()
+    out = enc(x64)
+    assert out.dtype == torch.float64
+    torch.testing.assert_close(out, enc(x).double(), rtol=1e-5, atol=1e-6)
+    out.sum().backward()
+    assert bool(torch.isfinite(x64.grad).all()) and float(x64.grad.abs().sum()) > 0
+    res = optimize_mei(enc, 0, "sheet", steps=2, image_size=SIZE, seeds=(0,), n_vertices=64, dtype="float64")
+    assert res.V.dtype == torch.float64 and math.isfinite(res.activation)
+    enc64 = _enc(Net().double())  # refused at the probe before (float32 gray images)
+    assert enc64(x).dtype == torch.float32
+    torch.testing.assert_close(enc64(x), enc(x), rtol=1e-5, atol=1e-6)
+
+
+class Inplace(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(0)
+        self.c = torch.nn.Conv2d(3, 4, 3)
+
+    def forward(self, x):
+        x = x.sub_(0.1)  # an in-place normalisation, as exported models do
+        return self.c(x).mean((2, 3))
+
+
+def test_a_three_channel_model_may_edit_its_input_in_place():
+    enc = encoder_from_model(Inplace(), mean=0.5, std=0.2, image_size=SIZE, channels=3)
+    x = torch.rand(2, 1, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
+    ref = Inplace()
+    with torch.no_grad():
+        want = ref(enc.preprocess(x).repeat(1, 3, 1, 1))
+    torch.testing.assert_close(enc(x), want)
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.uint8])
+def test_images_that_are_not_float_are_refused_at_any_size(dtype):
+    enc = _enc(Net())
+    for size in (SIZE, 20):  # 20: resized first, which failed inside torch's interpolate
+        with pytest.raises(EncoderError, match=r"^images must be a float tensor"):
+            enc(torch.ones(2, 1, size, size).to(dtype))
+    with pytest.raises(EncoderError, match=r"^images must have shape \(B, 1, H, W\) with B, H, W >= 1"):
+        enc(torch.ones(2, 1, 0, 20))
+
+
+def test_an_image_size_given_as_a_string_is_named_whole():
+    with pytest.raises(EncoderError, match=r"^image_size must be an int or \(H, W\), got '16'$"):
+        encoder_from_model(Net(), mean=0.5, std=0.2, image_size="16")
