@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import uuid
@@ -11,8 +12,12 @@ from typing import Callable
 __all__ = ["atomic_directory", "check_apart", "check_output", "check_replaceable", "RESULT_MARKERS"]
 
 # One of these files is in every folder meshmei writes (a 3D-MEI run, a diverse set, a sweep, a
-# reconstruction): a folder that holds none of them (and is not empty) is not meshmei's to replace.
-RESULT_MARKERS = ("summary.json", "diversity.json", "sweep.json", "history.json")
+# reconstruction), with the keys listed: a folder that holds none of them (and is not empty) is not meshmei's
+# to replace. The names alone are common (a training script's history.json): the keys are checked too.
+RESULT_MARKERS = {"summary.json": ("format", "complete", "neuron", "activation"),
+                  "diversity.json": ("responses", "dissimilarity"),
+                  "sweep.json": ("format", "complete", "kind", "axes"),
+                  "history.json": ("settings", "final", "history", "metrics")}
 
 
 def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: bool = False,
@@ -25,7 +30,7 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     rename onto it fails, and the new folder is removed).
 
     ``overwrite`` replaces only what meshmei wrote: an empty folder, or one holding one of
-    :data:`RESULT_MARKERS`. A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in
+    :data:`RESULT_MARKERS` with meshmei's keys in it. A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in
     the way is never removed.
 
     Raises
@@ -92,6 +97,19 @@ def check_replaceable(directory, error) -> None:
     if directory.is_symlink() or not directory.is_dir():
         raise error(f"{directory} is {'a link' if directory.is_symlink() else 'a file'}, not a result folder; "
                     "it is not replaced, even with overwrite: choose another output path")
-    if any(directory.iterdir()) and not any((directory / name).is_file() for name in RESULT_MARKERS):
-        raise error(f"{directory} holds files meshmei did not write (none of {', '.join(RESULT_MARKERS)}); it is "
-                    "not replaced, even with overwrite: choose another output folder, or empty it yourself")
+    if any(directory.iterdir()) and not any(_is_marker(directory / name, keys) for name, keys in RESULT_MARKERS.items()):
+        raise error(f"{directory} holds files meshmei did not write (no result file of meshmei's: "
+                    f"{', '.join(RESULT_MARKERS)}); it is not replaced, even with overwrite: choose another output "
+                    "folder, or empty it yourself")
+
+
+def _is_marker(path: Path, keys) -> bool:
+    """Whether ``path`` is a JSON object with all of ``keys``: a result file meshmei wrote."""
+    if not path.is_file():
+        return False
+    try:
+        with open(path) as fh:
+            data = json.load(fh)
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and all(k in data for k in keys)

@@ -188,9 +188,22 @@ def _mei_n_vertices(args, init) -> int:
     return int(init[0].shape[0])
 
 
+def _inputs_apart(out, inputs, error) -> None:
+    """Refuse an output folder that is, or holds, one of the command's input files (a model file, possibly
+    ``path:factory``; a start or target mesh file): ``--overwrite`` would delete it."""
+    for given in inputs:
+        if given is None:
+            continue
+        text = str(given)
+        path = Path(text) if Path(text).exists() or ":" not in text else Path(text.rsplit(":", 1)[0])
+        if path.exists():
+            check_apart(out, path, error, f"the input {text}")
+
+
 def _run_mei(args) -> int:
     out = Path(args.out)
     check_output(out, overwrite=args.overwrite, error=MEIError, how="--overwrite")  # before the run, not after it
+    _inputs_apart(out, (args.model, args.init), MEIError)
     encoder = _cli_encoder(args)
     init = _mei_start(args.init)
     n_vertices = _mei_n_vertices(args, init)
@@ -300,6 +313,7 @@ def _add_reconstruct(sub) -> None:
 def _run_reconstruct(args) -> int:
     # Check the output folder and resolve both meshes first: bad input fails before any optimisation starts.
     check_output(args.out, overwrite=args.overwrite, error=ReconstructionError, how="--overwrite")
+    _inputs_apart(args.out, (args.init, args.target), ReconstructionError)
     if args.n_vertices is not None and args.init not in SOURCE_NAMES:
         raise ReconstructionError(f"--n-vertices {args.n_vertices} sets the size of a generated --init "
                                   f"({', '.join(SOURCE_NAMES)}), not of the mesh file {args.init}; remesh the file "

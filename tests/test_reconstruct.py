@@ -792,11 +792,12 @@ def test_cli_refuses_an_existing_out_folder_without_overwrite(tmp_path, capsys, 
     out_dir = tmp_path / "run"
     args = ["--init", "sphere", "--n-vertices", 100, "--target", "bunny", "--out", out_dir, "--steps", 2,
             "--samples", 300, "--eval-samples", 500, "--stages", "none", "--no-progress"]
-    out_dir.mkdir()
-    (out_dir / "summary.json").write_text("{}")
+    rc, out = _cli(args, capsys)
+    assert rc == 0, out.err
+    first = (out_dir / "history.json").stat().st_mtime_ns
     rc, out = _cli(args, capsys)
     assert rc == 2 and f"{out_dir} exists; pass --overwrite to replace it" in out.err
-    assert sorted(p.name for p in out_dir.iterdir()) == ["summary.json"]
+    assert (out_dir / "history.json").stat().st_mtime_ns == first
     rc, out = _cli(args + ["--overwrite"], capsys)
     assert rc == 0, out.err
     assert sorted(p.name for p in out_dir.iterdir()) == ["history.json", "loss.png", "mesh.obj", "metrics.png"]
@@ -811,6 +812,37 @@ def test_cli_refuses_an_existing_out_folder_without_overwrite(tmp_path, capsys, 
     rc, out = _cli(args[:7] + [theirs] + args[8:] + ["--overwrite"], capsys)
     assert rc == 2 and "holds files meshmei did not write" in out.err and runs == []
     assert [p.name for p in theirs.iterdir()] == ["precious.txt"]
+    # a result file's name is not enough (a training script's history.json): the folder, with the scan being
+    # fitted in it, was replaced
+    (theirs / "history.json").write_text(json.dumps({"epoch": [1, 2], "loss": [0.9, 0.5]}))
+    rc, out = _cli(args[:7] + [theirs] + args[8:] + ["--overwrite"], capsys)
+    assert rc == 2 and "holds files meshmei did not write" in out.err and runs == []
+    assert sorted(p.name for p in theirs.iterdir()) == ["history.json", "precious.txt"]
+
+
+def test_cli_refuses_an_out_folder_that_holds_an_input(tmp_path, capsys, monkeypatch):
+    """``--target run/scan.obj --out run --overwrite`` deleted the scan being fitted, once the run was done."""
+    import meshmei.cli as cli_module
+    from meshmei.mesh import save_mesh
+
+    out_dir = tmp_path / "run"
+    args = ["--init", "sphere", "--n-vertices", 100, "--target", "bunny", "--out", out_dir, "--steps", 2,
+            "--samples", 300, "--eval-samples", 500, "--stages", "none", "--no-progress"]
+    assert _cli(args, capsys)[0] == 0  # a meshmei result: replaceable as such
+    V, F = initial_mesh("sphere", n_vertices=100)
+    scan = out_dir / "scans" / "scan.obj"
+    scan.parent.mkdir()
+    save_mesh(scan, V * 2.0, F)
+    runs = []
+    monkeypatch.setattr(cli_module, "reconstruct", lambda *a, **k: runs.append(a))
+    for flag, path in (("--target", scan), ("--init", scan), ("--target", out_dir)):
+        given = [str(x) for x in args]
+        given[given.index(flag) + 1] = str(path)
+        if flag == "--init":
+            given[given.index("--n-vertices"):given.index("--n-vertices") + 2] = []
+        rc, out = _cli(given + ["--overwrite"], capsys)
+        assert rc == 2 and f"the output folder {out_dir.resolve()} is the input" in out.err, out.err
+        assert runs == [] and scan.is_file()
 
 
 def test_centers_given_as_vertex_indices_are_saved_as_lists(sphere, tmp_path):
