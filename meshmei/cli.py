@@ -319,7 +319,8 @@ def _run_reconstruct(args) -> int:
                                   f"({', '.join(SOURCE_NAMES)}), not of the mesh file {args.init}; remesh the file "
                                   f"instead, or leave --n-vertices out")
     target = target_surface(args.target)
-    V, F, placement = resolve_source(args.init, args.n_vertices or DEFAULT_N_VERTICES, torch.float32, target)
+    V, F, placement = resolve_source(args.init, DEFAULT_N_VERTICES if args.n_vertices is None else args.n_vertices,
+                                      torch.float32, target)
     if placement is not None:
         print(f"{args.init}: {V.shape[0]} vertices, placed {placement}")
     stages, fractions, overrides = schedule_from_text(args.stages, args.method, V.shape[0], n_samples=args.samples)

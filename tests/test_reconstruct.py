@@ -967,3 +967,34 @@ def test_a_results_settings_replay_a_run_whose_stages_change_the_method():
     assert [(st["method"], st["lr"]) for st in again.info["stages"]] == [("largesteps", 0.05), ("rbf", 0.006)]
     assert [(st["method"], st["lr"]) for st in r.info["stages"]] == [("largesteps", 0.05), ("rbf", 0.006)]
     assert torch.equal(again.V, r.V)
+
+
+def test_a_kernel_count_at_a_stage_size_takes_the_vertices_the_remesh_gave(sphere):
+    """centers=300 with a 300-vertex stage passed the settings check, and the stage, remeshed to 296
+    vertices, failed after the first stage had run; centers=10.0 passed the check and the deformer refused it."""
+    res = reconstruct(sphere, "bunny", "rbf", steps=4, stages=(380, 300), centers=300, **SMALL)
+    for st in res.info["stages"]:
+        assert st["n_kernels"] == min(300, st["n_vertices"])
+    assert res.info["stages"][1]["n_vertices"] < 300  # the case that failed: fewer vertices than kernels asked
+    res = reconstruct(sphere, "bunny", "rbf", steps=2, centers=10.0, **SMALL)
+    assert res.settings.centers == 10 and isinstance(res.settings.centers, int)
+    assert res.info["stages"][0]["n_kernels"] == 10
+
+
+def test_a_method_given_with_another_methods_settings_runs_with_its_own_defaults(sphere):
+    """``reconstruct(..., "largesteps", settings=vertex_result.settings)`` ran largesteps at the vertex
+    method's lr, Adam and Laplacian weight; rbf from vertex settings refused vertex's values."""
+    kw = dict(steps=2, **SMALL)
+    rv = reconstruct(sphere, "bunny", "vertex", **kw)
+    fresh = reconstruct(sphere, "bunny", "largesteps", **kw).settings
+    swapped = reconstruct(sphere, "bunny", "largesteps", settings=rv.settings).settings
+    assert swapped == fresh
+    assert reconstruct(sphere, "bunny", "rbf", settings=rv.settings).settings == reconstruct(sphere, "bunny", "rbf", **kw).settings
+    # a value the caller sets is kept
+    assert reconstruct(sphere, "bunny", "largesteps", settings=rv.settings, lr=0.02).settings.lr == 0.02
+
+
+def test_cli_n_vertices_zero_is_refused_not_replaced_by_the_default(tmp_path, capsys):
+    rc, out = _cli(["--init", "sphere", "--n-vertices", 0, "--target", "bunny", "--out", tmp_path / "o",
+                    "--steps", 2], capsys)
+    assert rc == 2 and "n_vertices must be positive" in out.err and not (tmp_path / "o").exists()

@@ -206,7 +206,10 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     """
     if method is not None:
         kwargs["method"] = method
-    given = replace(settings or ReconstructionSettings(), **kwargs)
+    base = settings or ReconstructionSettings()
+    if "method" in kwargs and kwargs["method"] != base.method:
+        base = base.without_method_defaults()  # a result's resolved settings held the other method's lr, ...
+    given = replace(base, **kwargs)
     s = given.resolved()
     per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
     Vt, Ft = target_surface(target)
@@ -333,6 +336,10 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         sk = per_stage[k] if per_stage else s
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
         sk = _guarded_step(s, sk, V.shape[0])
+        if isinstance(sk.centers, int) and sk.centers > V.shape[0]:  # resolved: a count is an int
+            # a kernel count at a stage's requested size: the remesh lands a few vertices off (300 gave 296),
+            # and a stage has at most one kernel per vertex (the count it got is in the stage's n_kernels)
+            sk = replace(sk, centers=V.shape[0])
         param = _parameterisation(sk, V.detach(), F)
         _check_start(param, V, k, sk.method)
         contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)

@@ -222,6 +222,8 @@ class ReconstructionSettings:
             s = replace(s, steps=DEFAULT_STEPS)
         _check_values(s)
         s = _resolve_stages(s)
+        if _is_scalar(s.centers):  # 10.0 passed the check above, then the deformer refused it
+            s = replace(s, centers=int(s.centers))
         if s.stage_overrides is not None:
             s = replace(s, stage_overrides=_check_overrides(s.stage_overrides, s.stages))
             self.stage_settings()  # every stage's own values are checked too, against its own method
@@ -234,6 +236,15 @@ class ReconstructionSettings:
         with the contact barrier no vertex moved farther than half its reach in one step (``max_step``)."""
         return ValidityRules(turn_from="step", min_quality=self.min_quality, max_step=max_step)
 
+    def without_method_defaults(self) -> "ReconstructionSettings":
+        """A copy with every value that equals its method's default unset (None), so that resolving it for
+        another method fills in that method's defaults: resolved settings (a result's) hold their method's
+        ``lr``, optimiser and weights, which a run of another method took as its own (a largesteps run at
+        the vertex method's ``lr=1e-3``, Adam and Laplacian weight 10)."""
+        if self.method not in DEFAULTS:
+            return self
+        return replace(self, **{k: None for k, v in DEFAULTS[self.method].items() if getattr(self, k) == v})
+
     def stage_settings(self) -> list:
         """The resolved settings of each stage (one entry when there are no ``stage_overrides``): for
         stage ``k``, ``stage_overrides[k]``, then the values set here, then the stage's method's defaults.
@@ -242,13 +253,10 @@ class ReconstructionSettings:
             return [self.resolved()]
         stages = []
         for k, o in enumerate(self.stage_overrides):
-            base = self
             method = (o or {}).get("method", self.method)
-            if self.method in DEFAULTS and method != self.method:
-                # settings already resolved (a result's, replayed) hold the run method's defaults: a stage of
-                # another method takes its own (they made a largesteps stage refuse rbf's coarse_lr, or run
-                # at rbf's lr)
-                base = replace(self, **{k2: None for k2, v in DEFAULTS[self.method].items() if getattr(self, k2) == v})
+            # settings already resolved (a result's, replayed) hold the run method's defaults: a stage of
+            # another method takes its own (they made a largesteps stage refuse rbf's coarse_lr, or run at rbf's lr)
+            base = self.without_method_defaults() if method != self.method else self
             try:
                 stages.append(replace(base, stage_overrides=None, **(o or {})).resolved())
             except ReconstructionError as err:
