@@ -338,7 +338,7 @@ def _run_reconstruct(args) -> int:
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
           f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
           f"target's; {f.self_intersections} self-intersecting pairs, {f.degenerate_faces} degenerate faces; "
-          f"wrote {out}" + (f"; WARNING: {len(stalled)} stage(s) accepted no step (below)" if stalled else ""))
+          f"wrote {out}" + (f"; WARNING: {len(stalled)} warning(s) (below)" if stalled else ""))
     for message in stalled:
         print(f"meshmei reconstruct: warning: {message}", file=sys.stderr)
     return 0

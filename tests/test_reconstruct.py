@@ -877,9 +877,10 @@ def test_a_stage_that_accepts_no_step_warns(sphere):
     Vd = V.double()
     V2 = torch.cat([Vd, ((Vd[F[0, 0]] + Vd[F[0, 1]]) / 2)[None]]).float()
     F2 = torch.cat([F, torch.tensor([[F[0, 0], F[0, 1], V.shape[0]]])])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", ReconstructionWarning)
+    # (the midpoint lies on face 0, which it is not part of: the contact barrier leaves that pair out, and says so)
+    with pytest.warns(ReconstructionWarning, match=r"^stage 0: \d+ vertex-face or edge pairs of the start lie closer"):
         res = reconstruct((V2, F2), "bunny", steps=3, **SMALL)
+    assert not any("accepted none" in w for w in res.info["warnings"])
     assert res.info["stages"][0]["accepted_steps"] == 3 and res.info["stages"][0]["refused_by"]["turn"] == 0
     assert res.final.self_intersections == 0
     # a run that moves has no warning
@@ -905,7 +906,7 @@ def test_cli_says_when_a_stage_accepted_no_step(sphere, tmp_path, capsys):
     rc, out = _cli(["--init", tmp_path / "small.obj", "--target", "bunny", "--out", tmp_path / "o", "--steps", 2,
                     "--samples", 300, "--eval-samples", 500, "--stages", "none", "--no-progress"], capsys)
     assert rc == 0, out.err
-    assert "WARNING: 1 stage(s) accepted no step" in out.out
+    assert "WARNING: 1 warning(s) (below)" in out.out
     assert "meshmei reconstruct: warning: stage 0" in out.err and "accepted none of its 2 steps" in out.err
     assert json.loads((tmp_path / "o" / "history.json").read_text())["info"]["warnings"]
 

@@ -130,7 +130,10 @@ def contact_barriers(V0, F, settings: MEISettings, items: int = 1):
     if not settings.valid_steps or settings.contact_weight <= 0:
         return None
     # at most one candidate search every fourth step: the guard, not the barrier, holds the guarantee
-    return [ContactBarrier.for_mesh(V0, F, settings.contact_distance, min_interval=4) for _ in range(items)]
+    barriers = [ContactBarrier.for_mesh(V0, F, settings.contact_distance, min_interval=4) for _ in range(items)]
+    for cb in barriers:  # a user's start with a T-junction or touching parts: those pairs would lock the run
+        cb.leave_out(V0)
+    return barriers
 
 
 def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_weights: int, guard):

@@ -344,6 +344,12 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         _check_start(param, V, k, sk.method)
         contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
                    if s.w_contact > 0 else None)
+        left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit
+        if left_out:
+            info["warnings"].append(
+                f"stage {k}: {left_out} vertex-face or edge pairs of the start lie closer than the contact distance "
+                f"({contact.distance:.3g}): a T-junction (an edge split on one side only) or parts that touch; the "
+                "contact barrier leaves them out (the step guard still refuses an intersection)")
         max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
         guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
         trace.seconds += time.perf_counter() - t0
@@ -370,7 +376,8 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
             V_start, V = V, param.vertices().detach()
         stage = {"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
                  "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
-                 **_guard_info(guard, trace.history[n_before:]), **_contact_info(contact, edges_from[0]), **remeshed,
+                 **_guard_info(guard, trace.history[n_before:]), **_contact_info(contact, edges_from[0]),
+                 "contact_left_out": left_out, **remeshed,
                  **param.info()}
         info["stages"].append(stage)
         if guard is not None and stage["steps"] and not stage["accepted_steps"]:
