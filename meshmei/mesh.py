@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import uuid
 from collections import OrderedDict
 from pathlib import Path
 
@@ -338,4 +339,12 @@ def save_mesh(path, V, F) -> None:
         vertices=V.detach().cpu().double().numpy(), faces=F.cpu().numpy(), process=False, validate=False
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    mesh.export(str(path))
+    # written beside it and renamed into place: an interrupted write leaves the old file or none, never a
+    # truncated one (trimesh reads a cut OBJ or OFF as a smaller mesh, without a word)
+    tmp = path.with_name(f".{path.stem}.partial-{uuid.uuid4().hex[:8]}{path.suffix}")
+    try:
+        mesh.export(str(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

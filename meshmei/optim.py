@@ -415,7 +415,13 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         (loss if loss.ndim == 0 else loss.sum()).backward()  # items share no parameter: one backward for all
         _guard_gradients(params, trace.step, error, where)
         before = None if accept is None else [p.detach().clone() for p in params]
-        optimizer.step()
+        try:
+            optimizer.step()
+        except RuntimeError as err:  # a learning rate beyond the parameters' dtype (lr=1e39 in float32)
+            if "overflow" not in str(err):
+                raise
+            raise error(f"the optimiser's step {trace.step}{where} overflowed the parameters' dtype "
+                        f"(lr={optimizer.param_groups[0]['lr']:g}); lower the learning rate") from None
         if accept is not None:
             items = None if values.ndim == 0 else values.shape[0]
             record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings, items))

@@ -243,3 +243,24 @@ def test_an_obj_of_two_dimensional_vertices_is_a_mesh_error(tmp_path):
     p.write_text("v 0 0\nv 1 0\nv 0 1\nv 1 1\nf 1 2 3\nf 2 4 3\n")  # a plain ValueError from a reshape before
     with pytest.raises(MeshError, match=r"flat.obj: vertices must have 3 coordinates, got an array of shape \(4, 2\)$"):
         load_mesh(p)
+
+
+def test_an_interrupted_save_leaves_the_old_file_whole_and_no_partial_one(tmp_path, monkeypatch):
+    """save_mesh wrote in place: a cut OBJ loaded as a smaller mesh without a word."""
+    import trimesh
+
+    V, F = initial_mesh("sphere", n_vertices=100)
+    path = tmp_path / "m.obj"
+    save_mesh(path, V, F)
+    before = path.read_bytes()
+
+    def cut(self, file_obj=None, **kw):  # writes half of the file, then the process is interrupted
+        data = trimesh.exchange.export.export_mesh(self, None, file_type="obj")
+        with open(file_obj, "w") as fh:
+            fh.write(data[: len(data) // 2])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(trimesh.Trimesh, "export", cut)
+    with pytest.raises(KeyboardInterrupt):
+        save_mesh(path, V * 2.0, F)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["m.obj"]

@@ -123,6 +123,16 @@ def test_a_non_finite_gradient_of_a_finite_loss_raises_before_the_step_carries_i
     assert torch.equal(x.detach(), torch.zeros(2))  # the step was not taken
 
 
+def test_a_step_that_overflows_the_dtype_raises_the_clients_error_not_torchs():
+    """Adam at lr=1e39 on float32 parameters failed inside torch ("value cannot be converted to type float
+    without overflow"), a traceback from the CLI."""
+    x = torch.ones(2, requires_grad=True)
+    with pytest.raises(KeyError, match=r"the optimiser's step 0 of seed 7 overflowed the parameters' dtype "
+                                       r"\(lr=1e\+39\); lower the learning rate"):
+        minimize(quadratic(x, torch.zeros(2)), torch.optim.Adam([x], lr=1e39), Budget(steps=3), error=KeyError,
+                 where=" of seed 7")
+
+
 def test_stages_share_a_trace_and_stop_at_their_share():
     x = torch.zeros(2, dtype=torch.float64, requires_grad=True)
     trace = Trace()

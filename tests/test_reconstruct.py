@@ -845,6 +845,16 @@ def test_cli_refuses_an_out_folder_that_holds_an_input(tmp_path, capsys, monkeyp
         assert runs == [] and scan.is_file()
 
 
+def test_a_path_in_the_record_is_saved_as_its_text(sphere, tmp_path):
+    from pathlib import Path
+
+    from meshmei.reconstruct import save_reconstruction
+
+    res = reconstruct(sphere, "bunny", "rbf", steps=2, **SMALL)
+    out = save_reconstruction(res, tmp_path / "r", target=Path("scans") / "scan.obj")  # a TypeError from json
+    assert json.loads((out / "history.json").read_text())["target"] == str(Path("scans") / "scan.obj")
+
+
 def test_centers_given_as_vertex_indices_are_saved_as_lists(sphere, tmp_path):
     import numpy as np
 

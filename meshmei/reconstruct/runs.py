@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from .._files import atomic_directory
@@ -25,6 +26,7 @@ def save_reconstruction(result: ReconstructionResult, directory, *, overwrite: b
     ReconstructionError
         ``directory`` exists and ``overwrite`` is False.
     """
+    record = {k: os.fspath(v) if isinstance(v, os.PathLike) else v for k, v in record.items()}  # target=Path(...)
     history = json.dumps({**result.to_json(), **record}, indent=1)  # fails, if it must, before anything is written
 
     def write(tmp: Path) -> None:
