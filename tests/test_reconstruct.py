@@ -845,6 +845,31 @@ def test_cli_refuses_an_out_folder_that_holds_an_input(tmp_path, capsys, monkeyp
         assert runs == [] and scan.is_file()
 
 
+def test_a_files_target_frame_is_recorded_and_maps_the_result_back(sphere, tmp_path):
+    """A user's target is fitted in the unit frame; nothing recorded where that frame lay in the file."""
+    from meshmei.mesh import load_mesh, save_mesh
+    from meshmei.reconstruct import save_reconstruction
+
+    Vb, Fb = target_mesh("bunny")
+    V_file = Vb.double() * torch.tensor([3.0, 3.0, 3.0], dtype=torch.float64) + torch.tensor([10.0, -2.0, 0.5], dtype=torch.float64)
+    save_mesh(tmp_path / "scan.obj", V_file, Fb)
+    res = reconstruct(sphere, tmp_path / "scan.obj", "rbf", steps=2, **SMALL)
+    frame = res.info["target_frame"]
+    Vt = load_mesh(tmp_path / "scan.obj", dtype=torch.float64)[0]
+    lo, hi = Vt.min(0).values, Vt.max(0).values
+    assert frame["centre"] == pytest.approx((0.5 * (lo + hi)).tolist(), abs=1e-12)
+    assert frame["scale"] == pytest.approx(float((hi - lo).norm()), rel=1e-12)
+    # the fitted unit-frame target, mapped with the frame, is the file's mesh
+    from meshmei.reconstruct import target_surface
+
+    Vu, _ = target_surface(tmp_path / "scan.obj", dtype=torch.float64)
+    torch.testing.assert_close(Vu * frame["scale"] + torch.tensor(frame["centre"], dtype=torch.float64), Vt,
+                               rtol=0, atol=1e-12)
+    out = save_reconstruction(res, tmp_path / "r")
+    assert json.loads((out / "history.json").read_text())["info"]["target_frame"] == frame
+    assert "target_frame" not in reconstruct(sphere, "bunny", "rbf", steps=1, **SMALL).info
+
+
 def test_a_path_in_the_record_is_saved_as_its_text(sphere, tmp_path):
     from pathlib import Path
 

@@ -163,7 +163,9 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         Starting mesh, used as given (no normalisation). ``"torus"`` starts through the target's opening
         when it has one, as the teapot's handle (:func:`source_mesh`); ``"torus-centred"`` never does.
     target : (V, F) pair, a mesh file path, or "bunny" / "teapot"
-        Target surface; paths and pairs are normalised to unit bounding-box diagonal and centred.
+        Target surface; paths and pairs are normalised to unit bounding-box diagonal and centred (where
+        that frame lies in their own coordinates is ``result.info["target_frame"]``: ``{"centre", "scale"}``,
+        a point ``p`` of the result is ``p * scale + centre`` there; also in ``history.json``).
     method : {"rbf", "vertex", "largesteps"}, optional
         Replaces ``settings.method`` when given; otherwise the settings' method (default ``"rbf"``) runs.
     settings : ReconstructionSettings, optional
@@ -212,7 +214,7 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     given = replace(base, **kwargs)
     s = given.resolved()
     per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
-    Vt, Ft = target_surface(target)
+    Vt, Ft, frame = target_surface(target, return_frame=True)
     V, F = source_mesh(source, target=(Vt, Ft))
     Vt = Vt.to(V.dtype)
     g = torch.Generator(device=V.device).manual_seed(s.seed)
@@ -225,6 +227,8 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
                    postfix=lambda rec: {"loss": f"{rec['loss']:.3e}", "stage": rec["stage"]})
     w = stage_weights(s, s, None, V.shape[0])
     info = {"stages": [], "w_laplacian": w[0], "w_edge": w[1], "w_arap": w[2], "warnings": []}
+    if frame is not None:  # a file's or pair's target is fitted in the unit frame: where that lies in its own
+        info["target_frame"] = frame
     t_start = time.perf_counter()
     try:
         V, F = _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info)

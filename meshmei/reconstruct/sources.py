@@ -16,7 +16,7 @@ from .openings import find_opening, torus_through_opening
 
 __all__ = ["SOURCE_NAMES", "source_mesh", "resolve_source", "target_surface"]
 
-def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
+def target_surface(spec, *, dtype=torch.float32, normalize: bool = True, return_frame: bool = False):
     """Resolve a target: ``"bunny"``, ``"teapot"``, a mesh file path, or a ``(V, F)`` pair.
 
     Files and pairs keep only the vertices their faces use (an unused vertex has no surface, and would
@@ -24,6 +24,10 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
     (``normalize=True``), as the named targets are, so metrics are comparable across targets. They are
     read and normalised in float64 and cast to ``dtype`` after: in float32, a target 1e5 from the origin
     would lose its shape to rounding before it was centred.
+
+    ``return_frame``: also return where the normalised target lies in the file's (or pair's) own
+    coordinates, ``{"centre": [x, y, z], "scale": d}`` (a point ``p`` of the unit frame is ``p * d + centre``
+    there), or None for a named target or ``normalize=False``.
 
     Raises
     ------
@@ -34,6 +38,7 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
         (after normalisation), or a mesh of zero area.
     """
     role = f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target"
+    frame = None
     if isinstance(spec, str) and spec in TARGET_NAMES:
         V, F = target_mesh(spec, dtype=dtype)
     else:
@@ -42,10 +47,13 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True):
         else:
             V, F = _pair(spec, "target")
         if normalize:
-            V = normalize_unit_diagonal(V.double())
+            W = V.double()
+            V = normalize_unit_diagonal(W)
+            lo, hi = W.min(0).values, W.max(0).values
+            frame = {"centre": (0.5 * (lo + hi)).tolist(), "scale": float((hi - lo).norm())}
         V = cast_vertices(V, dtype, role)
     _check_area(V, F, role)
-    return V, F
+    return (V, F, frame) if return_frame else (V, F)
 
 
 SOURCE_NAMES = ("sheet", "sphere", "torus", "torus-centred", "torus-through-opening")
