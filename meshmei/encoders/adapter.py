@@ -35,7 +35,7 @@ import torch.nn.functional as nnf
 
 from .._checks import check_positive
 from ..errors import EncoderError
-from .base import DEFAULT_NORM, Encoder, Preprocess, _check_images, eval_mode
+from .base import DEFAULT_NORM, Encoder, Preprocess, check_images, eval_mode
 
 __all__ = ["ModelEncoder", "PixelPreprocess", "encoder_from_model", "load_model", "model_source", "model_fingerprint"]
 
@@ -333,7 +333,7 @@ class ModelEncoder(Encoder):
         return torch.device("cpu")
 
     def inputs(self, images: torch.Tensor, neurons=None, *, preprocessed: bool = False) -> tuple:
-        _check_images(images)  # before the resize, whose own errors come from deep inside torch
+        check_images(images)  # before the resize, whose own errors come from deep inside torch
         if tuple(images.shape[-2:]) != self.image_size:
             if preprocessed:
                 raise EncoderError(f"preprocessed images must be {self.image_size[0]} x {self.image_size[1]}, "

@@ -27,7 +27,7 @@ __all__ = [
 DEFAULT_NORM = 25.0
 
 
-def _check_images(x, name="images"):
+def check_images(x, name="images"):
     """Raise :class:`EncoderError` unless ``x`` is a float tensor of shape ``(B, 1, H, W)`` with B, H, W >= 1."""
     if not isinstance(x, torch.Tensor):
         raise EncoderError(f"{name} must be a torch tensor of shape (B, 1, H, W), got {type(x).__name__}")
@@ -90,7 +90,7 @@ class Preprocess(torch.nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Preprocessed images ``(B, 1, H, W)`` of raw images ``x`` ``(B, 1, H, W)``."""
-        _check_images(x)
+        check_images(x)
         return self.rescale(self.standardise(x))
 
     def to_image(self, z: torch.Tensor, contrast: float = 1.0) -> torch.Tensor:
@@ -176,7 +176,7 @@ class Encoder(torch.nn.Module):
     def inputs(self, images: torch.Tensor, neurons=None, *, preprocessed: bool = False) -> tuple:
         """Checked images and neuron selection: ``(z, idx)``, ``z`` the ``(B, 1, H, W)`` preprocessed images
         and ``idx`` the ``(k,)`` int64 neuron indices (see :meth:`forward` for the arguments)."""
-        _check_images(images)
+        check_images(images)
         idx = self.neuron_index(neurons, images.device)
         z = images if preprocessed else self.preprocess(images)
         return z, idx
