@@ -772,7 +772,7 @@ def test_save_reconstruction_writes_a_whole_folder_or_none(sphere, tmp_path, mon
     res = reconstruct(sphere, "bunny", steps=2, **SMALL)
     other = tmp_path / "mei_run"  # another command's folder
     other.mkdir()
-    (other / "summary.json").write_text("{}")
+    (other / "summary.json").write_text(json.dumps({"format": 1, "complete": True, "neuron": 0, "activation": 1.0}))
     with pytest.raises(ReconstructionError, match="mei_run exists; pass overwrite=True"):
         save_reconstruction(res, other)
     assert sorted(p.name for p in other.iterdir()) == ["summary.json"]
