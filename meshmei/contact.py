@@ -180,6 +180,11 @@ def log_barrier(d: torch.Tensor, d_hat: float) -> torch.Tensor:
     return torch.where(inside, -(dc - d_hat).square() * torch.log(dc / d_hat), torch.zeros_like(d))
 
 
+IN_CONTACT = 1e-3
+"""Share of a barrier's ``distance`` below which a pair of a start counts as in contact
+(:meth:`ContactBarrier.leave_out`)."""
+
+
 def mean_edge_length(V: torch.Tensor, F: torch.Tensor) -> float:
     """The mean length of the faces' edges (each interior edge counted twice)."""
     T = V.detach()[F]
@@ -302,8 +307,10 @@ class ContactBarrier:
             self.use_edges()
 
     def leave_out(self, V: torch.Tensor) -> int:
-        """Leave out of the energy, from now on, every pair already closer than ``distance`` in ``V`` (a start):
-        a vertex on a face it is not part of (a T-junction: an edge split on one side only), parts that touch.
+        """Leave out of the energy, from now on, every pair in contact in ``V`` (a start), closer than
+        :data:`IN_CONTACT` times ``distance``: a vertex on a face it is not part of (a T-junction: an edge
+        split on one side only, about 1e-6 of ``distance``), parts that touch. Pairs merely close (a remeshed
+        stage of the bunny starts with pairs at 0.3 to 1 times ``distance`` in its ears) stay in.
         Their barrier is all but infinite from the first step, and an optimiser that scales every step by the
         largest gradient (:class:`~meshmei.deform.largesteps.AdamUniform`) then holds the whole mesh still: a
         sphere with one T-junction ended its fit of the bunny at 0.115 for 0.012. Edge pairs are found
@@ -312,11 +319,11 @@ class ContactBarrier:
         whose nearest non-incident faces lie most of an edge away)."""
         Vn = V.detach().cpu().double().numpy()
         vt, ft, _, _, dvf, _ = self._candidates(Vn)
-        close = (dvf < self.distance).numpy()
+        close = (dvf < IN_CONTACT * self.distance).numpy()
         out_vf = np.unique(vt.numpy()[close] * len(self.Fn) + ft.numpy()[close])
         En = self.En if self.En is not None else mesh_edges(self.F).cpu().numpy()  # use_edges' list, same order
         ea, eb, dee = self._edge_candidates(Vn, self.distance + 2.0 * self.margin, En)
-        close = (dee < self.distance).numpy()
+        close = (dee < IN_CONTACT * self.distance).numpy()
         out_ee = np.unique(_pair_keys(ea.numpy()[close], eb.numpy()[close], len(En)))
         self._out_vf, self._out_ee = out_vf, out_ee
         self._built_at = None  # searched again, without them

@@ -289,6 +289,8 @@ def test_pairs_in_contact_at_the_start_are_left_out_and_nothing_else(edges):
     assert left.leave_out(V) == 0
     W, _ = _two_sheets(h / 6)  # the sheets come close during the run: felt as without leave_out
     assert float(plain(W)) > 0 and float(left(W)) == float(plain(W))
+    close = ContactBarrier(F, h / 3, edges=edges)  # a start whose pairs are close, not in contact: kept
+    assert close.leave_out(W) == 0 and float(close(W)) == float(plain(W))
     V, F, m = _t_junction()
     cb = ContactBarrier.for_mesh(V, F, edges=edges)
     Vg = V.clone().requires_grad_()
@@ -311,7 +313,7 @@ def test_a_source_with_a_t_junction_is_fitted_as_without_the_barrier_and_says_so
 
     V, F, _ = _t_junction()
     kw = dict(steps=30, n_samples=300, target_pool=2000, eval_samples=2000)
-    with pytest.warns(ReconstructionWarning, match=r"stage 0: \d+ vertex-face or edge pairs of the start lie closer"):
+    with pytest.warns(ReconstructionWarning, match=r"stage 0: \d+ vertex-face or edge pairs of the start are in contact"):
         res = reconstruct((V, F), "bunny", "rbf", **kw)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReconstructionWarning)

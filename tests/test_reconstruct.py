@@ -913,7 +913,7 @@ def test_a_stage_that_accepts_no_step_warns(sphere):
     V2 = torch.cat([Vd, ((Vd[F[0, 0]] + Vd[F[0, 1]]) / 2)[None]]).float()
     F2 = torch.cat([F, torch.tensor([[F[0, 0], F[0, 1], V.shape[0]]])])
     # (the midpoint lies on face 0, which it is not part of: the contact barrier leaves that pair out, and says so)
-    with pytest.warns(ReconstructionWarning, match=r"^stage 0: \d+ vertex-face or edge pairs of the start lie closer"):
+    with pytest.warns(ReconstructionWarning, match=r"^stage 0: \d+ vertex-face or edge pairs of the start are in contact"):
         res = reconstruct((V2, F2), "bunny", steps=3, **SMALL)
     assert not any("accepted none" in w for w in res.info["warnings"])
     assert res.info["stages"][0]["accepted_steps"] == 3 and res.info["stages"][0]["refused_by"]["turn"] == 0

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..contact import ContactBarrier
+from ..contact import IN_CONTACT, ContactBarrier
 from ..deform import PARAMETERISATIONS
 from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
@@ -351,9 +351,10 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit
         if left_out:
             info["warnings"].append(
-                f"stage {k}: {left_out} vertex-face or edge pairs of the start lie closer than the contact distance "
-                f"({contact.distance:.3g}): a T-junction (an edge split on one side only) or parts that touch; the "
-                "contact barrier leaves them out (the step guard still refuses an intersection)")
+                f"stage {k}: {left_out} vertex-face or edge pairs of the start are in contact (closer than "
+                f"{IN_CONTACT:g} of the contact distance {contact.distance:.3g}): a T-junction (an edge split on one "
+                "side only) or parts that touch; the contact barrier leaves them out (the step guard still refuses "
+                "an intersection)")
         max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
         guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
         trace.seconds += time.perf_counter() - t0
