@@ -322,3 +322,47 @@ def test_a_source_with_a_t_junction_is_fitted_as_without_the_barrier_and_says_so
     assert res.final.chamfer_l2 < 0.15 * start
     assert res.final.chamfer_l2 == pytest.approx(free.final.chamfer_l2, rel=0.1)
     assert res.info["stages"][0]["contact_left_out"] >= 1 and res.final.self_intersections == 0
+
+
+@pytest.mark.parametrize("edges", [False, True])
+def test_a_prefetched_search_gives_what_the_call_would_have(edges):
+    """ContactBarrier.prefetch runs the candidate search in a worker thread beside the caller's own work; the
+    call that takes it gets the same pairs, energy and search count as without it, including when the
+    vertices moved little (no search) or far (a search), and when the prefetch was for other vertices."""
+    V, F = _two_sheets(0.05)
+    h = mean_edge_length(V, F)
+    plain, fetched = ContactBarrier(F, h / 3, edges=edges), ContactBarrier(F, h / 3, edges=edges)
+    gen = torch.Generator().manual_seed(0)
+    for step in range(12):
+        W = V + (0.002 if step % 3 else 0.05) * step * torch.randn(V.shape, generator=gen, dtype=V.dtype)
+        if step == 7:
+            fetched.prefetch(W + 1.0)  # for other vertices: dropped, the call searches for its own
+        else:
+            fetched.prefetch(W)
+        a, b = plain.candidates(W), fetched.candidates(W)
+        if step < 7:  # from step 7 the two searched at different times: the same energy, other cached pairs
+            assert all(torch.equal(x, y) for x, y in zip(a, b)) and plain.rebuilds == fetched.rebuilds, f"step {step}"
+        assert float(plain(W)) == float(fetched(W)), f"step {step}"
+    assert fetched.rebuilds > plain.rebuilds  # the prefetch for other vertices searched, and was dropped
+
+
+def test_a_prefetched_search_raises_its_error_at_the_call():
+    V, F = _two_sheets(0.05)
+    cb = ContactBarrier(F, 0.01)
+    cb.prefetch(V[:5])
+    with pytest.raises(MeshError, match="the contact barrier's faces need vertices"):
+        cb.candidates(V[:5])
+    assert float(cb(V)) >= 0.0  # and the barrier goes on
+
+
+def test_reconstruction_is_the_same_with_and_without_the_prefetch(monkeypatch):
+    from meshmei.reconstruct import reconstruct
+
+    src = initial_mesh("sphere", n_vertices=300)
+    kw = dict(steps=20, stages=(200, 300), n_samples=500, target_pool=5000, eval_samples=2000)
+    with_it = reconstruct(src, "bunny", "rbf", **kw)
+    monkeypatch.setattr(ContactBarrier, "prefetch", lambda self, V: None)
+    without = reconstruct(src, "bunny", "rbf", **kw)
+    untimed = lambda res: [{k: v for k, v in rec.items() if k != "time"} for rec in res.history]  # noqa: E731
+    assert torch.equal(with_it.V, without.V) and untimed(with_it) == untimed(without)
+    assert sum(st["contact_rebuilds"] for st in with_it.info["stages"]) > 2

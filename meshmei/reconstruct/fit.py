@@ -130,6 +130,8 @@ def _objective(param, F, sk, weights, chamfer, k, latest, contact):
     def objective(point):
         Vc = param.vertices()
         latest[0] = Vc
+        if contact is not None:  # its candidate search runs beside the Chamfer term's KD-tree queries
+            contact.prefetch(Vc)
         cd = chamfer(Vc, F, sk.n_samples, point.step, sk.lr)
         wr = point.factor if sk.reg_decay else 1.0
         loss = cd
