@@ -93,6 +93,44 @@ def test_encoders_that_answer_differently_have_different_identities_and_equal_on
     assert config_hash(encoder_identity(a)) == config_hash(encoder_identity(a2))
 
 
+class Recorder(torch.nn.Module):
+    """A model that records as it runs: a list and a dict of what it saw, a private call counter."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(1, 3, 3)
+        self.seen, self.acts, self._calls = [], {}, 0
+
+    def forward(self, x):
+        self._calls += 1
+        self.seen.append(tuple(x.shape))
+        out = self.conv(x).mean((2, 3))
+        self.acts["out"] = out.detach()
+        return out
+
+
+def test_what_a_model_records_as_it_runs_does_not_change_its_fingerprint():
+    """Only settings count (numbers, strings, tuples of them): a fingerprint that moved with every forward would
+    refuse to resume the model's own population folder."""
+    torch.manual_seed(0)
+    enc = _enc(Recorder())
+    before = model_fingerprint(enc)
+    for _ in range(3):
+        enc(torch.rand(2, 1, SIZE, SIZE))
+    assert model_fingerprint(enc) == before
+    w = _weights(0)
+    log = []
+
+    def logged(x):  # a closure over its weights and a log it fills
+        log.append(1)
+        return x.flatten(1) @ w.T
+
+    enc = _enc(logged)
+    before = model_fingerprint(enc)
+    enc(torch.rand(2, 1, SIZE, SIZE))
+    assert model_fingerprint(enc) == before
+
+
 def test_models_without_held_values_keep_the_fingerprint_they_had():
     """The fingerprint grew to cover held values; models that hold none (most) keep their old fingerprint, so
     their population folders resume: the values here are the fingerprints before the change."""

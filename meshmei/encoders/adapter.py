@@ -195,9 +195,25 @@ def _held_values(fn) -> list:
             + [fn.__kwdefaults__ or {}])
 
 
-def _attributes(obj) -> dict:
-    """An object's own attributes, without private ones and a module's ``training`` flag."""
-    return {k: v for k, v in getattr(obj, "__dict__", {}).items() if not k.startswith("_") and k != "training"}
+def _attributes(obj, keep=None) -> dict:
+    """An object's own attributes, without private ones (``_name``: a counter or a cache belongs there) and a
+    module's ``training`` flag; with ``keep``, only the values it accepts."""
+    return {k: v for k, v in getattr(obj, "__dict__", {}).items()
+            if not k.startswith("_") and k != "training" and (keep is None or keep(v))}
+
+
+def _setting(v) -> bool:
+    """A value that reads as a setting: a number, string, bool or None, or a tuple of them. Lists, dicts and
+    tensors held as plain attributes of a module are left out: they are usually what a forward records
+    (activations, a log), and would make the fingerprint change as the model runs."""
+    return isinstance(v, _PLAIN) or (isinstance(v, tuple) and all(_setting(x) for x in v))
+
+
+def _held(v) -> bool:
+    """A value a callable computes with: a setting, a tensor or array (weights in a closure), a function or
+    partial; not a list, dict or set (usually filled as it runs) or another object."""
+    return (_setting(v) or isinstance(v, (torch.Tensor, np.ndarray, functools.partial)) or inspect.isfunction(v)
+            or (isinstance(v, tuple) and all(_held(x) for x in v)))
 
 
 def _hash_module(h, m: torch.nn.Module) -> None:
@@ -214,7 +230,7 @@ def _hash_module(h, m: torch.nn.Module) -> None:
             except (OSError, TypeError):
                 pass
     for sub in m.modules():
-        attrs = _attributes(sub) if not type(sub).__module__.startswith("torch.") else None
+        attrs = _attributes(sub, _setting) if not type(sub).__module__.startswith("torch.") else None
         if attrs:  # fed only where there are some: the fingerprints of models without any stay as they were
             _feed(h, attrs)
 
@@ -253,17 +269,13 @@ def _callable_values(c) -> list:
     if isinstance(c, functools.partial):
         values = [*c.args, *sorted(c.keywords.items()), *_callable_values(c.func)]
     elif inspect.ismethod(c):
-        values = [] if isinstance(c.__self__, torch.nn.Module) else [_attributes(c.__self__)]
+        values = [] if isinstance(c.__self__, torch.nn.Module) else [_attributes(c.__self__, _held)]
     elif inspect.isfunction(c):
         values = [*_held_values(c)[:-1], *sorted((c.__kwdefaults__ or {}).items())]
     else:
-        values = [_attributes(c)]
-
-    def nothing(v):  # a module (hashed as held), a keyword holding one, an object without attributes
-        return (isinstance(v, torch.nn.Module) or (isinstance(v, tuple) and len(v) == 2 and isinstance(v[1], torch.nn.Module))
-                or (isinstance(v, dict) and not v))
-
-    return [v for v in values if not nothing(v)]
+        values = [_attributes(c, _held)]
+    # modules are hashed as held; lists, dicts, sets and other objects are left out (see _held)
+    return [v for v in values if (isinstance(v, dict) and v) or _held(v)]
 
 
 def encoder_fingerprint(encoder: torch.nn.Module) -> str:
