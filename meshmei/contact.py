@@ -36,6 +36,7 @@ same result bit for bit.
 from __future__ import annotations
 
 import itertools
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -242,10 +243,13 @@ def _ball_pairs(tree: cKDTree, centres: np.ndarray, radii: np.ndarray):
 
 
 _WORKER = []
+# a forked child has the executor but not its thread: work submitted there would wait forever
+os.register_at_fork(after_in_child=_WORKER.clear)
 
 
 def _worker() -> ThreadPoolExecutor:
-    """The one worker thread of :meth:`ContactBarrier.prefetch` (started on first use)."""
+    """The one worker thread of :meth:`ContactBarrier.prefetch` (started on first use, and again in a forked
+    child)."""
     if not _WORKER:
         _WORKER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="meshmei-contact"))
     return _WORKER[0]

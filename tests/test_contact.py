@@ -366,3 +366,29 @@ def test_reconstruction_is_the_same_with_and_without_the_prefetch(monkeypatch):
     untimed = lambda res: [{k: v for k, v in rec.items() if k != "time"} for rec in res.history]  # noqa: E731
     assert torch.equal(with_it.V, without.V) and untimed(with_it) == untimed(without)
     assert sum(st["contact_rebuilds"] for st in with_it.info["stages"]) > 2
+
+
+def _prefetch_in_child(queue):
+    V, F = _two_sheets(0.05)
+    cb = ContactBarrier(F, 0.01)
+    cb.prefetch(V)
+    queue.put(len(cb.candidates(V)[0]))
+
+
+def test_a_forked_child_can_prefetch_after_its_parent_did():
+    """A forked child inherits the worker's executor but not its thread: a prefetch there waited forever."""
+    import multiprocessing
+
+    V, F = _two_sheets(0.05)
+    cb = ContactBarrier(F, 0.01)
+    cb.prefetch(V)
+    want = len(cb.candidates(V)[0])  # the parent's worker thread is running
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_prefetch_in_child, args=(queue,))
+    child.start()
+    child.join(60)
+    alive = child.is_alive()
+    if alive:
+        child.kill()
+    assert not alive and child.exitcode == 0 and queue.get(timeout=5) == want
