@@ -126,13 +126,6 @@ def _check_rest(V0, r_cut, headroom) -> None:
         raise ValueError(f"headroom must be at least 1, got {headroom!r}")
 
 
-def _inv_two_sq(log_sigma: torch.Tensor) -> torch.Tensor:
-    """``1 / (2 sigma^2)`` from ``log sigma``, at most the dtype's largest value: a scale so small that it
-    overflows (``log_sigma = -50`` in float32) gave ``0 * inf`` = NaN at each kernel's own centre; capped, the
-    kernel is 1 at its centre and 0 elsewhere."""
-    return (0.5 * torch.exp(-2.0 * log_sigma)).clamp_max(torch.finfo(log_sigma.dtype).max)
-
-
 def _center_index(V0, centers) -> torch.Tensor:
     """The (K,) vertex index of the kernel centres: all vertices, ``K`` farthest points, or as given."""
     n = V0.shape[0]
@@ -356,7 +349,7 @@ class RBFDeformer(torch.nn.Module):
                                        check_invariants=False)
 
     def _pair_weights(self) -> torch.Tensor:
-        inv = _inv_two_sq(self.log_sigma)  # (K,) 1 / (2 sigma^2)
+        inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)
         return torch.exp(-self._d2 * inv[self._cols])  # (P,)
 
     def _fixed_matrices(self, dtype: torch.dtype) -> tuple:
@@ -381,7 +374,7 @@ class RBFDeformer(torch.nn.Module):
         pair list (call :meth:`cover` for ``log_sigma`` first); differentiable in both."""
         if self._dense_d2 is not None:
             D2, mask = self._dense_d2, self._dense_mask
-            inv = _inv_two_sq(log_sigma)  # (K,) 1 / (2 sigma^2)
+            inv = 0.5 * torch.exp(-2.0 * log_sigma)  # (K,) 1 / (2 sigma^2)
             W = torch.exp(-D2 * inv.unsqueeze(0)) * mask  # (n, K), zero off the pair list
             return (W.to(offsets.dtype) @ offsets).to(self.V0.dtype)
         if not log_sigma.requires_grad and log_sigma is self.log_sigma:  # fixed scales: a constant sparse matrix
@@ -389,7 +382,7 @@ class RBFDeformer(torch.nn.Module):
             dtype = torch.float32 if offsets.element_size() < 4 else offsets.dtype
             W, Wt = self._fixed_matrices(dtype)
             return _FixedMap.apply(offsets.to(dtype), W, Wt).to(self.V0.dtype)
-        inv = _inv_two_sq(log_sigma)
+        inv = 0.5 * torch.exp(-2.0 * log_sigma)
         w = torch.exp(-self._d2 * inv[self._cols])  # (P,)
         contrib = w.unsqueeze(1) * offsets[self._cols]  # (P, 3)
         return torch.zeros_like(self.V0).index_add(0, self._rows, contrib.to(self.V0.dtype))
