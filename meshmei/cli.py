@@ -73,7 +73,8 @@ def _add_mei(sub) -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
-                        "(default: what its factory sets, else 100), which it is rendered at")
+                        "(default: what its factory sets, else 100), which it is rendered at (a non-square one at its "
+                        "longer side, then centre-cropped)")
     p.add_argument("--n-vertices", type=int, default=None,
                    help=f"vertex count of a built-in --init (default {d.n_vertices}); a mesh file keeps its own")
     p.add_argument("--lr", type=float, default=d.lr)
@@ -161,10 +162,10 @@ def _cli_encoder(args, default=None):
 
 
 def _image_size(args, encoder) -> int:
-    """The render size: a lab's model's own (square) size, else ``--image-size``, else the default."""
+    """The render size: the longer side of a lab's model's input, else ``--image-size``, else the default."""
     size = getattr(encoder, "image_size", None)
     if size is not None:
-        return int(size[0])
+        return int(max(size))
     return args.image_size if args.image_size is not None else MEISettings.image_size
 
 
@@ -423,7 +424,8 @@ def _add_population(sub) -> None:
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
-                        "(default: what its factory sets, else 100), which it is rendered at")
+                        "(default: what its factory sets, else 100), which it is rendered at (a non-square one at its "
+                        "longer side, then centre-cropped)")
     p.add_argument("--n-vertices", type=int, default=d.n_vertices)
     p.add_argument("--out", required=True, help="the population folder (created, or resumed)")
     p.add_argument("--batch-size", type=int, default=8, help="(neuron, seed) items optimised together (default 8)")

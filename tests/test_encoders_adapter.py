@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from meshmei.cli import main
-from meshmei.encoders import ModelEncoder, encoder_from_model, encoder_spec, frozen_encoder, load_model
+from meshmei.encoders import (ModelEncoder, aspect_crop, encoder_from_model, encoder_spec, fit_to_size, frozen_encoder,
+                              load_model)
 from meshmei.errors import EncoderError, MEIError
 from meshmei.mei import load_run, optimize_mei, pixel_mei
 from meshmei.tuning import pose_sweep
@@ -135,6 +136,46 @@ def test_the_pixel_rule_maps_the_renderers_range_onto_the_models():
     torch.testing.assert_close(enc(img), torch.full((1, 4), (127.5 - 100) / 50))
     # another render size is resized to the model's (anti-aliased); a constant image stays constant
     torch.testing.assert_close(enc(torch.full((1, 1, 32, 32), 0.5)), enc(img))
+
+
+class _Recording(torch.nn.Module):
+    """Keeps the images it is given; responds with their mean (one neuron)."""
+
+    def __init__(self):
+        super().__init__()
+        self._seen = []
+
+    def forward(self, x):
+        self._seen.append(x.detach().clone())
+        return x.mean((1, 2, 3)).unsqueeze(1)
+
+
+def test_a_wide_model_sees_a_centre_crop_of_the_square_render_not_a_stretched_one():
+    # a 36 x 64 model (a mouse V1 digital twin's input) given a square image of a disc: it gets the middle 36
+    # rows at full resolution, so the disc stays round (square pixels); stretched, it was 1.78x wider than tall
+    model = _Recording()
+    enc = encoder_from_model(model, mean=0.5, std=0.2, norm=None, image_size=(36, 64))
+    yy, xx = torch.meshgrid(torch.arange(64) + 0.5, torch.arange(64) + 0.5, indexing="ij")
+    disc = (((yy - 32) ** 2 + (xx - 32) ** 2) <= 12.0 ** 2).double()
+    model._seen.clear()
+    enc(disc.view(1, 1, 64, 64))
+    seen = model._seen[-1][0, 0]
+    assert seen.shape == (36, 64)
+    torch.testing.assert_close(seen, (disc[14:50] - 0.5) / 0.2)  # exactly the middle rows, no resampling
+    inside = seen > 0
+    rows, cols = inside.any(1).nonzero().squeeze(1), inside.any(0).nonzero().squeeze(1)
+    assert rows.numel() == cols.numel() == 24  # as tall as wide
+    # an image of another aspect and size: cropped to the model's aspect first, then resized
+    assert aspect_crop(100, 100, (36, 64)) == (22, 0, 56, 100)
+    assert aspect_crop(30, 100, (36, 64)) == (0, 23, 30, 53)
+    assert aspect_crop(64, 64, (64, 64)) == (0, 0, 64, 64)
+    out = fit_to_size(torch.rand(2, 1, 100, 100, dtype=torch.float64), (36, 64))
+    assert out.shape == (2, 1, 36, 64) and out.dtype == torch.float64
+    # a 3D-MEI run renders at the model's longer side, and the model gets its own size
+    model._seen.clear()
+    res = optimize_mei(enc, 0, "sheet", **SMALL)
+    assert res.settings.image_size == 64 and res.image.shape[-2:] == (64, 64)
+    assert model._seen and all(x.shape[-2:] == (36, 64) for x in model._seen)
 
 
 def test_outputs_are_picked_from_tuples_and_dicts():

@@ -23,7 +23,7 @@ edge to +1 at the right edge, ``y`` from -1 at the top to +1 at the bottom (``gr
 both over the full image, so a parameter set means the same at any resolution.
 """
 
-from .adapter import ModelEncoder, PixelPreprocess, encoder_from_model, load_model, model_fingerprint
+from .adapter import ModelEncoder, PixelPreprocess, aspect_crop, encoder_from_model, fit_to_size, load_model, model_fingerprint
 from .base import DEFAULT_NORM, Encoder, EncoderError, Preprocess, eval_mode, frozen_encoder
 from .core_readout import (
     DEMO_MODEL_PATH,
@@ -61,4 +61,6 @@ __all__ = [
     "encoder_from_model",
     "load_model",
     "model_fingerprint",
+    "aspect_crop",
+    "fit_to_size",
 ]

@@ -3,8 +3,10 @@ responses ``(B, N)``, with the training statistics in the model's own pixel unit
 
 The renderer's intensities lie in ``[0, 1]`` (the background is 0.5). They reach the model by one rule:
 
-1. resize to the model's ``image_size`` (area-weighted, anti-aliased) when the image arrives at another size
-   (meshmei renders at the model's size where it can, so this is a fallback);
+1. fit to the model's ``image_size``: an image of another shape is first cropped about its centre to the
+   model's aspect ratio (a square render for a 36 x 64 model keeps its middle rows: the view of a camera
+   with a wider than tall sensor, never a stretched one), then resized (anti-aliased bilinear) when it is
+   still of another size (meshmei renders a model's input at its longer side, so a crop alone fits it);
 2. map to the model's pixel units, ``p = lo + (hi - lo) * intensity`` with ``pixel_range = (lo, hi)``
    (``(0, 255)`` for models trained on 8-bit images), optionally clipped to that range (``clip=True``);
 3. standardise with the training ``mean`` and ``std`` (in the same units) and rescale each image to L2 norm
@@ -37,7 +39,8 @@ from .._checks import check_positive
 from ..errors import EncoderError
 from .base import DEFAULT_NORM, Encoder, Preprocess, check_images, eval_mode
 
-__all__ = ["ModelEncoder", "PixelPreprocess", "encoder_from_model", "load_model", "model_source", "model_fingerprint"]
+__all__ = ["ModelEncoder", "PixelPreprocess", "encoder_from_model", "load_model", "model_source", "model_fingerprint",
+           "aspect_crop", "fit_to_size"]
 
 
 class PixelPreprocess(Preprocess):
@@ -350,8 +353,7 @@ class ModelEncoder(Encoder):
             if preprocessed:
                 raise EncoderError(f"preprocessed images must be {self.image_size[0]} x {self.image_size[1]}, "
                                    f"the model's size; got {tuple(images.shape[-2:])}")
-            images = nnf.interpolate(images, size=self.image_size, mode="bilinear", antialias=True,
-                                     align_corners=False)
+            images = fit_to_size(images, self.image_size)
         if images.device != self.device:
             raise EncoderError(f"images are on {images.device} but the model is on {self.device}; render on the "
                                f"model's device or move the model")
@@ -418,6 +420,29 @@ class ModelEncoder(Encoder):
     def extra_repr(self):
         return (f"n_neurons={self._n}, models={len(self.models) + len(self.callables)}, channels={self.channels}, "
                 f"image_size={self.image_size}, forward_kwargs={self.forward_kwargs!r}")
+
+
+def aspect_crop(h: int, w: int, size) -> tuple:
+    """The centred window ``(top, left, height, width)`` of an ``h x w`` image with the aspect ratio of
+    ``size = (H, W)``, as large as fits (the whole image when the ratios agree to the pixel)."""
+    H, W = size
+    if h * W > w * H:  # taller than the model's aspect: keep the middle rows
+        ch, cw = max(1, round(w * H / W)), w
+    else:
+        ch, cw = h, max(1, round(h * W / H))
+    return (h - ch) // 2, (w - cw) // 2, ch, cw
+
+
+def fit_to_size(images: torch.Tensor, size) -> torch.Tensor:
+    """``(B, C, h, w)`` images as ``(B, C, H, W)`` for ``size = (H, W)``: cropped about the centre to the
+    aspect ratio of ``size`` (:func:`aspect_crop`), then resized with anti-aliased bilinear interpolation
+    if still of another size. Square pixels stay square: a square render for a wide model loses its top and
+    bottom rows, it is not squeezed."""
+    top, left, ch, cw = aspect_crop(images.shape[-2], images.shape[-1], size)
+    images = images[..., top:top + ch, left:left + cw]
+    if tuple(images.shape[-2:]) != tuple(size):
+        images = nnf.interpolate(images, size=tuple(size), mode="bilinear", antialias=True, align_corners=False)
+    return images
 
 
 def _positive_int(name, value):

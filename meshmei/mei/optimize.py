@@ -43,16 +43,17 @@ def check_neuron(encoder, neuron, error: type[ValueError] = MEIError) -> int:
 
 
 def settings_for_encoder(settings: MEISettings, encoder) -> MEISettings:
-    """The settings a run uses with ``encoder``: a lab's model (:class:`~meshmei.encoders.ModelEncoder`) with
-    a square input is rendered at its own size; one on another device than the renderer is refused here,
-    before the first step."""
+    """The settings a run uses with ``encoder``: a lab's model (:class:`~meshmei.encoders.ModelEncoder`) is
+    rendered at the longer side of its input (its own size when square; a 36 x 64 model gets a 64 x 64
+    render whose middle 36 rows it sees, :func:`~meshmei.encoders.fit_to_size`); one on another device
+    than the renderer is refused here, before the first step."""
     size = getattr(encoder, "image_size", None)
     device = getattr(encoder, "device", None)
     if device is not None and torch.device(device).type != "cpu":
         raise MEIError(f"the model is on {device}; meshmei renders on the CPU in this version: move the model "
                        f"to the CPU (model.cpu()) before wrapping it")
-    if size is not None and size[0] == size[1] and settings.image_size != size[0]:
-        settings = replace(settings, image_size=int(size[0]))
+    if size is not None and settings.image_size != max(size):
+        settings = replace(settings, image_size=int(max(size)))
     return settings
 
 
