@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -215,3 +218,68 @@ def test_images_that_are_not_float_are_refused_at_any_size(dtype):
 def test_an_image_size_given_as_a_string_is_named_whole():
     with pytest.raises(EncoderError, match=r"^image_size must be an int or \(H, W\), got '16'$"):
         encoder_from_model(Net(), mean=0.5, std=0.2, image_size="16")
+
+
+_LAB_MODEL = '''
+import torch
+
+
+class Core(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(1, 2, 3)
+
+    def forward(self, x):
+        return self.conv(x).relu()
+
+
+class Readout(torch.nn.Module):
+    def __init__(self, n):
+        super().__init__()
+        self.gain = 2.0
+        self.lin = torch.nn.Linear(2 * 14 * 14, n)
+
+    def forward(self, x):
+        return self.gain * self.lin(x.flatten(1))
+
+
+class Net(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.core, self.readout = Core(), Readout(3)
+
+    def forward(self, x):
+        return self.readout(self.core(x))
+
+
+def plain(x, mode="sum"):
+    # a comprehension, a lambda and a set literal: constants whose repr holds an address or a hash order
+    cols = [x.flatten(1)[:, i] for i in range(3)]
+    pick = (lambda c: c * 2.0) if mode in {"sum", "mean", "max"} else (lambda c: c)
+    return torch.stack([pick(c) for c in cols], 1)
+
+
+def fingerprints():
+    from meshmei.encoders import encoder_from_model, model_fingerprint
+    torch.manual_seed(0)
+    a = model_fingerprint(encoder_from_model(Net(), mean=0.5, std=0.2, image_size=16))
+    b = model_fingerprint(encoder_from_model(plain, mean=0.5, std=0.2, image_size=16))
+    return a + " " + b
+'''
+
+
+def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
+    """The fingerprint of a model with several module classes of its own (a core and a readout), and of a
+    function with a comprehension, a lambda and a set literal, is the same in fresh processes with other
+    string hashing: it ordered the classes as a set (by address) and hashed code constants by their repr
+    (a nested code object's holds its address), so the same command refused its own population folder."""
+    (tmp_path / "labmodel.py").write_text(_LAB_MODEL)
+    code = "import labmodel; print(labmodel.fingerprints())"
+    seen = set()
+    for seed in ("0", "1", "2", "3"):
+        env = {**os.environ, "PYTHONHASHSEED": seed, "PYTHONPATH": str(tmp_path)}
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env,
+                             cwd=tmp_path)
+        assert out.returncode == 0, out.stderr[-2000:]
+        seen.add(out.stdout.strip().splitlines()[-1])
+    assert len(seen) == 1, seen

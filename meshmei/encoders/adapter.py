@@ -29,6 +29,7 @@ import inspect
 import json
 import math
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +144,32 @@ def hash_state(h, module: torch.nn.Module) -> None:
 _PLAIN = (str, int, float, bool, complex, type(None))
 
 
+def _stable_const(c) -> bytes:
+    """A code constant as bytes that are the same in every process: a nested code object (a lambda, an inner
+    function, a comprehension) by its own code, not its ``repr`` (which holds its memory address); a
+    frozenset (``x in {"a", "b"}``) with its items in sorted order (its own order follows the process's
+    string hashing)."""
+    if isinstance(c, types.CodeType):
+        return b"code(" + _code_bytes(c) + b")"
+    if isinstance(c, frozenset):
+        return b"frozenset(" + b",".join(sorted(_stable_const(x) for x in c)) + b")"
+    if isinstance(c, tuple):
+        return b"(" + b",".join(_stable_const(x) for x in c) + b")"
+    return repr(c).encode()
+
+
+def _code_bytes(code: types.CodeType) -> bytes:
+    """A function's code and constants as bytes, the same in every process. Code whose constants hold no
+    nested code and no frozenset keeps the bytes of earlier versions (``co_code + repr(co_consts)``), so its
+    fingerprint is unchanged."""
+    def unstable(c):
+        return isinstance(c, (types.CodeType, frozenset)) or (isinstance(c, tuple) and any(unstable(x) for x in c))
+
+    if not any(unstable(c) for c in code.co_consts):
+        return code.co_code + repr(code.co_consts).encode()
+    return code.co_code + b"consts:" + b";".join(_stable_const(c) for c in code.co_consts)
+
+
 def _feed(h, value, depth: int = 4, seen: set | None = None) -> None:
     """Feed a value that a model computes with to the hash ``h``: numbers and strings by ``repr``, tensors and
     arrays by value, containers item by item, a function by its code and the values it holds (closure cells,
@@ -185,7 +212,7 @@ def _feed(h, value, depth: int = 4, seen: set | None = None) -> None:
         _feed(h, value.__self__, depth - 1, seen)
     elif inspect.isfunction(value):
         code = value.__code__
-        h.update(f"function:{value.__qualname__};".encode() + code.co_code + repr(code.co_consts).encode())
+        h.update(f"function:{value.__qualname__};".encode() + _code_bytes(code))
         _feed(h, _held_values(value), depth - 1, seen)
     else:
         h.update(f"object:{type(value).__qualname__};".encode())
@@ -225,7 +252,9 @@ def _hash_module(h, m: torch.nn.Module) -> None:
     the print nor the state holds."""
     h.update(repr(m).encode())  # the module tree with each module's settings (kernel sizes, Gabor parameters)
     hash_state(h, m)
-    for cls in {type(sub) for sub in m.modules()}:
+    # in the order the module tree meets them: a set of classes has another order in every process (ordered by
+    # their addresses), which changed the fingerprint of a model with two classes of its own from run to run
+    for cls in dict.fromkeys(type(sub) for sub in m.modules()):
         if not cls.__module__.startswith("torch."):
             h.update(cls.__qualname__.encode())
             try:
@@ -253,7 +282,7 @@ def model_fingerprint(encoder: "ModelEncoder") -> str:
         code = getattr(c, "__code__", None) or getattr(getattr(c, "func", None), "__code__", None)
         h.update(getattr(c, "__qualname__", type(c).__qualname__).encode())
         if code is not None:
-            h.update(code.co_code + repr(code.co_consts).encode())
+            h.update(_code_bytes(code))
         held = _callable_values(c)
         if held:  # fed only where there are some, as above
             _feed(h, held)
