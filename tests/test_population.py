@@ -333,3 +333,28 @@ def test_a_ray_task_whose_worker_dies_is_retried_with_nothing_lost_or_repeated(t
     assert marker.is_file()  # a worker did die
     assert [r["neuron"] for r in rows] == [0, 1, 2]
     assert sorted(p.name for p in (tmp_path / "pop" / "neurons").iterdir()) == [f"neuron_{n:05d}" for n in range(3)]
+
+
+def test_a_ray_task_that_fails_keeps_the_neurons_it_finished(tmp_path):
+    """One task for neurons 0-3; neuron 3 fails after 0, 1 and 2 are done. Locally those three are kept; on
+    Ray the task returned all or nothing, and the run ended with no folder at all."""
+
+    class BreaksOnNeuron3(GaborSimpleCell):  # defined here, so that Ray ships it by value
+        """Four cells; asked for neuron 3 alone (its pixel MEI, after the group's 3D-MEIs), it raises."""
+
+        def __init__(self):
+            super().__init__(orientation=[0.0, 0.5, 1.0, 1.5])
+
+        def respond(self, z, idx):
+            if idx.tolist() == [3]:
+                raise RuntimeError("the model broke on neuron 3")
+            return super().respond(z, idx)
+
+    kw = dict(settings=MEISettings(**{**SMALL, "seeds": (0,)}), batch_size=4, pixel_steps=2, progress=False)
+    for cluster in (None, "ray"):
+        out = tmp_path / str(cluster)
+        with pytest.raises(Exception, match="the model broke on neuron 3"):
+            run_population(BreaksOnNeuron3(), [0, 1, 2, 3], out, cluster=cluster, **kw)
+        assert sorted(p.name for p in (out / "neurons").iterdir()) == [f"neuron_{n:05d}" for n in range(3)], cluster
+        assert [r["neuron"] for r in read_table(out)] == [0, 1, 2]
+    assert not ray.is_initialized()

@@ -8,6 +8,9 @@ interruption is kept. Ray is an optional dependency: ``pip install "meshmei[clus
 
 from __future__ import annotations
 
+import signal
+import threading
+
 from ..encoders import encoder_from_spec, encoder_spec
 from ..errors import MEIError
 from ..mei import MEISettings
@@ -23,9 +26,28 @@ def neuron_groups(neurons: list[int], batch_size: int, n_seeds: int) -> list[lis
 
 
 def _task(encoder, spec, neurons, init, settings: dict, batch_size, pixel_steps):
-    enc = encoder if encoder is not None else encoder_from_spec(spec)
-    return list(neuron_results(enc, neurons, init, MEISettings.from_dict(settings), batch_size=batch_size,
-                               pixel_steps=pixel_steps))
+    """``(results, error)``: the group's finished neurons, and the error that stopped the rest (None when
+    none did) as one line: a failure on one neuron does not take the group's finished ones with it."""
+    done = []
+    try:
+        enc = encoder if encoder is not None else encoder_from_spec(spec)
+        for item in neuron_results(enc, neurons, init, MEISettings.from_dict(settings), batch_size=batch_size,
+                                   pixel_steps=pixel_steps):
+            done.append(item)
+    except Exception as err:  # noqa: BLE001 - handed to the driver, which raises it after saving the rest
+        return done, f"{type(err).__name__}: {err}"
+    return done, None
+
+
+def _collect(ray, ref) -> tuple:
+    """``(results, failure)`` of a finished task: its finished neurons, and why the rest did not finish (a
+    line; None if they all did): the optimisation's error, or Ray's (a worker that died every retry)."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as err:
+        return [], str(err.cause if err.cause is not None else err)
+    except ray.exceptions.RayError as err:  # a worker that crashed on every retry, a lost object
+        return [], f"{type(err).__name__}: {str(err).strip().splitlines()[0] if str(err).strip() else ''}"
 
 
 def check_cluster(cluster: str):
@@ -46,12 +68,19 @@ def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettin
 
     ``cluster``: ``"ray"`` (the cluster ``RAY_ADDRESS`` names, else a local instance started here and stopped
     at the end) or ``"ray://HOST:PORT"``. A task whose worker dies is retried up to ``max_retries`` times; an
-    exception raised by the optimisation itself ends the run with that error.
+    exception raised by the optimisation itself, or a task that still fails, ends the run with MEIError
+    after every neuron that finished has been handed out: the failed task's own finished neurons and the
+    other tasks' that had finished by then (the tasks still running are cancelled).
     """
     ray = check_cluster(cluster)
     started = not ray.is_initialized()
     if started:
+        # ray.init installs its own SIGTERM handler (which aborts the driver); keep the caller's, which turns
+        # SIGTERM into the interrupt that keeps what finished (run_population)
+        term = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
         ray.init(address=None if cluster == "ray" else cluster, log_to_driver=False, include_dashboard=False)
+        if term is not None:
+            signal.signal(signal.SIGTERM, term)
     try:
         try:  # the encoder itself when Ray can ship it, else its spec (a TorchScript model is reloaded)
             payload, spec = ray.put(encoder), None
@@ -60,15 +89,25 @@ def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettin
         task = ray.remote(num_cpus=1, max_retries=max_retries)(_task)
         pending = {task.remote(payload, spec, group, init, settings.to_dict(), batch_size, pixel_steps): group
                    for group in neuron_groups(list(neurons), batch_size, len(settings.seeds))}
-        while pending:
+        failure = None
+        while pending and failure is None:
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
                 pending.pop(ref)
-                try:
-                    results = ray.get(ref)
-                except ray.exceptions.RayTaskError as err:
-                    raise MEIError(f"a Ray task failed: {err.cause if err.cause is not None else err}") from None
+                results, failure = _collect(ray, ref)
                 yield from results
+        if failure is not None:
+            # the tasks that finished meanwhile are kept too; the others are cancelled
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0) if pending else ([], [])
+            for ref in ready:
+                pending.pop(ref)
+                yield from _collect(ray, ref)[0]
+            for ref in pending:
+                try:
+                    ray.cancel(ref, force=False)
+                except Exception:  # noqa: BLE001 - it finished meanwhile: nothing to cancel
+                    pass
+            raise MEIError(f"a Ray task failed: {failure}")
     finally:
         if started:
             ray.shutdown()
