@@ -299,6 +299,22 @@ def test_devices_other_than_the_cpu_are_refused_clearly(tmp_path):
         run_population(cells(), [0], tmp_path / "p", device="tpu", settings=MEISettings(**SMALL), progress=False)
 
 
+def test_a_start_mesh_of_your_own_is_told_apart_by_its_values(tmp_path):
+    """A population folder took a dented sphere for the sphere it was started with (the start was recorded by
+    its printed form, which abbreviates large tensors), and refused the same mesh given as arrays."""
+    from meshmei.shapes import initial_mesh
+
+    V, F = initial_mesh("sphere", n_vertices=400, dtype=torch.float64)
+    dented = V.clone()
+    dented[100:300] *= 0.7
+    kw = dict(settings=MEISettings(**{**SMALL, "seeds": (0,), "steps": 2}), pixel_steps=0, progress=False)
+    run_population(cells(), [0], tmp_path, init=(V, F), **kw)
+    with pytest.raises(MEIError, match="init"):
+        run_population(cells(), [1], tmp_path, init=(dented, F), **kw)
+    rows = run_population(cells(), [1], tmp_path, init=[V.numpy(), F.numpy()], **kw)  # the same mesh, as arrays
+    assert [r["neuron"] for r in rows] == [0, 1]
+
+
 # ---------------------------------------------------------------------------------------------- Ray
 ray = pytest.importorskip("ray")
 

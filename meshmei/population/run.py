@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import signal
 import threading
 import time
@@ -26,8 +27,22 @@ def population_config(encoder: Encoder, init: str, settings: MEISettings, pixel_
     """What shapes every neuron's result: hashed into the folder, so that other settings never mix in. A
     lab's model enters by its identity (:func:`~meshmei.encoders.encoder_identity`: weights, code, options
     and the model file's hash, not the path it was reached by)."""
-    return {"format": CONFIG_FORMAT, "encoder": encoder_identity(encoder), "init": str(init),
+    return {"format": CONFIG_FORMAT, "encoder": encoder_identity(encoder), "init": start_identity(init, settings),
             "settings": settings.to_dict(), "pixel_mei": {"steps": pixel_steps, "seeds": list(settings.seeds)}}
+
+
+def start_identity(init, settings: MEISettings) -> str:
+    """A built-in start by its name; a mesh of your own by its counts and a hash of its vertices (as float64)
+    and faces as the run uses them: the same mesh given as tensors, arrays or lists is one start, and a start
+    that differs anywhere another (its printed form, used before, abbreviates a large tensor and rounds to
+    four decimals, so a dented sphere passed for the sphere)."""
+    if isinstance(init, str):
+        return init
+    V0, F, _ = initial(init, settings)
+    h = hashlib.sha256()
+    h.update(V0.detach().cpu().double().contiguous().numpy().tobytes())
+    h.update(F.detach().cpu().long().contiguous().numpy().tobytes())
+    return f"mesh: {V0.shape[0]} vertices, {F.shape[0]} faces, sha256 {h.hexdigest()[:16]}"
 
 
 def check_device(device) -> torch.device:
