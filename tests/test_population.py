@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from meshmei.encoders import GaborComplexCell, GaborSimpleCell, encoder_from_model
+from meshmei.encoders import GaborComplexCell, GaborSimpleCell, encoder_from_model, make_encoder
 from meshmei.errors import MEIError
 from meshmei.mei import MEISettings, load_run, optimize_mei, pixel_mei
 from meshmei.population import parse_neurons, read_table, run_population
@@ -99,6 +99,12 @@ def test_a_refused_call_writes_nothing_so_the_corrected_one_runs(tmp_path):
         with pytest.raises(MEIError):
             run_population(enc, [0], out, settings=MEISettings(**settings), pixel_steps=0, progress=False, **extra)
         assert not out.exists()
+    # an image size the cell cannot take fails at the encoder's probe, before the folder is written (it failed
+    # at the first step, and the folder then refused the corrected call)
+    with pytest.raises(ValueError, match="constant on this pixel grid"):
+        run_population(make_encoder("gabor-simple"), [0], out, settings=MEISettings(**{**SMALL, "image_size": 2}),
+                       pixel_steps=0, progress=False)
+    assert not out.exists()
     assert [r["neuron"] for r in run_population(enc, [0], out, settings=MEISettings(**SMALL), pixel_steps=0,
                                                 progress=False)] == [0]
 

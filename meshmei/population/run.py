@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from ..encoders import Encoder, encoder_identity
+from ..encoders import Encoder, encoder_identity, frozen_encoder
 from ..errors import MEIError
 from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
 from ..mei.batch import check_batch_size
@@ -156,6 +156,10 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
         raise MEIError(f"pixel_steps must be a non-negative integer, got {pixel_steps!r}")
     check_batch_size(batch_size)
     initial(init, settings)  # a start that cannot be built fails here, before anything is written
+    if neurons:  # and an encoder that cannot take images of this size (a Gabor cell at 2 px)
+        with frozen_encoder(encoder), torch.no_grad():
+            encoder(torch.full((1, 1, settings.image_size, settings.image_size), 0.5, dtype=settings.torch_dtype),
+                    neurons[:1])
     if cluster is not None:
         from .cluster import check_cluster
 
