@@ -136,6 +136,37 @@ def test_pixel_mei_deterministic_and_restores_mode():
     assert model.readout.mu.grad is None  # encoder parameters get no gradient
 
 
+@pytest.mark.parametrize("kw", [dict(step_size=1e30), dict(init_std=1e30), dict(init_std=1e-30),
+                                dict(blur_sigma=1e308)])
+def test_pixel_mei_takes_any_finite_step_init_and_blur(kw):
+    """Finite but extreme arguments: a step of 1e30 or a start of 1e30 overflowed the image's norm in float32
+    and ended at an all-zero image with response 0; a start of 1e-30 underflowed it (an error blaming the
+    objective); a blur of 1e308 raised OverflowError. Each now keeps the image on the norm sphere."""
+    cell = GaborComplexCell()
+    res = pixel_mei(cell, 0, image_size=24, steps=6, seeds=(0,), **kw)
+    assert float(torch.linalg.vector_norm(res.image)) == pytest.approx(25.0, rel=1e-5)
+    assert res.activation > 3 * res.history[0]  # it climbs (a complex cell: bound 1, the noise start 0.08)
+
+
+def test_pixel_mei_of_a_model_without_norm_searches_the_renderable_images():
+    """norm=None: the renders are standardised, not rescaled, so the pixel MEI's images are those whose
+    intensities lie in [0, 1]; it searched the norm-25 sphere, so a linear neuron's 3D-MEI reached 3.5 times
+    its pixel MEI. The box's optimum of a linear neuron is known: each pixel at the end its weight favours."""
+    from meshmei.encoders import encoder_from_model
+
+    w = torch.randn(1, 16 * 16, generator=torch.Generator().manual_seed(0))
+    enc = encoder_from_model(lambda x: x.flatten(1) @ w.T, mean=0.5, std=0.05, norm=None, image_size=16)
+    res = pixel_mei(enc, 0, steps=200, seeds=(0,), blur_sigma=0.0)  # white-noise weights: no blur
+    lo, hi = (0.0 - 0.5) / 0.05, (1.0 - 0.5) / 0.05
+    assert float(res.image.min()) >= lo - 1e-5 and float(res.image.max()) <= hi + 1e-5
+    best = float(torch.where(w > 0, hi, lo).flatten() @ w.flatten())
+    assert res.activation == pytest.approx(best, rel=1e-3)
+    assert res.settings["space"] == "box"
+    # every render lies in that box: the 3D-MEI cannot beat the pixel MEI
+    image = torch.rand(1, 1, 16, 16)
+    assert float(enc(image)[0, 0]) <= res.activation
+
+
 @pytest.mark.parametrize("kw, match", [
     (dict(step_size=-0.2), "step_size must be positive and finite, got -0.2"),
     (dict(step_size=0.0), "step_size must be positive and finite, got 0.0"),
@@ -168,10 +199,19 @@ def test_pixel_mei_takes_one_neuron_only(neuron):
 
 
 def test_pixel_mei_refuses_a_non_finite_final_response():
-    # a step of 1e308 image norms overflows on the last step, which minimize's guard (on the loss before
-    # each step) never sees: the NaN came back as the seed's response
+    # a response that turns NaN at the last iterate, which minimize's guard (on the loss before each step)
+    # never sees, must not come back as the seed's response (a step of 1e308 image norms once did this; such
+    # steps are now taken as their direction)
+    class LateNaN(GaborSimpleCell):
+        calls = 0
+
+        def respond(self, z, idx):
+            LateNaN.calls += 1
+            out = super().respond(z, idx)
+            return out * float("nan") if LateNaN.calls > 1 else out
+
     with pytest.raises(EncoderError, match="the response became nan after the last step of seed 0"):
-        pixel_mei(GaborSimpleCell(), 0, image_size=16, steps=1, step_size=1e308, seeds=(0,))
+        pixel_mei(LateNaN(), 0, image_size=16, steps=1, seeds=(0,))
 
 
 @pytest.mark.parametrize("neurons", ["0", ["0"], object()])

@@ -5,6 +5,12 @@ norm is fixed (25 by default). Each step takes the gradient of the neuron's resp
 image, smooths it with a Gaussian blur (a preconditioner that favours smooth images early on; its width
 decays to zero so the final iterate is an exact stationary point), moves along it, and projects the image
 back to the norm sphere. Several random starts are run and the best kept.
+
+A lab's model built with ``norm=None`` sees its renders standardised but not rescaled: their space is
+every image whose intensities lie in the renderer's range ``[0, 1]``, a box in the preprocessed space,
+``[(lo - mean) / std, (hi - mean) / std]`` per pixel. The pixel MEI searches that box instead (steps
+measured against half its diagonal, each iterate clamped into it), so that the 3D-MEI's response over the
+pixel MEI's compares two images of one space.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     if sigma < 0.3:
         return x
     H, W = x.shape[-2:]
-    r = min(int(math.ceil(3 * sigma)), H - 1, W - 1)
+    r = min(H - 1, W - 1) if 3 * sigma >= min(H, W) else min(int(math.ceil(3 * sigma)), H - 1, W - 1)
     if r < 1:
         return x
     t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
@@ -53,7 +59,8 @@ class PixelMEIResult:
     Attributes
     ----------
     image : (1, 1, H, W) tensor
-        The best preprocessed image (L2 norm ``encoder.preprocess.norm``); ``encoder.preprocess.to_image``
+        The best preprocessed image (L2 norm ``encoder.preprocess.norm``; for a model with ``norm=None``,
+        every pixel within the renderable range, see the module docstring); ``encoder.preprocess.to_image``
         maps it to pixel values.
     activation : float
         The neuron's response to ``image``.
@@ -87,29 +94,58 @@ def _check_size(image_size):
     return H, W
 
 
+def _on_sphere(z: torch.Tensor, norm: float) -> torch.Tensor:
+    """``norm * z / |z|``, also where ``|z|`` overflows or underflows the dtype (``z`` of 1e30 or 1e-30 in
+    float32): then ``z`` is first divided by its largest entry. ``z`` must have a non-zero finite entry."""
+    n = torch.linalg.vector_norm(z)
+    if not (math.isfinite(float(n)) and float(n) > 1e-30):
+        z = z / z.abs().amax()
+        n = torch.linalg.vector_norm(z)
+    return norm * z / n.clamp_min(torch.finfo(z.dtype).tiny)
+
+
 class NormalizedAscent(torch.optim.Optimizer):
     """The pixel MEI's step rule on images of fixed L2 norm, as a torch optimiser of the loss ``-f``.
 
     Each step: ``g = blur(-grad, blur_sigma * factor)``, ``z <- z + (lr + min_step) * norm * g / |g|``, then
     ``z <- norm * z / |z|``. ``factor`` is the schedule's factor, which :func:`meshmei.optim.minimize`
     stores in the group beside the scheduled ``lr``; ``min_step`` keeps the last steps from vanishing.
+    A step too long for the dtype (``lr`` of 1e30) is taken as the direction it tends to, ``g / |g|``.
+
+    With ``box = (a, b)`` the images are those with every pixel in ``[a, b]`` instead: the step is
+    ``(lr + min_step) * r * g / |g|`` with ``r`` half the box's diagonal, then ``z <- clamp(z, a, b)``.
     """
 
-    def __init__(self, params, *, lr: float, blur_sigma: float, norm: float, min_step: float = 1e-3):
-        super().__init__(params, dict(lr=lr, blur_sigma=blur_sigma, norm=norm, min_step=min_step, factor=1.0))
+    def __init__(self, params, *, lr: float, blur_sigma: float, norm: float, min_step: float = 1e-3, box=None):
+        super().__init__(params, dict(lr=lr, blur_sigma=blur_sigma, norm=norm, min_step=min_step, factor=1.0,
+                                      box=box))
 
     @torch.no_grad()
     def step(self, closure=None):
         for group in self.param_groups:
-            norm = group["norm"]
+            norm, box = group["norm"], group["box"]
             for z in group["params"]:
                 if z.grad is None:
                     continue
                 grad = gaussian_blur(-z.grad, group["blur_sigma"] * group["factor"])
                 gn = torch.linalg.vector_norm(grad)
+                if not math.isfinite(float(gn)) or float(gn) > 1e30:  # a gradient too large to square
+                    grad = grad / grad.abs().amax()
+                    gn = torch.linalg.vector_norm(grad)
+                if box is not None:
+                    a, b = box
+                    if float(gn) > 0:
+                        radius = 0.5 * (b - a) * math.sqrt(z.numel())
+                        z.add_(min(group["lr"] + group["min_step"], 1e6) * radius * grad / gn)
+                    z.clamp_(a, b)
+                    continue
                 if float(gn) > 0:
-                    z.copy_(z + (group["lr"] + group["min_step"]) * norm * grad / gn)
-                z.copy_(norm * z / torch.linalg.vector_norm(z).clamp_min(torch.finfo(z.dtype).tiny))
+                    step = (group["lr"] + group["min_step"]) * norm
+                    moved = z + step * grad / gn
+                    if not bool(torch.isfinite(moved).all()):  # the step overflows: its direction is g / |g|
+                        moved = z / step + grad / gn
+                    z.copy_(moved)
+                z.copy_(_on_sphere(z, norm))
 
 
 def _is_integer(v) -> bool:
@@ -187,7 +223,13 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
         image_size = getattr(encoder, "image_size", 64)
     neuron, H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma,
                                              init_std, dtype)
-    norm = encoder.preprocess.norm
+    pre = encoder.preprocess
+    norm = pre.norm
+    box = None
+    if not getattr(pre, "renorm", True):  # norm=None: the box of renderable images (module docstring)
+        with torch.no_grad():
+            ends = pre.standardise(torch.tensor([0.0, 1.0], dtype=torch.float64).view(1, 1, 1, 2)).flatten()
+        box = (float(ends.min()), float(ends.max()))
     best, per_seed = None, {}
     bar = Progress(len(seeds) * steps, f"pixel MEI neuron {neuron}", enabled=progress,
                    postfix=lambda rec: {"act": f"{rec['response']:.4f}"})
@@ -195,14 +237,18 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
         for seed in seeds:
             g = torch.Generator().manual_seed(seed)
             z = (init_std * torch.randn(1, 1, H, W, generator=g, dtype=dtype)).to(device)
-            z = (norm * z / torch.linalg.vector_norm(z)).requires_grad_(True)
+            if box is None:
+                z = _on_sphere(z, norm).requires_grad_(True)
+            else:  # the box's centre plus the noise, its largest pixel a quarter of the box's width out
+                a, b = box
+                z = (0.5 * (a + b) + 0.25 * (b - a) * z / z.abs().amax()).requires_grad_(True)
 
             def objective(point, z=z):
                 f = encoder(z, neuron, preprocessed=True)[0, 0]
                 return -f, {"response": float(f.detach())}
 
             trace = Trace()
-            minimize(objective, NormalizedAscent([z], lr=step_size, blur_sigma=blur_sigma, norm=norm), Budget(steps),
+            minimize(objective, NormalizedAscent([z], lr=step_size, blur_sigma=blur_sigma, norm=norm, box=box), Budget(steps),
                      schedule=Schedule("cosine", 0.0), trace=trace, progress=bar, error=EncoderError,
                      where=f" of seed {seed}")
             with torch.no_grad():
@@ -215,5 +261,6 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
                 best = (z.detach(), final, tuple(r["response"] for r in trace.history) + (final,), seed)
     bar.close()
     settings = dict(image_size=[H, W], steps=steps, step_size=float(step_size), blur_sigma=float(blur_sigma),
-                    seeds=seeds, init_std=float(init_std), dtype=str(dtype).replace("torch.", ""))
+                    seeds=seeds, init_std=float(init_std), dtype=str(dtype).replace("torch.", ""),
+                    space="sphere" if box is None else "box")
     return PixelMEIResult(best[0], best[1], best[2], best[3], per_seed, settings)
