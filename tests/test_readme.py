@@ -36,6 +36,14 @@ def test_main_job_command_is_a_cli_command():
     assert callable(args.func)
 
 
+def test_python_dash_m_meshmei_is_the_command_line():
+    # there was no __main__: 'No module named meshmei.__main__'
+    out = subprocess.run([sys.executable, "-m", "meshmei", "--help"], capture_output=True, text=True, timeout=120,
+                         cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("usage: meshmei")
+
+
 def test_package_exports_resolve():
     import meshmei
 
