@@ -182,6 +182,10 @@ def test_pixel_mei_of_a_model_without_norm_searches_the_renderable_images():
     (dict(steps=None), "steps must be a positive integer, got None"),
     (dict(dtype="float32"), "dtype must be torch.float32 or torch.float64, got 'float32'"),
     (dict(dtype=torch.int64), "dtype must be torch.float32 or torch.float64, got torch.int64"),
+    (dict(seeds=(2 ** 64,)), r"seeds must lie in \[-2\*\*63, 2\*\*64 - 1\]"),
+    (dict(seeds=(-1, 2 ** 64 - 1)), r"seeds \[-1, 18446744073709551615\] are the same seed to torch"),
+    (dict(device="gpu"), "device 'gpu' cannot hold the image here"),
+    (dict(device="meta"), "device 'meta' holds no values"),
 ])
 def test_pixel_mei_refuses_bad_arguments_in_one_line(kw, match):
     # a negative step_size used to minimise the response; the others failed inside torch or ran a seed twice

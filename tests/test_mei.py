@@ -352,6 +352,12 @@ def test_a_seed_with_a_non_finite_end_never_wins():
     (dict(valid_steps="false"), "valid_steps must be True or False, got 'false'"),
     (dict(seeds=None), "seeds must be a non-empty sequence of integers, got None"),  # a TypeError
     (dict(seeds=[math.inf]), r"seeds must be a non-empty sequence of integers, got \[inf\]"),  # an OverflowError
+    # torch's 'Overflow when unpacking long long' at the first seed; two runs of one seed
+    (dict(seeds=(2 ** 64,)), r"seeds must lie in \[-2\*\*63, 2\*\*64 - 1\]"),
+    (dict(seeds=(-1, 2 ** 64 - 1)), r"seeds \[-1, 18446744073709551615\] are the same seed to torch"),
+    # 810,000 renders a step: torch's allocation error after the run started
+    (dict(robust_pose=20, robust_light=20, robust_points=30), "robust_points=30 gives 810,000 views per step"),
+    (dict(robust_pose=1e6), "robust_pose must be at most 180 degrees"),
 ])
 def test_settings_that_would_fail_later_are_one_line_mei_errors(kw, match):
     # each used to pass, or to fail as a TypeError / ValueError / RuntimeError from deep inside a run

@@ -153,7 +153,7 @@ def _is_integer(v) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and int(v) == v
 
 
-def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma, init_std, dtype):
+def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma, init_std, dtype, device=None):
     """The checked arguments of :func:`pixel_mei`: ``(neuron, H, W, steps, seeds)``; ``EncoderError`` names
     the first bad one."""
     neuron = check_neuron(encoder, neuron, error=EncoderError)
@@ -171,11 +171,25 @@ def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise EncoderError("seeds is empty; give at least one seed")
+    bad = [s for s in seeds if not -(2 ** 63) <= s < 2 ** 64]
+    if bad:
+        raise EncoderError(f"seeds must lie in [-2**63, 2**64 - 1] (torch's seed range), got {bad}")
     if len(set(seeds)) != len(seeds):
         twice = sorted({s for s in seeds if seeds.count(s) > 1})
         raise EncoderError(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
+    same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
+    if same:
+        raise EncoderError(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")
     if dtype not in (torch.float32, torch.float64):
         raise EncoderError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    if device is not None:
+        try:
+            dev = torch.device(device)
+            torch.empty(0, device=dev)
+        except (RuntimeError, TypeError, AssertionError) as err:
+            raise EncoderError(f"device {device!r} cannot hold the image here: {str(err).splitlines()[0]}") from None
+        if dev.type == "meta":
+            raise EncoderError("device 'meta' holds no values; give a device that computes (cpu, cuda)")
     return neuron, H, W, int(steps), seeds
 
 
@@ -222,7 +236,7 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
     if image_size is None:
         image_size = getattr(encoder, "image_size", 64)
     neuron, H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma,
-                                             init_std, dtype)
+                                             init_std, dtype, device)
     pre = encoder.preprocess
     norm = pre.norm
     box = None

@@ -26,6 +26,10 @@ __all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "DEFAULT_CONTACT_WEIGHT"
 # bound and 800 reach 0.95 (docs/mei.md, *How many steps*). A mesh of your own gets the sheet's count.
 DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 800, "custom": 300}
 
+# A robust 3D-MEI renders robust_points^2 views per robust axis (pose, light; both: every pair) at every step,
+# in one batch: 4,096 is robust_points 8 with both axes (64 px: about 65 MB of float32 images per step)
+MAX_ROBUST_VIEWS = 4096
+
 # Contact-barrier weight when ``MEISettings.contact_weight`` is None, by start. The sheet starts as a graph
 # over the image plane and the guard's turn barrier keeps its faces facing the camera, so no two distant
 # parts of it can come close: over six Gabor cells its response was the same without the contact barrier
@@ -218,9 +222,15 @@ class MEISettings:
         if not seeds or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) for s in seeds):
             raise MEIError(f"seeds must be a non-empty sequence of integers, got {self.seeds!r}")
         seeds = tuple(int(s) for s in seeds)
+        bad = [s for s in seeds if not -(2 ** 63) <= s < 2 ** 64]
+        if bad:  # torch.Generator.manual_seed's range; beyond it, torch's own overflow error at the first seed
+            raise MEIError(f"seeds must lie in [-2**63, 2**64 - 1] (torch's seed range), got {bad}")
         if len(set(seeds)) != len(seeds):
             twice = sorted({s for s in seeds if seeds.count(s) > 1})
             raise MEIError(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
+        same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
+        if same:  # torch takes a negative seed modulo 2**64: -1 is 2**64 - 1
+            raise MEIError(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")
         object.__setattr__(self, "seeds", seeds)
         if not isinstance(self.weights, dict):
             raise MEIError(f"weights must be a dict of regularizer name -> weight, got {type(self.weights).__name__}")
@@ -250,6 +260,14 @@ class MEISettings:
         w = self.robust_widen
         if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w < 1:
             raise MEIError(f"robust_widen must lie in [0, 1), got {w!r}")
+        for name in ("robust_pose", "robust_light"):
+            if getattr(self, name) > 180:  # +-180 degrees already turns the object (or the light) all the way round
+                raise MEIError(f"{name} must be at most 180 degrees, got {getattr(self, name)!r}")
+        axes = (self.robust_pose > 0) + (self.robust_light > 0)
+        views = self.robust_points ** (2 * axes)
+        if views > MAX_ROBUST_VIEWS:  # every view is rendered at every step, in one batch
+            raise MEIError(f"robust_points={self.robust_points} gives {views:,} views per step "
+                           f"({'pose and light' if axes == 2 else 'two angles'}); at most {MAX_ROBUST_VIEWS:,}")
         if self.keep not in ("best", "last"):
             raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
         if self.dtype not in ("float32", "float64"):
