@@ -38,12 +38,22 @@ def cells():
 def test_neuron_lists_parse_ranges_and_keep_order():
     assert parse_neurons("0-3") == [0, 1, 2, 3]
     assert parse_neurons("7,2-4,3,9") == [7, 2, 3, 4, 9]
-    for bad in ("", "a-b", "5-2", "-3"):
+    for bad in ("", "a-b", "5-2", "-3", "+1", "1_0", "\u0663"):  # int() reads the last three (as 1, 10 and 3)
         with pytest.raises(MEIError):
             parse_neurons(bad)
     assert parse_neurons("0-3", 4) == [0, 1, 2, 3]
     with pytest.raises(MEIError, match="out of range for 4 neurons: got 999999999"):
         parse_neurons("0-999999999", 4)  # refused before the range is built (it would take GBs)
+
+
+@pytest.mark.parametrize("neurons, match", [(2, "neurons must be a sequence of neuron indices"),
+                                             (None, "neurons must be a sequence of neuron indices"),
+                                             ("0-3", "parse_neurons reads"), ([], "neurons is empty")])
+def test_neurons_that_are_not_a_list_of_indices_are_refused_before_the_folder(tmp_path, neurons, match):
+    # 2 and None were a TypeError from a list comprehension; [] wrote a folder with an empty table
+    with pytest.raises(MEIError, match=match):
+        run_population(cells(), neurons, tmp_path / "pop", settings=MEISettings(**SMALL), progress=False)
+    assert not (tmp_path / "pop").exists()
 
 
 def test_repeated_seeds_are_refused_not_silently_dropped():
@@ -380,3 +390,21 @@ def test_a_ray_task_that_fails_keeps_the_neurons_it_finished(tmp_path):
         assert sorted(p.name for p in (out / "neurons").iterdir()) == [f"neuron_{n:05d}" for n in range(3)], cluster
         assert [r["neuron"] for r in read_table(out)] == [0, 1, 2]
     assert not ray.is_initialized()
+
+
+def test_an_encoder_that_cannot_reach_the_workers_is_refused_before_the_folder(tmp_path):
+    """A model holding a lock cannot be pickled and has no file to be rebuilt from: it failed once Ray had
+    started and the folder was written, with a message about load_run."""
+    import threading
+
+    unit, lock = GaborSimpleCell(orientation=[0.0, 0.5]), threading.Lock()
+
+    def model(x):
+        with lock:
+            return unit(x, preprocessed=True)
+
+    enc = encoder_from_model(model, mean=0.5, std=0.2, image_size=16)
+    with pytest.raises(MEIError, match="cannot reach Ray's workers: it cannot be pickled"):
+        run_population(enc, [0, 1], tmp_path / "pop", settings=MEISettings(**SMALL), pixel_steps=0, cluster="ray",
+                       progress=False)
+    assert not (tmp_path / "pop").exists() and not ray.is_initialized()

@@ -16,7 +16,7 @@ from ..errors import MEIError
 from ..mei import MEISettings
 from .run import neuron_results
 
-__all__ = ["ray_neuron_results", "neuron_groups"]
+__all__ = ["ray_neuron_results", "neuron_groups", "check_shippable"]
 
 
 def neuron_groups(neurons: list[int], batch_size: int, n_seeds: int) -> list[list[int]]:
@@ -48,6 +48,24 @@ def _collect(ray, ref) -> tuple:
         return [], str(err.cause if err.cause is not None else err)
     except ray.exceptions.RayError as err:  # a worker that crashed on every retry, a lost object
         return [], f"{type(err).__name__}: {str(err).strip().splitlines()[0] if str(err).strip() else ''}"
+
+
+def check_shippable(encoder) -> None:
+    """MEIError, before anything is written, unless ``encoder`` can reach Ray's workers: pickled (as
+    :func:`ray_neuron_results` sends it), or rebuilt from the file it was loaded from (a TorchScript model)."""
+    import ray.cloudpickle
+
+    try:
+        ray.cloudpickle.dumps(encoder)
+        return
+    except Exception as err:  # noqa: BLE001 - any pickling failure; the spec may still rebuild it
+        why = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+    try:
+        encoder_from_spec(encoder_spec(encoder))
+    except Exception:  # noqa: BLE001 - no file to rebuild it from
+        raise MEIError(f"the encoder cannot reach Ray's workers: it cannot be pickled ({why}) and was not loaded "
+                       "from a file it could be rebuilt from (load_model, --model); make it picklable, or run "
+                       "without --cluster") from None
 
 
 def check_cluster(cluster: str):

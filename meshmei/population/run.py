@@ -151,7 +151,12 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
     """
     check_device(device)
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder).for_start(start_name(init))
+    if isinstance(neurons, (str, bytes)) or not hasattr(neurons, "__iter__"):
+        raise MEIError(f"neurons must be a sequence of neuron indices, e.g. [0, 1, 2] (parse_neurons reads '0-99'), "
+                       f"got {neurons!r}")
     neurons = [check_neuron(encoder, n) for n in neurons]
+    if not neurons:
+        raise MEIError("neurons is empty; give at least one neuron")
     if isinstance(pixel_steps, bool) or not isinstance(pixel_steps, int) or pixel_steps < 0:
         raise MEIError(f"pixel_steps must be a non-negative integer, got {pixel_steps!r}")
     check_batch_size(batch_size)
@@ -161,9 +166,10 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
             encoder(torch.full((1, 1, settings.image_size, settings.image_size), 0.5, dtype=settings.torch_dtype),
                     neurons[:1])
     if cluster is not None:
-        from .cluster import check_cluster
+        from .cluster import check_cluster, check_shippable
 
         check_cluster(cluster)
+        check_shippable(encoder)
     out = Path(out)
     digest = prepare_folder(out, population_config(encoder, init, settings, pixel_steps))
     done = finished_neurons(out, digest)

@@ -187,11 +187,11 @@ def parse_neurons(text: str, n_neurons: int | None = None) -> list[int]:
         if not part:
             continue
         lo, sep, hi = part.partition("-")
-        try:
-            a = int(lo)
-            b = int(hi) if sep else a
-        except ValueError:
-            raise MEIError(f"neurons must be ranges and lists such as 0-99 or 3,7,12; got {text!r}") from None
+        # ASCII digits only: int() also reads '+1', '1_0' (as 10) and other scripts' digits
+        if not all(x.isascii() and x.isdigit() for x in ((lo, hi) if sep else (lo,))):
+            raise MEIError(f"neurons must be ranges and lists such as 0-99 or 3,7,12; got {text!r}")
+        a = int(lo)
+        b = int(hi) if sep else a
         if a < 0 or b < a:
             raise MEIError(f"neuron range {part!r} is empty or negative")
         if n_neurons is not None and b >= n_neurons:
