@@ -213,8 +213,12 @@ class StepGuard:
         return None, None, frame
 
     def why_not(self, V: torch.Tensor) -> str | None:
-        """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first)."""
-        return self._verdict(V)[1]
+        """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first). A question, not a
+        check: it counts in neither :attr:`checks` nor :attr:`certified`."""
+        certified = self.certified
+        why = self._verdict(V)[1]
+        self.certified = certified
+        return why
 
     def accept(self, V: torch.Tensor, frame=None) -> bool:
         """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``.

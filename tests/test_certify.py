@@ -216,4 +216,6 @@ def test_an_mei_run_uses_a_certificate_from_the_sheet_and_the_sphere_only(init, 
 
     result = optimize_mei(GaborSimpleCell(), 0, init, steps=15, seeds=(0,), image_size=32, n_vertices=100)
     assert (result.extra["guard"]["certified"] > 0) == expect
+    # the start's check (valid_start asks why_not) is no candidate: it counted as certified, not as a check
+    assert result.extra["guard"]["certified"] <= result.extra["guard"]["checks"]
     assert count_self_intersections(result.V.double(), result.F) == 0
