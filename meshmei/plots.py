@@ -112,8 +112,8 @@ def albedo_figure(result, path) -> Path:
         shading = result.render(albedo=None, uv=None)
     panels = [(result.image, f"render, response {result.activation:.3f}"), (flat, "albedo (camera view)"),
               (shading, "shading alone (albedo 1)")]
-    if result.albedo.ndim == 2:  # a texture over the sheet's grid, row 0 at v = 0
-        panels.append((result.albedo.flip(0)[None, None], f"texture {result.albedo.shape[0]} x {result.albedo.shape[1]}"))
+    if result.albedo.ndim == 2:  # a texture over the sheet's grid, v down the image (sheet_uv): row 0 on top
+        panels.append((result.albedo[None, None], f"texture {result.albedo.shape[0]} x {result.albedo.shape[1]}"))
     fig = new_figure(figsize=(2.6 * len(panels), 2.8))
     for ax, (img, title) in zip(fig.subplots(1, len(panels)), panels):
         _gray(ax, img[0, 0].detach().cpu().numpy(), title, fontsize=9)

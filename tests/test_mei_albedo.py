@@ -52,6 +52,30 @@ def test_the_albedo_figure_shows_the_albedo_the_camera_sees(init, tmp_path):
     assert not (save_run(shape_only, tmp_path / "shape") / "albedo.png").exists()
 
 
+def test_the_texture_panel_is_drawn_the_way_the_camera_sees_it(tmp_path, monkeypatch):
+    """A texture with its first rows bright: the camera view shows them in its top half, and so must the
+    texture panel (it was drawn flipped, bright at the bottom)."""
+    import dataclasses
+
+    import meshmei.plots as plots
+
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", **TINY)
+    T = torch.full_like(res.albedo, 0.1)
+    T[:4] = 0.9
+    res = dataclasses.replace(res, albedo=T)
+    res = dataclasses.replace(res, image=res.render().detach())
+    shown, draw = {}, plots._gray
+    monkeypatch.setattr(plots, "_gray", lambda ax, img, title, **kw: (shown.__setitem__(title.split(" ")[0], img),
+                                                                      draw(ax, img, title, **kw))[1])
+    plots.albedo_figure(res, tmp_path / "a.png")
+
+    def top_brighter(img):
+        img = torch.as_tensor(img)
+        return float(img[: img.shape[0] // 2].mean()) > float(img[img.shape[0] // 2:].mean())
+
+    assert top_brighter(shown["albedo"]) and top_brighter(shown["texture"])
+
+
 def test_shape_only_stays_the_default_and_bad_albedo_settings_are_refused():
     assert MEISettings().albedo is False
     assert optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40).albedo is None
