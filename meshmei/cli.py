@@ -240,6 +240,7 @@ def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     """``meshmei mei --diverse K``: OUT/member_<i> run folders, OUT/diversity.json and OUT/diverse.png."""
     d = diverse_meis(encoder, args.neuron, args.diverse, init, settings)
     results, summary = list(d.results), {"responses": d.responses, "dissimilarity": d.dissimilarity.tolist()}
+    summary.update({k: v for k, v in d.results[0].extra["diverse"].items() if k != "member"})  # k, seeds, weights
     pixel = ""
     if args.pixel_mei:  # one baseline for the neuron, recorded with every member
         pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", settings.image_size))

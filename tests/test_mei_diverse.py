@@ -102,10 +102,15 @@ def test_the_cli_writes_the_members_and_tune_sweeps_each(tmp_path, capsys):
                  "--n-vertices", "40", "--out", str(out), "--quiet"]) == 0
     d = json.loads((out / "diversity.json").read_text())
     assert len(d["responses"]) == 2 and (out / "diverse.png").is_file()
+    # the set's own settings are recorded, and each member says how it ran: its own seed, its last iterate
+    # (members said keep='best' and seeds=(0,), and nothing recorded K, the reward or the floor)
+    assert (d["k"], d["seeds"], d["diversity"], d["floor"]) == (2, [0, 1], 0.5, 0.8)
     clean = 0
     for i, r in enumerate(d["responses"]):
         summary = json.loads((out / f"member_{i}" / "summary.json").read_text())
         assert summary["activation"] == pytest.approx(r, rel=1e-6)
+        assert summary["settings"]["seeds"] == [i] and summary["settings"]["keep"] == "last"
+        assert summary["diverse"]["member"] == i
         clean += summary["quality"]["self_intersections"] == 0 and summary["quality"]["flipped_faces"] == 0
     assert f"{clean} of 2 free of self-intersections and flipped faces" in capsys.readouterr().out  # its health
     assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth=-10:10:3"]) == 0

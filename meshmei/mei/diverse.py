@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import numbers
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -128,6 +128,13 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
             dissimilarity = image_distances(encoder, z)
     wall = (time.perf_counter() - t0) / k
     runs = scene.item_runs(V, images, acts, trace.history, trace.history[-1]["loss"], [trace.step] * k, settings)
-    results = [result_from_seeds({s: run}, V0, F, settings, neuron, encoder, init_name, wall)
-               for s, run in zip(seeds, runs)]
+    # each member as it ran: its own seed, kept at the last iterate, and the set it belongs to (its run alone
+    # would not give it back: the reward couples the members)
+    results = []
+    for i, (s, run) in enumerate(zip(seeds, runs)):
+        res = result_from_seeds({s: run}, V0, F, replace(settings, seeds=(s,), keep="last"), neuron, encoder,
+                                init_name, wall)
+        results.append(replace(res, extra={**res.extra, "diverse": {"member": i, "k": k, "seeds": seeds,
+                                                                     "diversity": float(diversity),
+                                                                     "floor": float(floor)}}))
     return DiverseMEIs(results=results, dissimilarity=dissimilarity)
