@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -43,7 +44,9 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     ----------
     out : path
         Output directory (``mei/``, ``mei/tuning_pose/``, ``mei/tuning_light/``, ``summary.png|pdf``,
-        ``story.json``).
+        ``story.json``). ``story.json`` is written last: a folder without it holds no finished story (an
+        interrupted run, or an interrupted ``overwrite``, which removes the earlier story's ``story.json`` and
+        summary sheet before it replaces ``mei/``).
     encoder : Encoder, optional
         Default: the shipped demo model (:func:`meshmei.encoders.load_demo_model`).
     neuron : int, optional
@@ -70,6 +73,11 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     encoder.neuron_index(neuron)  # clear error for an out-of-range neuron before any work (and any folder)
     out.mkdir(parents=True, exist_ok=True)
     res, pix = _optimise(encoder, neuron, init, p, log)
+    # story.json, written last, says the folder holds a whole story: an earlier story's goes (with its sheet)
+    # before its run folder is replaced, so that an interrupted --overwrite leaves a folder without it, not
+    # one whose story.json and summary sheet describe another neuron than mei/
+    for name in ("story.json", "summary.png", "summary.pdf"):
+        (out / name).unlink(missing_ok=True)
     run_dir = save_run(res, out / "mei", overwrite=True)
     pose, light = _sweep(res, encoder, run_dir, p, log)
     log("[5/5] summary sheet")
@@ -92,8 +100,9 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
         "files": {"run": str(run_dir), "pose": str(run_dir / "tuning_pose"), "light": str(run_dir / "tuning_light"),
                   "summary": [str(s) for s in sheet]},
     }
-    with open(out / "story.json", "w") as fh:
-        json.dump(summary, fh, indent=1)
+    partial = out / ".story.json.partial"
+    partial.write_text(json.dumps(summary, indent=1))
+    os.replace(partial, out / "story.json")
     _report(summary, pose, out, run_dir, log)
     return summary
 

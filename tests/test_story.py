@@ -78,3 +78,23 @@ def test_demo_cli_quick_on_the_shipped_model(tmp_path, capsys):
     s = json.loads((tmp_path / "demo" / "story.json").read_text())
     assert s["mei_activation"] > 0 and math.isfinite(s["light_best_response"])
     assert "3D-MEI response" in capsys.readouterr().out
+
+
+def test_an_interrupted_overwrite_leaves_no_story_of_another_neuron(tmp_path, cell, monkeypatch):
+    """Interrupted after the new run folder was in place (during the sweeps), an overwrite left story.json and
+    summary.png of the earlier neuron beside mei/ of the new one. story.json is now removed first and written
+    last: a folder without it holds no finished story."""
+    import meshmei.story as story
+
+    two = make_encoder("gabor-simple", orientation=[0.0, 1.0], frequency=3.0, sigma=0.3)
+    run_story(tmp_path, encoder=two, neuron=0, preset=QUICK, log=lambda line: None)
+    assert (tmp_path / "story.json").is_file()
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(story, "_sweep", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_story(tmp_path, encoder=two, neuron=1, preset=QUICK, overwrite=True, log=lambda line: None)
+    assert load_run(tmp_path / "mei").neuron == 1
+    assert not (tmp_path / "story.json").exists() and not (tmp_path / "summary.png").exists()
