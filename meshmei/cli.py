@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import warnings
 from dataclasses import replace
@@ -471,9 +472,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# options whose values may start with a minus sign and are not plain numbers ("-90:90:37", "-1,1"): argparse
+# takes such a value for an option of its own unless it is joined to its option with '='
+_SIGNED_VALUES = ("--elevation", "--azimuth", "--roll", "--pixel-range")
+
+
+def _join_signed_values(argv: list) -> list:
+    """``--elevation -90:90:37`` as ``--elevation=-90:90:37`` (the help's own format)."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in _SIGNED_VALUES and i + 1 < len(argv) and re.match(r"-[\d.]", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_signed_values(list(sys.argv[1:] if argv is None else argv)))
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:  # Ctrl-C: one line, the shell's code for it; results are only ever written whole

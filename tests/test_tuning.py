@@ -204,7 +204,8 @@ def test_bad_input(tmp_path, sheet_mei, simple_cell):
 
 def test_cli_tune_pose_and_light(tmp_path, sheet_mei, capsys):
     run = save_run(sheet_mei, tmp_path / "run", figures=False)
-    assert main(["tune", "pose", "--mei", str(run), "--elevation=-30:30:3", "--azimuth=-30:30:3"]) == 0
+    # a negative range as the help writes it, with a space (argparse took '-30:30:3' for an option)
+    assert main(["tune", "pose", "--mei", str(run), "--elevation", "-30:30:3", "--azimuth=-30:30:3"]) == 0
     sw = load_sweep(run / "tuning_pose")
     assert sw.shape == (3, 3) and sw.argmax(0) == {"elevation": 0.0, "azimuth": 0.0}
     assert main(["tune", "light", "--mei", str(run), "--elevation", "0:90:2", "--azimuth", "0:270:4"]) == 0
