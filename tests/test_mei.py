@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -120,6 +122,25 @@ def test_steps_and_contact_weight_default_by_start():
     assert res.settings.steps == DEFAULT_STEPS["custom"] == len(res.history)
     assert res.settings.contact_weight == DEFAULT_CONTACT_WEIGHT["custom"]
     assert res.settings.to_dict()["steps"] == DEFAULT_STEPS["custom"]  # what summary.json stores
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="names an fd's file through /proc")
+def test_a_saved_run_is_on_disk_before_it_is_renamed_into_place(tmp_path, tiny_run, monkeypatch):
+    """Every file of a run folder is fsynced before the folder's rename makes it a finished result: a
+    population resume took a neuron whose state.pt was left empty (as a power loss after the rename may
+    leave it) for finished."""
+    synced, real = [], os.fsync
+
+    def recording(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        return real(fd)
+
+    monkeypatch.setattr(os, "fsync", recording)
+    out = save_run(tiny_run, tmp_path / "run")
+    files = sorted(p.name for p in out.iterdir() if p.is_file())
+    inside = [Path(p).name for p in synced if Path(p).parent.name.startswith(".run.partial-")]
+    assert files and sorted(inside) == files
+    assert str(tmp_path) in synced  # and the folder that holds the renamed result
+
 
 def test_save_and_load_run_exactly(tmp_path, tiny_run):
     out = save_run(tiny_run, tmp_path / "run")
