@@ -224,7 +224,8 @@ def _run_mei(args) -> int:
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:
-        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", image_size))
+        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", image_size),
+                       seeds=settings.seeds)  # --seeds for both
         line += f"; pixel MEI {pm.activation:.4f}"
         res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
     save_run(res, out, overwrite=args.overwrite)
@@ -232,7 +233,8 @@ def _run_mei(args) -> int:
     line += (f"; {h['self_intersections']} self-intersecting pairs, {h['flipped_faces']} flipped faces, "
              f"min triangle quality {h['min_quality']:.3f}")
     print(line)
-    print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png "
+    albedo = ", albedo.png" if res.albedo is not None else ""
+    print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png{albedo} "
           f"({res.wall_time:.1f} s, {1000 * res.seconds_per_step:.0f} ms per step)")
     return 0
 
@@ -244,7 +246,8 @@ def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     summary.update({k: v for k, v in d.results[0].extra["diverse"].items() if k != "member"})  # k, seeds, weights
     pixel = ""
     if args.pixel_mei:  # one baseline for the neuron, recorded with every member
-        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", settings.image_size))
+        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", settings.image_size),
+                       seeds=settings.seeds)
         results = [replace(r, extra={**r.extra, "pixel_mei_activation": pm.activation}) for r in results]
         summary["pixel_mei_activation"] = pm.activation
         pixel = f"; pixel MEI {pm.activation:.4f}"

@@ -224,9 +224,12 @@ def test_bad_input_raises_mei_error():
         grid_search(cell, 0, "sheet", {"laplacian": []}, **TINY)
 
 
-def test_cli_writes_a_run(tmp_path, capsys):
+def test_cli_writes_a_run(tmp_path, capsys, monkeypatch):
+    import meshmei.cli as cli
     from meshmei.cli import main
 
+    seen = []
+    monkeypatch.setattr(cli, "pixel_mei", lambda *a, **k: (seen.append(k.get("seeds")), pixel_mei(*a, **k))[1])
     out = tmp_path / "cli"
     rc = main(["mei", "--encoder", "gabor-complex", "--neuron", "0", "--init", "sheet", "--out", str(out),
                "--steps", "3", "--seeds", "0", "--image-size", "32", "--n-vertices", "80", "--quiet",
@@ -235,6 +238,7 @@ def test_cli_writes_a_run(tmp_path, capsys):
     assert "of the upper bound" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     assert summary["encoder"]["kind"] == "gabor-complex" and "pixel_mei_activation" in summary
+    assert seen == [(0,)]  # the pixel MEI takes --seeds too (it ran seeds 0, 1, 2 whatever --seeds said)
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
 
 
