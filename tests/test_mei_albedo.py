@@ -19,6 +19,8 @@ def test_a_sheet_gets_a_texture_in_the_unit_interval_that_reproduces_its_image(t
     assert res.albedo.shape == (16, 16) and res.albedo_uv.shape == (res.V.shape[0], 2)
     assert float(res.albedo.min()) >= 0.0 and float(res.albedo.max()) <= 1.0
     assert float(res.albedo.std()) > 0  # it was optimised, not left at its start
+    # the smoothness term weighs in the loss, so it is in the regularizers' history (it was left out)
+    assert len(res.reg_history["albedo_roughness"]) == len(res.history) and res.reg_history["albedo_roughness"][-1] > 0
     torch.testing.assert_close(res.render(), res.image)
     back = load_run(save_run(res, tmp_path / "run", figures=False))
     torch.testing.assert_close(back.albedo, res.albedo)

@@ -22,8 +22,8 @@ from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
-from .optimize import (check_neuron, contact_barriers, initial, objective_weights, optimize_mei, result_from_seeds,
-                       settings_for_encoder, start_name, valid_start, validity_barriers)
+from .optimize import (check_neuron, contact_barriers, initial, objective_weights, optimize_mei, reg_terms,
+                       result_from_seeds, settings_for_encoder, start_name, valid_start, validity_barriers)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -148,7 +148,7 @@ class BatchScene:
         return [dict(
             V=V[b], image=images[b:b + 1], activation=acts[b], loss=losses[b], best_step=steps[b],
             history=[r["response"][b] for r in h], loss_history=[r["loss"][b] for r in h],
-            reg_history={k: [r[k][b] for r in h] for k, w in settings.weights.items() if w > 0},
+            reg_history={k: [r[k][b] for r in h] for k in reg_terms(settings, h)},
             time_history=[r["time"] for r in h], deformer_state=self.item_state(b),
             light=None if self.light is None else self.light[b].detach().clone(),
             albedo=None if self.albedo_logit is None else self.albedo()[b].detach().clone(),

@@ -198,9 +198,16 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     return dict(V=V, image=image, activation=act, loss=out.loss, best_step=out.step, albedo=albedo, albedo_uv=scene.uv,
                 guard=None if guard is None else guard.report(),
                 history=[r["response"] for r in h], loss_history=[r["loss"] for r in h],
-                reg_history={k: [r[k] for r in h] for k, w in settings.weights.items() if w > 0},
+                reg_history={k: [r[k] for r in h] for k in reg_terms(settings, h)},
                 time_history=[r["time"] for r in h], deformer_state=state, light=light,
                 rotation=scene.rotation.detach().clone(), translation=scene.translation.detach().clone())
+
+
+def reg_terms(settings: MEISettings, history) -> list:
+    """The terms a run's ``reg_history`` holds: each regularizer with a positive weight, and the albedo's
+    smoothness term when the run learned an albedo (it weighs in the loss too)."""
+    terms = [k for k, w in settings.weights.items() if w > 0]
+    return terms + (["albedo_roughness"] if history and "albedo_roughness" in history[0] else [])
 
 
 def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISettings | None = None, *,

@@ -370,7 +370,8 @@ class MEIResult:
     loss_history : list of float
         Total loss at every step of the winning seed.
     reg_history : dict of str -> list of float
-        Unweighted value of each active regularizer at every step of the winning seed.
+        Unweighted value of each active regularizer at every step of the winning seed, and of the albedo's
+        smoothness term (``albedo_roughness``) in a run that learns an albedo.
     seed : int
         The winning seed.
     seed_activations : dict of int -> float
