@@ -149,6 +149,12 @@ def test_time_budget_stops_the_run(sphere, bunny):
     res = reconstruct(sphere, bunny, "vertex", time_budget=0.3, eval_times=(0.1,), **SMALL)
     assert res.history[-1]["time"] >= 0.3 and res.history[-2]["time"] < 0.3
     assert res.metrics[0]["time"] >= 0.1
+    # a budget that ends before the first step says so: it returned the start as the result without a word
+    from meshmei.reconstruct import ReconstructionWarning
+
+    with pytest.warns(ReconstructionWarning, match="ran out before the first step: the result is the start"):
+        res = reconstruct(sphere, bunny, "vertex", time_budget=1e-9, **SMALL)
+    assert not res.history
 
 
 def test_target_files_are_normalised(tmp_path):

@@ -238,6 +238,9 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         bar.close()
     final = evaluation.final(V, F)
     info["total_seconds"] = time.perf_counter() - t_start
+    if not trace.history and s.time_budget is not None:  # said, not silently the start
+        info["warnings"].append(f"the time budget ({s.time_budget:g} s) ran out before the first step: the result "
+                                f"is the start{' after its remeshing' if info['stages'] else ''}, not a fit")
     for message in info["warnings"]:
         warnings.warn(message, ReconstructionWarning, stacklevel=2)
     return ReconstructionResult(V=V, F=F, history=trace.history, metrics=evaluation.records, settings=s,
