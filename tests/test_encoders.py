@@ -186,6 +186,7 @@ def test_pixel_mei_of_a_model_without_norm_searches_the_renderable_images():
     (dict(seeds=(-1, 2 ** 64 - 1)), r"seeds \[-1, 18446744073709551615\] are the same seed to torch"),
     (dict(device="gpu"), "device 'gpu' cannot hold the image here"),
     (dict(device="meta"), "device 'meta' holds no values"),
+    (dict(image_size=(16.7, 16)), r"image_size must be an int or a pair of integers \(H, W\), got \(16.7, 16\)"),
 ])
 def test_pixel_mei_refuses_bad_arguments_in_one_line(kw, match):
     # a negative step_size used to minimise the response; the others failed inside torch or ran a seed twice

@@ -86,9 +86,12 @@ def _check_size(image_size):
     if isinstance(image_size, int) and not isinstance(image_size, bool):
         image_size = (image_size, image_size)
     try:
-        H, W = (int(s) for s in image_size)
+        H, W = image_size
     except (TypeError, ValueError):
         raise EncoderError(f"image_size must be an int or a pair (H, W), got {image_size!r}") from None
+    if not all(_is_integer(s) for s in (H, W)):  # int() would cut (16.7, 16) to 16 x 16 without a word
+        raise EncoderError(f"image_size must be an int or a pair of integers (H, W), got {image_size!r}")
+    H, W = int(H), int(W)
     if H < 2 or W < 2:
         raise EncoderError(f"image_size must be at least 2 x 2, got {image_size!r}")
     return H, W
