@@ -76,6 +76,9 @@ def test_a_demo_model_with_other_weights_is_not_rebuilt_as_the_shipped_one(tmp_p
 def test_unknown_encoder_name_raises_mei_error():
     with pytest.raises(MEIError, match="unknown encoder 'gabor'; expected 'gabor-simple', 'gabor-complex' or 'demo'"):
         make_encoder("gabor", orientation=math.pi)
+    # the demo model's keywords were dropped without a word (path= too: another file loaded the shipped one)
+    with pytest.raises(MEIError, match=r"the demo encoder takes no parameters but path=..., got \['orientation'\]"):
+        make_encoder("demo", orientation=math.pi)
 
 
 # ---------------------------------------------------------------------------------------------- demo model

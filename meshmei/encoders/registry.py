@@ -71,7 +71,9 @@ def make_encoder(kind: str, **params) -> Encoder:
     if kind == "gabor-complex":
         return GaborComplexCell(**params)
     if kind == "demo":
-        return load_demo_model()
+        if set(params) - {"path"}:  # they were dropped without a word
+            raise MEIError(f"the demo encoder takes no parameters but path=..., got {sorted(params)}")
+        return load_demo_model(**params)
     raise MEIError(f"unknown encoder {kind!r}; expected 'gabor-simple', 'gabor-complex' or 'demo'")
 
 
