@@ -220,6 +220,20 @@ def test_an_image_size_given_as_a_string_is_named_whole():
         encoder_from_model(Net(), mean=0.5, std=0.2, image_size="16")
 
 
+def test_functions_that_call_other_methods_have_other_fingerprints():
+    """The same bytecode with another attribute name (relu against sigmoid) hashed alike: a population folder
+    took the second model's neurons beside the first's."""
+    def relu(x):
+        return x.flatten(1)[:, :3].relu()
+
+    def sigmoid(x):
+        return x.flatten(1)[:, :3].sigmoid()
+
+    sigmoid.__qualname__ = relu.__qualname__  # the same function name, as in two versions of one file
+    a, b = (model_fingerprint(encoder_from_model(f, mean=0.5, std=0.2, image_size=8)) for f in (relu, sigmoid))
+    assert a != b
+
+
 _LAB_MODEL = '''
 import torch
 

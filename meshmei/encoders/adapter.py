@@ -159,15 +159,16 @@ def _stable_const(c) -> bytes:
 
 
 def _code_bytes(code: types.CodeType) -> bytes:
-    """A function's code and constants as bytes, the same in every process. Code whose constants hold no
-    nested code and no frozenset keeps the bytes of earlier versions (``co_code + repr(co_consts)``), so its
-    fingerprint is unchanged."""
+    """A function's code, constants and the names it reads (globals and attributes: ``x.relu()`` against
+    ``x.sigmoid()`` is the same bytecode with another name) as bytes, the same in every process."""
     def unstable(c):
         return isinstance(c, (types.CodeType, frozenset)) or (isinstance(c, tuple) and any(unstable(x) for x in c))
 
     if not any(unstable(c) for c in code.co_consts):
-        return code.co_code + repr(code.co_consts).encode()
-    return code.co_code + b"consts:" + b";".join(_stable_const(c) for c in code.co_consts)
+        consts = repr(code.co_consts).encode()
+    else:
+        consts = b"consts:" + b";".join(_stable_const(c) for c in code.co_consts)
+    return code.co_code + consts + b"names:" + ",".join(code.co_names).encode()
 
 
 def _feed(h, value, depth: int = 4, seen: set | None = None) -> None:
