@@ -225,7 +225,9 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     (the first in file order keeps its place, later copies are removed and the faces renumbered): an STL
     file stores every triangle's corners separately, and an OBJ with texture coordinates or normals
     repeats a vertex along every seam, so without welding a closed surface would read as loose triangles
-    with coincident copies. Nothing else changes: faces keep their order and orientation, zero-area and
+    with coincident copies. Where welding would join surfaces that only touch at a point (a non-manifold,
+    bow-tie vertex: the teapot's handle tip on its body), each fan of faces keeps its own vertex, so such a
+    mesh reads back as it was written. Nothing else changes: faces keep their order and orientation, zero-area and
     duplicate faces stay, and vertices no face uses are kept (except in OBJ files, whose reader, trimesh's,
     drops them).
 
@@ -300,15 +302,56 @@ def _point_count(path: Path) -> int:
 
 
 def _weld(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Merge vertices of exactly equal coordinates, keeping the first copy's place; faces are renumbered."""
-    _, first, inverse = np.unique(V.numpy(), axis=0, return_index=True, return_inverse=True)
+    """Merge vertices of exactly equal coordinates, keeping the first copy's place; faces are renumbered.
+
+    Where the merge would make a non-manifold vertex (two pieces, or two sheets of one surface, that touch at a
+    point: the teapot's handle tip on its body), each fan of faces around it keeps a vertex of its own, the
+    first copy it used in the file: a file of such a mesh reads back as it was written."""
+    Vn, Fn = V.numpy(), F.numpy()
+    _, first, inverse = np.unique(Vn, axis=0, return_index=True, return_inverse=True)
     if len(first) == V.shape[0]:
         return V, F
-    order = np.argsort(first)  # distinct positions in order of first appearance
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    old_to_new = torch.from_numpy(rank[inverse.reshape(-1)])
-    return V[torch.from_numpy(np.sort(first))], old_to_new[F]
+    import igl  # deferred, as trimesh: only file I/O needs it here
+
+    group = inverse.reshape(-1)  # welded position of every file vertex
+    Fw = group[Fn]
+    merged = np.bincount(group, minlength=len(first)) > 1
+    ok = np.asarray(igl.is_vertex_manifold(np.ascontiguousarray(Fw)), dtype=bool).reshape(-1)
+    if len(ok) < len(first):  # positions no face uses: manifold
+        ok = np.concatenate([ok, np.ones(len(first) - len(ok), dtype=bool)])
+    # each corner's key: its welded position, and at a merge that breaks manifoldness, its fan there
+    fan = np.zeros(Fn.shape, dtype=np.int64)
+    for b in np.nonzero(merged & ~ok)[0]:
+        faces, corners = np.nonzero(Fw == b)
+        parent = list(range(len(faces)))
+
+        def root(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        by_edge = {}
+        for k, (f, c) in enumerate(zip(faces, corners)):
+            for other in (Fw[f, (c + 1) % 3], Fw[f, (c + 2) % 3]):  # faces sharing an edge at b: one fan
+                if other in by_edge:
+                    parent[root(k)] = root(by_edge[other])
+                else:
+                    by_edge[other] = k
+        fan[faces, corners] = [root(k) for k in range(len(faces))]
+    # a vertex per key, placed at the first file vertex that any of its corners used (file order kept)
+    keys = Fw * (3 * Fn.shape[0] + 1) + fan
+    unique_keys, corner_key = np.unique(keys.reshape(-1), return_inverse=True)
+    rep = np.full(len(unique_keys), np.iinfo(np.int64).max)
+    np.minimum.at(rep, corner_key, Fn.reshape(-1))
+    # positions no face uses keep their first copy
+    unused = np.setdiff1d(np.arange(len(first)), np.unique(Fw))
+    reps = np.concatenate([rep, first[unused]])
+    order = np.argsort(reps, kind="stable")
+    new_index = np.empty(len(reps), dtype=np.int64)
+    new_index[order] = np.arange(len(reps))
+    F_new = new_index[corner_key].reshape(Fn.shape)
+    return V[torch.from_numpy(reps[order])], torch.from_numpy(F_new)
 
 
 def cast_vertices(V: torch.Tensor, dtype: torch.dtype, where: str) -> torch.Tensor:
