@@ -347,7 +347,11 @@ def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> t
     V, F = check_mesh(V, F)
     n = V.shape[0]
     indices, slot = mesh_topology(F, n).cot_pattern
-    C = 0.5 * face_terms(corners(V, F), eps).cot.reshape(-1)  # (3m,)
+    C = 0.5 * face_terms(corners(V, F), eps).cot  # (m, 3)
+    # a corner whose opposite edge joins a vertex to itself (a face [a, a, b], as welding an STL sliver gives)
+    # adds +C and -C to one diagonal entry; its guarded cotangent (about 1 / (2 eps)) would swamp that entry in
+    # rounding, so it adds nothing, as in exact arithmetic
+    C = torch.where(F.roll(-1, 1) != F.roll(-2, 1), C, torch.zeros_like(C)).reshape(-1)  # (3m,)
     vals = torch.zeros(indices.shape[1], dtype=V.dtype, device=V.device).index_add(0, slot, torch.cat([C, C, -C, -C]))
     return torch.sparse_coo_tensor(indices, vals, (n, n), is_coalesced=True, check_invariants=False)
 
