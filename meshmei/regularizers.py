@@ -197,14 +197,17 @@ def _rotations(V, V0, F, C0):
         w = w.expand(e.shape[:-1])
     S = (w[..., None, None] * e0.unsqueeze(-1) * e.unsqueeze(-2))  # (..., 6m, 3, 3)
     S = index_add(torch.zeros(*e.shape[:-2], V.shape[-2], 3, 3, dtype=V.dtype, device=V.device), -3, i, S)
-    U, _, Vh = torch.linalg.svd(S)
+    # torch's SVD and determinant take float32 and float64 only: a half-precision mesh fits its rotations in
+    # float32 (they are then rounded to its dtype)
+    wide = S.dtype in (torch.float16, torch.bfloat16)
+    U, _, Vh = torch.linalg.svd(S.float() if wide else S)
     R = Vh.transpose(-1, -2) @ U.transpose(-1, -2)
     flip = torch.linalg.det(R) < 0
     if bool(flip.any()):
-        D = torch.ones(*R.shape[:-1], dtype=V.dtype, device=V.device)
-        D[..., 2] = torch.where(flip, -1.0, 1.0).to(V.dtype)
+        D = torch.ones(*R.shape[:-1], dtype=R.dtype, device=V.device)
+        D[..., 2] = torch.where(flip, -1.0, 1.0).to(R.dtype)
         R = (Vh.transpose(-1, -2) * D.unsqueeze(-2)) @ U.transpose(-1, -2)
-    return R
+    return R.to(V.dtype) if wide else R
 
 
 def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:

@@ -199,6 +199,19 @@ def test_arap_zero_for_rigid_motion_of_rest():
         assert reg.arap_loss(V0 @ R.T + t, V0, F) <= 1e-12 * scale
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_arap_in_half_precision_fits_its_rotations_in_float32(dtype):
+    """check_mesh takes half precision and every other regularizer runs in it; ARAP stopped in torch's SVD
+    ('linalg_svd_cpu' not implemented for 'Half')."""
+    V0, F = icosphere(2)
+    V = V0 * torch.tensor([1.2, 1.0, 0.9], dtype=V0.dtype)
+    ref = float(reg.arap_loss(V.float(), V0.float(), F))
+    out = reg.arap_loss(V.to(dtype), V0.to(dtype), F)
+    assert out.dtype == dtype and float(out) == pytest.approx(ref, rel=0.05)
+    R = reg.best_fit_rotations(V.to(dtype), V0.to(dtype), F)
+    assert R.dtype == dtype and bool(torch.isfinite(R).all())
+
+
 def test_arap_is_rotation_invariant_in_current_pose():
     V, V0, F = _small_mesh()
     R = random_rotation(9)
