@@ -178,8 +178,12 @@ def edge_use(F) -> tuple[int, int]:
     """``(boundary_edges, nonmanifold_edges)``: undirected edges used by one face, and by more than two."""
     F = as_faces(F)
     E = torch.sort(torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), dim=1).values  # (3m, 2)
-    E = E[E[:, 0] != E[:, 1]]  # a face repeating an index has no edge there (as MeshTopology counts edges)
-    _, counts = torch.unique(E, dim=0, return_counts=True)
+    face = torch.arange(F.shape[0], device=F.device).repeat(3)
+    keep = E[:, 0] != E[:, 1]  # a face repeating an index has no edge there (as MeshTopology counts edges)
+    # and its other two sides are one edge of that one face, not an edge two faces share ([0, 0, 1] alone was
+    # 'watertight')
+    pairs = torch.unique(torch.cat([face[keep, None], E[keep]], 1), dim=0)
+    _, counts = torch.unique(pairs[:, 1:], dim=0, return_counts=True)
     return int((counts == 1).sum()), int((counts > 2).sum())
 
 

@@ -94,8 +94,12 @@ def test_health_report_counts_boundary_and_nonmanifold_edges_and_reports_waterti
     fin = torch.tensor([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
     assert edge_use(fin) == (6, 1)
     # a face repeating an index has no edge from the vertex to itself (counted as a boundary edge before,
-    # unlike the topology); its other two sides both run along (1, 3), which face 1 uses too
-    assert edge_use(torch.tensor([[0, 1, 2], [2, 1, 3], [3, 1, 1]])) == (3, 1)
+    # unlike the topology); its other two sides both run along (1, 3): one edge of that one face, so (1, 3)
+    # has two faces, face 1 and it (its two sides counted as two faces made (1, 3) non-manifold here, and a
+    # lone [0, 0, 1] watertight)
+    assert edge_use(torch.tensor([[0, 1, 2], [2, 1, 3], [3, 1, 1]])) == (3, 0)
+    assert edge_use(torch.tensor([[0, 0, 1]])) == (1, 0)
+    assert not health_report(torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), torch.tensor([[0, 0, 1]]))["watertight"]
 
 
 @pytest.mark.parametrize("form", ["numpy", "list"])
