@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import uuid
@@ -385,8 +386,15 @@ def save_mesh(path, V, F) -> None:
     # written beside it and renamed into place: an interrupted write leaves the old file or none, never a
     # truncated one (trimesh reads a cut OBJ or OFF as a smaller mesh, without a word)
     tmp = path.with_name(f".{path.stem}.partial-{uuid.uuid4().hex[:8]}{path.suffix}")
+    kwargs = {}
+    if path.suffix.lower() in (".obj", ".off"):
+        # text at a fixed count of decimals (trimesh: 8 for OBJ, 10 for OFF), as many more as the mesh is smaller
+        # than 1 across: a mesh 1e-9 across was written as one point and read back as every face [0, 0, 0]
+        extent = float(np.ptp(mesh.vertices, axis=0).max()) if len(mesh.vertices) else 0.0
+        base = 8 if path.suffix.lower() == ".obj" else 10
+        kwargs["digits"] = base + (max(0, -math.floor(math.log10(extent))) if extent > 0 else 0)
     try:
-        mesh.export(str(tmp))
+        mesh.export(str(tmp), **kwargs)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

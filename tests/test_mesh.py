@@ -291,3 +291,16 @@ def test_a_mesh_touching_itself_at_a_point_reads_back_as_written(tmp_path):
     V2, F2 = load_mesh(tmp_path / "touch.stl", dtype=torch.float64)
     assert V2.shape == (8, 3) and topology(F2)["nonmanifold_vertices"] == 0
     torch.testing.assert_close(V2[F2], torch.from_numpy(V[F]))
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".off"])
+def test_a_tiny_mesh_keeps_its_shape_in_text_formats(tmp_path, suffix):
+    """OBJ and OFF are written at a fixed count of decimals: a mesh 1e-9 across was written as one point and
+    read back as one vertex with every face [0, 0, 0], without a word. The decimals now grow as the mesh
+    shrinks, so its relative precision is that of a unit mesh."""
+    V, F = icosphere(2)
+    V = V.double() * 1e-9
+    save_mesh(tmp_path / f"tiny{suffix}", V, F)
+    V2, F2 = load_mesh(tmp_path / f"tiny{suffix}", dtype=torch.float64)
+    assert torch.equal(F2, F)
+    assert float((V2 - V).abs().max()) <= 1e-8 * 1e-9
