@@ -30,7 +30,7 @@ def tiny_run():
 # ---------------------------------------------------------------------------------------------- validation
 
 @pytest.mark.parametrize("cls", [GaborSimpleCell, GaborComplexCell])
-@pytest.mark.parametrize("init", ["sheet", "sphere"])
+@pytest.mark.parametrize("init", ["sheet", pytest.param("sphere", marks=pytest.mark.slow)])  # 800 steps: 85 s each
 def test_3d_mei_reaches_090_of_the_bound(cls, init):
     cell = cls()
     # single seeds land between 0.85 and 0.96 (see docs/mei.md); the method keeps the best of its default
@@ -43,6 +43,17 @@ def test_3d_mei_reaches_090_of_the_bound(cls, init):
     # the pixel MEI in the same image space reaches the bound and beats the 3D-MEI
     pm = pixel_mei(cell, 0, image_size=res.settings.image_size, steps=60, seeds=(0,))
     assert pm.activation >= 0.99 and pm.activation >= res.activation
+
+
+@pytest.mark.parametrize("cls", [GaborSimpleCell, GaborComplexCell])
+def test_3d_mei_from_the_sphere_reaches_090_of_the_bound_in_300_steps(cls):
+    """The sphere's check in the default suite: its 800 default steps (the test above, marked slow) took 85 s
+    per cell; at 300 steps the best of the default seeds is already past 0.9 (0.964 and 0.950 when this test
+    was written, every seed at least 0.93)."""
+    cell = cls()
+    res = optimize_mei(cell, 0, "sphere", steps=300)
+    assert res.fraction_of_bound >= 0.9, res.seed_activations
+    torch.testing.assert_close(cell(res.render())[0, 0], torch.tensor(res.activation))
 
 
 def test_complex_cell_seeds_give_different_phases_with_high_response():
