@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-__all__ = ["check_positive", "check_non_negative"]
+__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds"]
 
 
 def check_positive(name, value, *, integer=False, error: type[ValueError] = ValueError):
@@ -26,3 +26,18 @@ def check_non_negative(name, value, *, unit: str = "", error: type[ValueError] =
     if (isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating))
             or not (math.isfinite(float(value)) and value >= 0)):
         raise error(f"{name} must be a finite non-negative number{unit}, got {value!r}")
+
+
+def check_distinct_seeds(seeds, *, error: type[ValueError] = ValueError) -> None:
+    """Raise ``error`` unless the integers ``seeds`` are seeds torch takes (``torch.Generator.manual_seed``:
+    ``[-2**63, 2**64 - 1]``; beyond, its own overflow error at the first seed) and give distinct runs: no
+    seed repeated, and no two that torch takes as one (it takes seeds modulo ``2**64``: -1 is ``2**64 - 1``)."""
+    bad = [s for s in seeds if not -(2 ** 63) <= s < 2 ** 64]
+    if bad:
+        raise error(f"seeds must lie in [-2**63, 2**64 - 1] (torch's seed range), got {bad}")
+    if len(set(seeds)) != len(seeds):
+        twice = sorted({s for s in seeds if seeds.count(s) > 1})
+        raise error(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
+    same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
+    if same:
+        raise error(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")

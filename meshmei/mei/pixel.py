@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as TF
 
-from .._checks import check_non_negative, check_positive
+from .._checks import check_distinct_seeds, check_non_negative, check_positive
 from ..encoders import Encoder, EncoderError, frozen_encoder
 from ..optim import Budget, Progress, Schedule, Trace, minimize
 from .optimize import check_neuron
@@ -174,15 +174,7 @@ def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise EncoderError("seeds is empty; give at least one seed")
-    bad = [s for s in seeds if not -(2 ** 63) <= s < 2 ** 64]
-    if bad:
-        raise EncoderError(f"seeds must lie in [-2**63, 2**64 - 1] (torch's seed range), got {bad}")
-    if len(set(seeds)) != len(seeds):
-        twice = sorted({s for s in seeds if seeds.count(s) > 1})
-        raise EncoderError(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
-    same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
-    if same:
-        raise EncoderError(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")
+    check_distinct_seeds(seeds, error=EncoderError)
     if dtype not in (torch.float32, torch.float64):
         raise EncoderError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
     if device is not None:

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 import torch
 
+from .._checks import check_distinct_seeds
 from ..deform import RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
@@ -222,15 +223,7 @@ class MEISettings:
         if not seeds or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) for s in seeds):
             raise MEIError(f"seeds must be a non-empty sequence of integers, got {self.seeds!r}")
         seeds = tuple(int(s) for s in seeds)
-        bad = [s for s in seeds if not -(2 ** 63) <= s < 2 ** 64]
-        if bad:  # torch.Generator.manual_seed's range; beyond it, torch's own overflow error at the first seed
-            raise MEIError(f"seeds must lie in [-2**63, 2**64 - 1] (torch's seed range), got {bad}")
-        if len(set(seeds)) != len(seeds):
-            twice = sorted({s for s in seeds if seeds.count(s) > 1})
-            raise MEIError(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
-        same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
-        if same:  # torch takes a negative seed modulo 2**64: -1 is 2**64 - 1
-            raise MEIError(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")
+        check_distinct_seeds(seeds, error=MEIError)
         object.__setattr__(self, "seeds", seeds)
         if not isinstance(self.weights, dict):
             raise MEIError(f"weights must be a dict of regularizer name -> weight, got {type(self.weights).__name__}")
