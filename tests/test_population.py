@@ -333,8 +333,12 @@ def test_a_start_mesh_of_your_own_is_told_apart_by_its_values(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- Ray
 ray = pytest.importorskip("ray")
+# The Ray tests run one after another in one test process, so that no two local Ray instances start at once
+# when the suite runs in parallel (pytest-xdist, --dist loadgroup).
+one_ray_at_a_time = pytest.mark.xdist_group("ray")
 
 
+@one_ray_at_a_time
 def test_a_ray_run_matches_the_local_run(tmp_path):
     enc, s = cells(), MEISettings(**SMALL)
     local = run_population(enc, [0, 1, 3], tmp_path / "local", settings=s, batch_size=2, pixel_steps=3,
@@ -348,6 +352,7 @@ def test_a_ray_run_matches_the_local_run(tmp_path):
             assert a[k] == pytest.approx(b[k], rel=1e-9), k
 
 
+@one_ray_at_a_time
 def test_a_ray_task_whose_worker_dies_is_retried_with_nothing_lost_or_repeated(tmp_path):
     """The model kills its worker process the first time it runs there; Ray retries the task."""
     marker, driver = tmp_path / "killed-once", os.getpid()
@@ -367,6 +372,7 @@ def test_a_ray_task_whose_worker_dies_is_retried_with_nothing_lost_or_repeated(t
     assert sorted(p.name for p in (tmp_path / "pop" / "neurons").iterdir()) == [f"neuron_{n:05d}" for n in range(3)]
 
 
+@one_ray_at_a_time
 def test_a_ray_task_that_fails_keeps_the_neurons_it_finished(tmp_path):
     """One task for neurons 0-3; neuron 3 fails after 0, 1 and 2 are done. Locally those three are kept; on
     Ray the task returned all or nothing, and the run ended with no folder at all."""
@@ -392,6 +398,7 @@ def test_a_ray_task_that_fails_keeps_the_neurons_it_finished(tmp_path):
     assert not ray.is_initialized()
 
 
+@one_ray_at_a_time
 def test_an_encoder_that_cannot_reach_the_workers_is_refused_before_the_folder(tmp_path):
     """A model holding a lock cannot be pickled and has no file to be rebuilt from: it failed once Ray had
     started and the folder was written, with a message about load_run."""
