@@ -11,6 +11,28 @@ import torch
 # a shared 2-core machine). Benchmarks set their own thread counts.
 torch.set_num_threads(1)
 
+MAX_TEST_PROCESSES = 8  # each imports torch and the stack (about 0.5 GB): enough to fill a workstation
+
+
+def usable_cores() -> int:
+    """Cores this process may run on: its CPU affinity, and the cgroup's CPU quota where one is set (a
+    container may see every core of its host but be allowed two)."""
+    import os
+
+    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        quota, period = open("/sys/fs/cgroup/cpu.max").read().split()[:2]
+        if quota != "max":
+            n = min(n, max(1, int(quota) // int(period)))
+    except (OSError, ValueError):
+        pass
+    return max(1, n)
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one test process per usable core, at most :data:`MAX_TEST_PROCESSES`."""
+    return min(usable_cores(), MAX_TEST_PROCESSES)
+
 
 def grid_sheet(nx: int = 6, ny: int = 5, *, dtype=torch.float64):
     """A regular right-triangle grid in z=0 (boundary, normals +z): (V, F)."""
