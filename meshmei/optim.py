@@ -240,25 +240,30 @@ class _Best:
     """Keep-best: the lowest loss seen and a copy of the parameters then. For a batched objective (a loss
     vector), per item: every parameter's leading axis indexes the items."""
 
-    def __init__(self, params, step: int):
+    def __init__(self, params, step: int, states=()):
         self.params, self.value, self.step, self.saved = params, math.inf, step, None
+        self.states, self.saved_states = list(states), None
 
     @torch.no_grad()
     def offer(self, values: torch.Tensor, step: int) -> None:
         if values.ndim == 0:
             if float(values) < self.value:
                 self.value, self.step, self.saved = float(values), step, [p.detach().clone() for p in self.params]
+                self.saved_states = [s.snapshot() for s in self.states]
             return
         if self.saved is None:
             self.value = torch.full_like(values, math.inf)
             self.step = torch.full(values.shape, step, dtype=torch.int64)
             self.saved = [p.detach().clone() for p in self.params]
+            self.saved_states = [s.snapshot() for s in self.states]
         better = values < self.value
         if bool(better.any()):
             self.value = torch.where(better, values, self.value)
             self.step = torch.where(better.cpu(), step, self.step)
             for kept, p in zip(self.saved, self.params):
                 kept.copy_(torch.where(better.view(-1, *[1] * (p.ndim - 1)), p.detach(), kept))
+            for i in better.nonzero().flatten().tolist() if self.states else ():  # one state per item
+                self.saved_states[i] = self.states[i].snapshot()
 
     @torch.no_grad()
     def finish(self, last: torch.Tensor, step: int) -> tuple:
@@ -268,12 +273,16 @@ class _Best:
                 return float(last), step
             for p, kept in zip(self.params, self.saved):
                 p.copy_(kept)
+            for s, kept in zip(self.states, self.saved_states):
+                s.restore(kept)
             return self.value, self.step
         if self.saved is None:
             return last.tolist(), [step] * last.shape[0]
         take = last <= self.value
         for p, kept in zip(self.params, self.saved):
             p.copy_(torch.where(take.view(-1, *[1] * (p.ndim - 1)), p, kept))
+        for i in (~take).nonzero().flatten().tolist() if self.states else ():
+            self.states[i].restore(self.saved_states[i])
         return torch.where(take, last, self.value).tolist(), torch.where(take.cpu(), step, self.step).tolist()
 
 
@@ -282,12 +291,13 @@ def _as_record(values: torch.Tensor):
 
 
 @torch.no_grad()
-def _backtrack(params, before, accept, max_halvings: int, items: int | None = None):
-    """Shrink the step just taken until ``accept()`` holds; the scale kept (0: the step is undone).
+def _backtrack(params, before, accept, max_halvings: int, items: int | None = None, states=(), before_states=()):
+    """Shrink the step just taken until ``accept()`` holds; the scale kept (0: the step is undone, and
+    ``states`` are put back to ``before_states`` with the parameters).
 
     With ``items`` (a batched objective), ``accept(pending)`` gets a ``(B,)`` bool mask of the items still
     to check and returns a ``(B,)`` bool verdict; each item's slice (leading axis) is halved on its own,
-    and the scales come back as a list.
+    and the scales come back as a list; ``states`` then hold one object per item.
     """
     after = [p.detach().clone() for p in params]
     if items is None:
@@ -300,6 +310,8 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
                 p.copy_(b + scale * (a - b))
         for p, b in zip(params, before):
             p.copy_(b)
+        for s, b in zip(states, before_states):
+            s.restore(b)
         return 0.0
     scale = torch.ones(items, dtype=torch.float64)
     done = torch.zeros(items, dtype=torch.bool)
@@ -313,6 +325,8 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
             p.copy_(torch.where(done.to(p.device).view_as(s), p, b + s * (a - b)))
     for p, b in zip(params, before):
         p.copy_(torch.where(done.to(p.device).view(-1, *[1] * (p.ndim - 1)), p, b))
+    for i in (~done).nonzero().flatten().tolist() if states else ():
+        states[i].restore(before_states[i])
     return torch.where(done, scale, torch.zeros_like(scale)).tolist()
 
 
@@ -320,7 +334,7 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
              schedule: Schedule = Schedule(), keep: str = "last", keep_from: float = 0.0,
              trace: Trace | None = None, stop_at: float = 1.0, progress: Progress | None = None, callbacks=(),
              evaluate_last: bool = False, accept: Callable[[], bool] | None = None, max_halvings: int = 6,
-             error: type[Exception] = FloatingPointError, where: str = "") -> Outcome:
+             states=(), error: type[Exception] = FloatingPointError, where: str = "") -> Outcome:
     """Minimise ``objective`` with ``optimizer`` until ``budget`` (or ``stop_at`` of it) is used.
 
     Each step: set every group's ``lr`` to its ``lr0`` (its ``lr`` at the first call) times the schedule's
@@ -370,6 +384,12 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         record's ``step_scale`` says which ``s`` was taken. The optimiser's own state (Adam's moments) keeps
         the full step's update.
     max_halvings : int
+    states : sequence
+        What the objective depends on besides the parameters, as objects with ``snapshot()`` and
+        ``restore(saved)`` (an RBF deformer's pair list, :meth:`meshmei.deform.RBFDeformer.snapshot`): an
+        undone step and a restored best iterate put them back with the parameters, so that the iterate the
+        run goes on from (or returns) is the one it evaluated and ``accept`` checked. With a batched
+        objective, one object per item, in item order.
     error : exception class
         Raised when the loss is NaN or Inf: at any step, and at the final evaluation when the final iterate
         is what is kept (``keep="last"``, or ``"best"`` with nothing offered before; a non-finite final
@@ -394,7 +414,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     params = _parameters(optimizer)
     for g in optimizer.param_groups:
         g.setdefault("lr0", g["lr"])
-    best = _Best(params, trace.step)
+    states = list(states)
+    best = _Best(params, trace.step, states)
     while (f := budget.fraction(trace.step, trace.seconds)) < stop_at:
         t0 = time.perf_counter()
         c = schedule.factor(budget.schedule_fraction(trace.step, trace.seconds, schedule.endpoint))
@@ -409,12 +430,16 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
                              "an element-wise optimiser (adam) for batches")
         if values.ndim > 1:
             raise ValueError(f"the objective must return a scalar or a (B,) loss; got shape {tuple(values.shape)}")
+        if values.ndim == 1 and states and len(states) != values.shape[0]:
+            raise ValueError(f"a batched objective takes one state per item: {len(states)} states for "
+                             f"{values.shape[0]} items")
         _guard(values, trace.step, optimizer, error, where)
         if keep == "best" and f >= keep_from:
             best.offer(values, trace.step)
         (loss if loss.ndim == 0 else loss.sum()).backward()  # items share no parameter: one backward for all
         _guard_gradients(params, trace.step, error, where)
         before = None if accept is None else [p.detach().clone() for p in params]
+        before_states = [] if accept is None else [st.snapshot() for st in states]
         try:
             optimizer.step()
         except RuntimeError as err:  # a learning rate beyond the parameters' dtype (lr=1e39 in float32)
@@ -424,7 +449,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
                         f"(lr={optimizer.param_groups[0]['lr']:g}); lower the learning rate") from None
         if accept is not None:
             items = None if values.ndim == 0 else values.shape[0]
-            record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings, items))
+            record = dict(record, step_scale=_backtrack(params, before, accept, max_halvings, items, states,
+                                                        before_states))
         trace.step += 1
         trace.seconds += time.perf_counter() - t0
         rec = {"step": trace.step, "time": trace.seconds, "loss": _as_record(values),

@@ -272,3 +272,83 @@ def test_an_endpoint_schedule_reaches_its_floor_with_a_time_limit_too():
     minimize(objective, opt, Budget(steps=5, seconds=1e3), schedule=Schedule("geometric", 0.01, endpoint=True),
              trace=trace)
     assert trace.history[-1]["lr"] == pytest.approx(0.1 * 0.01)  # 0.0025 before: the endpoint was ignored
+
+
+# ------------------------------------------------------------------ what the parameters depend on besides
+def _widening_deformer(seed: int = 0):
+    """An RBF deformer with a narrow cut (r_cut 1), learnable scales and random offsets: a step that widens
+    its scales rebuilds its pair list, and a wider list keeps pairs a narrower one drops."""
+    from meshmei.deform import RBFDeformer
+    from meshmei.shapes import initial_mesh
+
+    V0, _ = initial_mesh("sphere", n_vertices=200, dtype=torch.float64)
+    rbf = RBFDeformer(V0, r_cut=1.0)
+    with torch.no_grad():
+        rbf.offsets.copy_(0.02 * torch.randn(rbf.offsets.shape, generator=torch.Generator().manual_seed(seed),
+                                             dtype=torch.float64))
+    return rbf
+
+
+def test_an_undone_step_puts_the_deformers_pair_list_back_with_its_parameters():
+    """The guard's check of a refused step evaluated the deformer at wider scales, which rebuilt its pair
+    list; undoing the step put the parameters back but not the list, so the run went on from (and could
+    return) a mesh 0.05 away from the one the guard had accepted (review)."""
+    rbf = _widening_deformer()
+    with torch.no_grad():
+        start = rbf().clone()
+    checked = []
+
+    def refuse_all():
+        with torch.no_grad():
+            checked.append(rbf().clone())  # the guard's evaluation of the trial step
+        return False
+
+    minimize(lambda p: (-rbf.log_sigma.sum(), {}), make_optimizer("adam", [{"params": [rbf.log_sigma], "lr": 0.5}]),
+             Budget(steps=3), accept=refuse_all, max_halvings=1, states=(rbf,))
+    assert rbf.n_rebuilds > 0 and len(checked) == 6  # the trial steps did rebuild the list
+    with torch.no_grad():
+        assert torch.equal(rbf(), start)  # every step undone: exactly the start, list and all
+
+
+def test_keep_best_puts_the_deformers_pair_list_back_with_the_best_parameters():
+    """The loss rises every step (a constant added), so the best iterate is the first; the steps widen the
+    scales and rebuild the list on the way. The returned mesh is the one evaluated at the best step."""
+    rbf = _widening_deformer(1)
+    seen = {}
+
+    def objective(p):
+        V = rbf()
+        seen[p.step] = V.detach().clone()
+        return -rbf.log_sigma.sum() + 100.0 * p.step, {}
+
+    out = minimize(objective, make_optimizer("adam", [{"params": [rbf.log_sigma], "lr": 0.5}]), Budget(steps=4),
+                   keep="best", states=(rbf,))
+    assert out.step == 0 and rbf.n_rebuilds > 0
+    with torch.no_grad():
+        assert torch.equal(rbf(), seen[0])
+
+
+def test_a_batch_puts_back_the_pair_list_of_the_items_whose_step_is_undone_alone():
+    rbfs = [_widening_deformer(0), _widening_deformer(1)]
+    with torch.no_grad():
+        starts = [r().clone() for r in rbfs]
+    log_sigma = torch.nn.Parameter(torch.stack([r.log_sigma.detach() for r in rbfs]))
+
+    def vertices():
+        for r, ls in zip(rbfs, log_sigma):
+            r.cover(ls)
+        return [r.displacement_with(r.offsets, ls) + r.V0 for r, ls in zip(rbfs, log_sigma)]
+
+    def accept(pending):
+        vertices()  # the check evaluates both items at their trial scales
+        return torch.tensor([False, True])  # item 0 refused every time, item 1 accepted
+
+    minimize(lambda p: (-log_sigma.sum(1), {}), make_optimizer("adam", [{"params": [log_sigma], "lr": 0.5}]),
+             Budget(steps=3), accept=accept, max_halvings=1, states=rbfs)
+    with torch.no_grad():
+        V = vertices()
+    assert torch.equal(V[0], starts[0])  # undone, list and all
+    assert not torch.allclose(V[1], starts[1])  # moved
+    with pytest.raises(ValueError, match="one state per item"):
+        minimize(lambda p: (-log_sigma.sum(1), {}), make_optimizer("adam", [{"params": [log_sigma], "lr": 0.5}]),
+                 Budget(steps=1), states=rbfs[:1])

@@ -238,6 +238,31 @@ def test_a_guard_with_a_zero_quality_floor_steps_with_finite_gradients():
     assert guard.failures == 0 and float((p.detach() - V).abs().max()) > 1e-3
 
 
+def test_a_narrow_cut_with_learned_scales_returns_a_mesh_the_guard_accepted():
+    """With r_cut 0.5 and learned scales, refused steps rebuilt the deformer's pair list and undoing them
+    kept the rebuilt list: the run returned a mesh no guard had seen, with 6 self-intersecting pairs and 3
+    flipped faces (keep best; review). The result is now one of the meshes the guard accepted."""
+    from meshmei.validity import StepGuard as Guard
+
+    accepted = []
+    real = Guard.accept
+
+    def accept(self, V, frame=None):
+        ok = real(self, V, frame)
+        if ok:
+            accepted.append(V.detach().clone())
+        return ok
+
+    import unittest.mock as mock
+
+    with mock.patch.object(Guard, "accept", accept):
+        res = optimize_mei(GaborSimpleCell(), 0, "sphere", steps=40, seeds=(0,), image_size=32, n_vertices=200,
+                           lr=0.03, r_cut=0.5, lr_scales=1.0, keep="best")
+    assert res.extra["guard"]["refused"] > 0
+    assert any(torch.equal(res.V, V) for V in accepted + [res.V0])
+    assert _clean(res.V, res.F, res.V0)
+
+
 def test_a_thin_but_sound_face_may_not_turn_over():
     """A face of quality 0.009 (below min_quality, far above a rounding sliver) was left out of the turn
     rule: one step flipped it by 112 degrees and both the MEI and reconstruction rules accepted it."""

@@ -40,6 +40,12 @@ class Parameterisation:
         """JSON-able facts about the parameterisation (sizes, truncation), for a run's record."""
         return {}
 
+    def states(self) -> tuple:
+        """Objects besides the parameters that the vertices depend on, with ``snapshot()`` and
+        ``restore(saved)`` (an RBF deformer's pair list): :func:`meshmei.optim.minimize` puts them back with
+        the parameters."""
+        return ()
+
 
 class VertexParameterisation(Parameterisation):
     """Free per-vertex offsets ``V = V0 + D`` (the classic "deform a sphere" recipe)."""
@@ -110,6 +116,9 @@ class RBFParameterisation(Parameterisation):
 
     def vertices(self) -> torch.Tensor:
         return self.rbf() if self.coarse is None else self.rbf() + self.coarse.displacement()
+
+    def states(self) -> tuple:
+        return (self.rbf,) if self.coarse is None else (self.rbf, self.coarse)
 
     def info(self) -> dict:
         trunc = self.rbf.truncation_error

@@ -315,6 +315,23 @@ class RBFDeformer(torch.nn.Module):
     def _ensure_covered(self) -> None:
         self.cover(self.log_sigma)
 
+    def snapshot(self) -> tuple:
+        """The pair list as it is (references to its tensors: a rebuild replaces them, never edits them).
+
+        The map depends on the list as well as on the parameters: a list rebuilt for wider scales keeps
+        pairs beyond ``r_cut`` scales that a narrower one drops. An optimiser that puts the parameters back
+        (a refused step undone, the best iterate restored) puts the list back with :meth:`restore`, so that
+        the mesh is again the one it evaluated (and a step guard checked), not one no guard saw.
+        """
+        return (self._rows, self._cols, self._d2, self._radius, self._dense_d2, self._dense_mask)
+
+    def restore(self, saved: tuple) -> None:
+        """Put back a pair list taken by :meth:`snapshot` (counted as a rebuild when it differs)."""
+        if saved[0] is self._rows:
+            return
+        self._rows, self._cols, self._d2, self._radius, self._dense_d2, self._dense_mask = saved
+        self.n_rebuilds += 1  # cached matrices (and a batch's stacked dense maps) are keyed on the count
+
     def cover(self, log_sigma: torch.Tensor) -> None:
         """Rebuild the pair list if it no longer covers ``r_cut`` scales of the kernels ``exp(log_sigma)``."""
         with torch.no_grad():

@@ -195,7 +195,7 @@ def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar
                    make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                    schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep=settings.keep,
                    evaluate_last=True, trace=trace, progress=bar, accept=scene.acceptor(),
-                   max_halvings=scene.max_halvings, error=MEIError, where=f" (items {items})")
+                   max_halvings=scene.max_halvings, states=scene.rbfs, error=MEIError, where=f" (items {items})")
     with torch.no_grad():
         V = scene.vertices().detach()
         images = scene.image(V, F, pose=True).detach()

@@ -119,7 +119,8 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
                             floor),
                  make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                  schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep="last", trace=trace,
-                 accept=scene.acceptor(), max_halvings=scene.max_halvings, error=MEIError, where=f" (diverse MEIs of neuron {neuron})")
+                 accept=scene.acceptor(), max_halvings=scene.max_halvings, states=scene.rbfs, error=MEIError,
+                 where=f" (diverse MEIs of neuron {neuron})")
         with torch.no_grad():
             V = scene.vertices()
             images = scene.image(V, F, pose=True)

@@ -185,7 +185,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, keep_from=settings.robust_widen if scene.robust is not None else 0.0,
                    evaluate_last=True, trace=trace, progress=bar, accept=accept,
-                   max_halvings=0 if guard is None else guard.rules.max_halvings,
+                   max_halvings=0 if guard is None else guard.rules.max_halvings, states=(scene.rbf,),
                    error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():
         V = scene.rbf().detach()

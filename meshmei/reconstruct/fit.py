@@ -381,7 +381,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices),
-                           max_halvings=0 if guard is None else guard.rules.max_halvings)
+                           max_halvings=0 if guard is None else guard.rules.max_halvings, states=param.states())
         with torch.no_grad():
             V_start, V = V, param.vertices().detach()
         stage = {"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
