@@ -20,6 +20,7 @@ from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
 from .mei.optimize import start_from_file
 from .plots import diverse_figure
 from .population import parse_neurons, run_population
+from .quality import closedness, health_line
 from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
     METHODS,
@@ -230,8 +231,7 @@ def _run_mei(args) -> int:
         res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
     save_run(res, out, overwrite=args.overwrite)
     h = res.health()
-    line += (f"; {h['self_intersections']} self-intersecting pairs, {h['flipped_faces']} flipped faces, "
-             f"min triangle quality {h['min_quality']:.3f}")
+    line += f"; {health_line(h)}"
     print(line)
     albedo = ", albedo.png" if res.albedo is not None else ""
     print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png{albedo} "
@@ -265,7 +265,9 @@ def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     print(f"{len(d.results)} diverse 3D-MEIs of neuron {args.neuron}: responses "
           f"{', '.join(f'{r:.4f}' for r in d.responses)}{pixel}; mean pairwise dissimilarity {float(off.mean()):.3f}; "
           f"{clean} of {len(health)} free of self-intersections and flipped faces (min triangle quality "
-          f"{min(h['min_quality'] for h in health):.3f}); wrote {out}/member_*, diversity.json, diverse.png")
+          f"{min(h['min_quality'] for h in health):.3f}; {sum(h['watertight'] for h in health)} watertight, "
+          f"{sum(h['nonmanifold_edges'] == 0 for h in health)} manifold); wrote {out}/member_*, diversity.json, "
+          "diverse.png")
     return 0
 
 
@@ -343,8 +345,9 @@ def _run_reconstruct(args) -> int:
     stalled = res.info["warnings"]
     print(f"{args.method}: {len(res.history)} steps in {res.wall_time:.1f} s; Chamfer-L2 {f.chamfer_l2:.3e}, "
           f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
-          f"target's; {f.self_intersections} self-intersecting pairs, {f.degenerate_faces} degenerate faces; "
-          f"wrote {out}" + (f"; WARNING: {len(stalled)} warning(s) (below)" if stalled else ""))
+          f"target's; {f.self_intersections} self-intersecting pairs, {f.inverted_faces} faces against the "
+          f"target's normals, {f.degenerate_faces} degenerate, min triangle quality {f.min_quality:.3f}, "
+          f"{closedness(f.boundary_edges, f.nonmanifold_edges)}; wrote {out}" + (f"; WARNING: {len(stalled)} warning(s) (below)" if stalled else ""))
     for message in stalled:
         print(f"meshmei reconstruct: warning: {message}", file=sys.stderr)
     return 0
@@ -461,8 +464,16 @@ def _run_population(args) -> int:
     if ratios:
         line += f"; 3D-MEI / pixel-MEI response {sum(ratios) / len(ratios):.3f} on average ({min(ratios):.3f}-{max(ratios):.3f})"
     clean = sum(1 for r in rows if r["self_intersections"] == 0)
+    unflipped = sum(1 for r in rows if r["flipped_faces"] == 0)
+    qualities = [r["min_quality"] for r in rows if r["min_quality"] is not None]
+    watertight = sum(1 for r in rows if r["watertight"])
+    manifold = sum(1 for r in rows if r["manifold"])
+    health = (f"{clean} of {len(rows)} free of self-intersections, {unflipped} without flipped faces, "
+              f"{watertight} watertight, {manifold} manifold")
+    if qualities:
+        health += f", min triangle quality {min(qualities):.3f} at worst"
     wrote = [name for name in ("population.csv", "population.png") if (Path(args.out) / name).is_file()]
-    print(f"{line}; {clean} of {len(rows)} free of self-intersections; wrote {', '.join(wrote)}")
+    print(f"{line}; {health}; wrote {', '.join(wrote)}")
     return 0
 
 

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from .mesh import numpy_mesh
 from .operators import doublearea, face_normals
-from .quality import count_degenerate_faces, count_self_intersections
+from .quality import count_degenerate_faces, count_self_intersections, edge_use, triangle_quality
 from .sampling import sample_points
 
 __all__ = [
@@ -72,7 +72,15 @@ class SurfaceMetrics:
         Health of the mesh (see :class:`meshmei.quality.MeshHealth`).
     inverted_faces : int
         Mesh faces whose normal points against the target normal at the target point closest to the
-        face's centroid (folds, or an orientation opposite to the target's).
+        face's centroid (folds, or an orientation opposite to the target's): reconstruction's flipped
+        faces, since a remeshed run has no rest pose to compare a face with.
+    min_quality : float
+        Smallest triangle quality ``4 sqrt(3) A / sum(l^2)`` of the mesh (:func:`~meshmei.quality.triangle_quality`;
+        1 for equilateral, 0 for degenerate).
+    boundary_edges, nonmanifold_edges : int
+        Edges used by one face, and by more than two (:func:`~meshmei.quality.edge_use`).
+    watertight : bool
+        Closed and edge-manifold: no edge of either kind.
     n_samples, seed : int
     """
 
@@ -89,6 +97,10 @@ class SurfaceMetrics:
     self_intersections: int | None
     degenerate_faces: int
     inverted_faces: int
+    min_quality: float
+    boundary_edges: int
+    nonmanifold_edges: int
+    watertight: bool
     n_samples: int
     seed: int
 
@@ -164,6 +176,7 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = EVAL_SAMPLES, seed: int = 
     fscore = 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
     _, f_c, _ = igl.point_mesh_squared_distance(V[F].mean(1), Vt, Ft)
     inverted = int(np.sum(((Ns * Nt[f_c]).sum(1) < 0) & (dbl > 0)))
+    boundary, nonmanifold = edge_use(F)
     return SurfaceMetrics(
         chamfer_l2=float(d_pq.mean() + d_qp.mean()),
         accuracy=float(d_pq.mean()),
@@ -178,6 +191,10 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = EVAL_SAMPLES, seed: int = 
         self_intersections=count_self_intersections(V, F) if health else None,
         degenerate_faces=count_degenerate_faces(V, F),
         inverted_faces=inverted,
+        min_quality=float(triangle_quality(torch.from_numpy(V), torch.from_numpy(F)).min()),
+        boundary_edges=boundary,
+        nonmanifold_edges=nonmanifold,
+        watertight=boundary == 0 and nonmanifold == 0,
         n_samples=int(n_samples),
         seed=int(seed),
     )

@@ -31,6 +31,8 @@ __all__ = [
     "count_self_intersections",
     "edge_use",
     "health_report",
+    "health_line",
+    "closedness",
 ]
 
 
@@ -211,3 +213,28 @@ def health_report(V, F, V0=None, *, self_intersections: bool = True) -> dict:
     report.update(flipped_faces=h.flipped_faces, degenerate_faces=h.degenerate_faces, boundary_edges=boundary,
                   nonmanifold_edges=nonmanifold, watertight=boundary == 0 and nonmanifold == 0)
     return report
+
+
+def closedness(boundary_edges: int, nonmanifold_edges: int) -> str:
+    """``"watertight"``, or what keeps the mesh from it: ``"open: 36 boundary edges"``, ``"2 non-manifold
+    edges"`` (both, joined, when both)."""
+    if boundary_edges == 0 and nonmanifold_edges == 0:
+        return "watertight"
+    parts = []
+    if boundary_edges:
+        parts.append(f"open: {boundary_edges} boundary edge{'s' if boundary_edges != 1 else ''}")
+    if nonmanifold_edges:
+        parts.append(f"{nonmanifold_edges} non-manifold edge{'s' if nonmanifold_edges != 1 else ''}")
+    return ", ".join(parts)
+
+
+def health_line(report: dict) -> str:
+    """A :func:`health_report` in words, as the command line's closing lines give it: self-intersecting pairs,
+    flipped faces, minimum triangle quality, and whether the mesh is watertight and manifold. Counts the report
+    leaves out (None: no rest pose, or no intersection test asked for) are left out of the line."""
+    parts = [] if report["self_intersections"] is None else [f"{report['self_intersections']} self-intersecting pairs"]
+    if report["flipped_faces"] is not None:  # counted against a rest pose only
+        parts.append(f"{report['flipped_faces']} flipped faces")
+    parts += [f"min triangle quality {report['min_quality']:.3f}",
+              closedness(report["boundary_edges"], report["nonmanifold_edges"])]
+    return ", ".join(parts)

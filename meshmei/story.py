@@ -17,6 +17,7 @@ from ._files import check_output
 from .encoders import DEMO_MODEL_PATH, is_demo_model, load_demo_model
 from .mei import MEISettings, optimize_mei, pixel_mei, save_run
 from .plots import summary_sheet
+from .quality import health_line
 from .tuning import example_renders, light_sweep, pose_sweep, save_sweep, turned_views
 
 __all__ = ["run_story", "QUICK", "FULL"]
@@ -143,8 +144,7 @@ def _report(summary, pose, out, run_dir, log):
     best_pose, best_light = summary["pose_best"], summary["light_best"]
     log("")
     h = summary["mei_health"]
-    log(f"neuron {summary['neuron']}: 3D-MEI response {summary['mei_activation']:.4f} ({h['self_intersections']} "
-        f"self-intersecting pairs, {h['flipped_faces']} flipped faces, min triangle quality {h['min_quality']:.3f}), "
+    log(f"neuron {summary['neuron']}: 3D-MEI response {summary['mei_activation']:.4f} ({health_line(h)}), "
         f"pixel MEI {summary['pixel_mei_activation']:.4f}")
     log(f"pose tuning: best {summary['pose_best_response']:.4f} at azimuth {best_pose['azimuth']:.0f}, "
         f"elevation {best_pose['elevation']:.0f} (original view {pose.reference['responses'][0]:.4f}); "

@@ -15,6 +15,7 @@ import torch
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
 from meshmei.mei import DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.quality import health_line
 from meshmei.shapes import initial_mesh
 
 from conftest import demo_or_skip
@@ -246,7 +247,11 @@ def test_cli_writes_a_run(tmp_path, capsys, monkeypatch):
                "--steps", "3", "--seeds", "0", "--image-size", "32", "--n-vertices", "80", "--quiet",
                "--pixel-mei"])
     assert rc == 0
-    assert "of the upper bound" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "of the upper bound" in printed
+    # its health in full, as recomputed from the saved run: the sheet is open, so not watertight
+    h = load_run(out).health()
+    assert health_line(h) in printed and h["boundary_edges"] > 0 and f"open: {h['boundary_edges']} boundary edges" in printed
     summary = json.loads((out / "summary.json").read_text())
     assert summary["encoder"]["kind"] == "gabor-complex" and "pixel_mei_activation" in summary
     assert seen == [(0,)]  # the pixel MEI takes --seeds too (it ran seeds 0, 1, 2 whatever --seeds said)

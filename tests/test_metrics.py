@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import igl
 import numpy as np
 import pytest
 import torch
@@ -29,6 +30,9 @@ def test_surface_metrics_of_parallel_sheets_are_exact():
     assert m.fscore == 1.0  # delta < 1 % of the diagonal sqrt(2)
     assert m.normal_consistency == pytest.approx(1.0)
     assert m.self_intersections == 0 and m.degenerate_faces == 0 and m.inverted_faces == 0
+    # right isosceles triangles: 4 sqrt(3) (h^2 / 2) / (h^2 + h^2 + 2 h^2) = sqrt(3) / 2; a 10 x 10 grid's rim
+    assert m.min_quality == pytest.approx(np.sqrt(3) / 2, rel=1e-12)
+    assert (m.boundary_edges, m.nonmanifold_edges, m.watertight) == (40, 0, False)
     V, F, V3 = _offset_sheets(0.02)
     m3 = surface_metrics(V3, F, V, F, n_samples=2000)
     assert m3.fscore == 0.0 and m3.precision == 0.0
@@ -38,6 +42,12 @@ def test_surface_metrics_identity_seed_and_flipped_orientation():
     V, F = icosphere(2)
     m = surface_metrics(V, F, V, F, n_samples=20_000)
     assert m.chamfer_l2 < 1e-25 and m.fscore == 1.0 and m.normal_consistency == pytest.approx(1.0)
+    assert (m.boundary_edges, m.nonmanifold_edges, m.watertight) == (0, 0, True)
+    l2 = (V[F] - V[F[:, [1, 2, 0]]]).pow(2).sum(-1).sum(-1)  # summed squared edge lengths
+    assert m.min_quality == pytest.approx(float((2 * np.sqrt(3) * igl.doublearea(V.numpy(), F.numpy()) / l2.numpy()).min()),
+                                          rel=1e-12)
+    fin = surface_metrics(V, torch.cat([F, F[:1]]), V, F, n_samples=1000)  # a face twice: its edges used 3 times
+    assert (fin.boundary_edges, fin.nonmanifold_edges, fin.watertight) == (0, 3, False)
     Vs = V * 1.01
     a = surface_metrics(Vs, F, V, F, n_samples=5000, seed=3)
     b = surface_metrics(Vs, F, V, F, n_samples=5000, seed=3)

@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from meshmei.errors import MeshError
-from meshmei.quality import (count_degenerate_faces, count_flipped_faces, count_self_intersections, mesh_health,
-                             mesh_quality, triangle_measures, triangle_quality)
+from meshmei.quality import (closedness, count_degenerate_faces, count_flipped_faces, count_self_intersections,
+                             health_line, health_report, mesh_health, mesh_quality, triangle_measures,
+                             triangle_quality)
 
-from conftest import grid_sheet
+from conftest import grid_sheet, icosphere
 
 
 def test_mesh_health_counts():
@@ -114,3 +115,19 @@ def test_health_report_and_mesh_quality_take_arrays_and_lists_as_their_siblings_
     assert mesh_quality(convert(V), convert(F)) == mesh_quality(V, F)
     with pytest.raises(MeshError, match="out of range"):
         health_report(convert(V), convert(F + V.shape[0]))
+
+
+def test_health_in_words_names_what_keeps_a_mesh_from_being_watertight():
+    """The command line's closing lines: the counts as they are, and watertight only when no edge is open
+    or used by more than two faces."""
+    V, F = grid_sheet(3, 3)  # 2 x 2 squares: 8 boundary edges
+    h = health_report(V, F, V)
+    assert health_line(h) == (f"0 self-intersecting pairs, 0 flipped faces, min triangle quality "
+                              f"{h['min_quality']:.3f}, open: 8 boundary edges")
+    # without a rest pose no face is counted as flipped, and the line does not claim any count
+    assert health_line(health_report(V, F)) == f"0 self-intersecting pairs, min triangle quality {h['min_quality']:.3f}, open: 8 boundary edges"
+    Vs, Fs = icosphere(1)
+    assert health_line(health_report(Vs, Fs)).endswith(", watertight")
+    assert closedness(1, 0) == "open: 1 boundary edge"
+    assert closedness(0, 2) == "2 non-manifold edges"
+    assert closedness(3, 1) == "open: 3 boundary edges, 1 non-manifold edge"

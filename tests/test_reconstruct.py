@@ -12,6 +12,7 @@ import torch
 from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
+from meshmei.quality import health_report
 from meshmei.reconstruct import (DEFAULT_STEPS, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
                                  reconstruct, resolve_source, source_mesh, target_surface)
 from meshmei.shapes import initial_mesh, target_mesh
@@ -266,6 +267,15 @@ def test_cli_writes_mesh_history_and_plots(tmp_path, capsys):
 
     V, F = load_mesh(out_dir / "mesh.obj")
     assert V.shape[0] == rec["n_vertices"]
+    # the closing line and history.json carry the result's health, as recomputed from the saved mesh
+    h = health_report(V, F)
+    final = rec["final"]
+    assert (final["self_intersections"], final["boundary_edges"], final["nonmanifold_edges"], final["watertight"]) \
+        == (h["self_intersections"], h["boundary_edges"], h["nonmanifold_edges"], h["watertight"])
+    assert final["min_quality"] == pytest.approx(h["min_quality"], abs=1e-6)  # mesh.obj keeps 8 decimals
+    assert (f"{final['self_intersections']} self-intersecting pairs, {final['inverted_faces']} faces against the "
+            f"target's normals, {final['degenerate_faces']} degenerate, min triangle quality {final['min_quality']:.3f}, "
+            f"{'watertight' if h['watertight'] else 'open'}") in out.out
 
 
 def test_cli_stage_schedules(tmp_path, capsys):
