@@ -146,7 +146,33 @@ def test_history_and_metric_records(sphere, bunny):
     assert js["settings"]["method"] == "largesteps" and len(js["history"]) == 30
 
 
-def test_time_budget_stops_the_run(sphere, bunny):
+class _Clock:
+    """A stand-in for the ``time`` module of the optimiser and the fit: every reading is ``tick`` seconds
+    after the last, so a step costs ``tick`` whatever the machine's load (a time-budget test that read the
+    real clock failed on a loaded machine, where one step took more than the whole budget)."""
+
+    def __init__(self, tick: float):
+        self.now, self.tick = 0.0, tick
+
+    def perf_counter(self) -> float:
+        self.now += self.tick
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+def _fake_clock(monkeypatch, tick: float) -> _Clock:
+    import importlib
+
+    clock = _Clock(tick)
+    for name in ("meshmei.optim", "meshmei.reconstruct.fit"):
+        monkeypatch.setattr(importlib.import_module(name), "time", clock)
+    return clock
+
+
+def test_time_budget_stops_the_run(sphere, bunny, monkeypatch):
+    _fake_clock(monkeypatch, 0.01)
     res = reconstruct(sphere, bunny, "vertex", time_budget=0.3, eval_times=(0.1,), **SMALL)
     assert res.history[-1]["time"] >= 0.3 and res.history[-2]["time"] < 0.3
     assert res.metrics[0]["time"] >= 0.1
@@ -634,15 +660,14 @@ def _write_obj(path, V, F):
 def test_final_metrics_describe_the_returned_mesh_after_a_remesh(sphere, bunny, monkeypatch):
     # A time-budgeted run whose last stage gets no step (its remesh spends the rest of the budget): the
     # final metrics used to be the last evaluation's, of the mesh before the remesh.
-    import time
-
     import importlib
 
     fit = importlib.import_module("meshmei.reconstruct.fit")
     remesh = fit._remesh_clean
+    clock = _fake_clock(monkeypatch, 0.005)
 
     def slow_remesh(*args, **kwargs):
-        time.sleep(0.6)  # past the whole budget
+        clock.sleep(0.6)  # past the whole budget
         return remesh(*args, **kwargs)
 
     monkeypatch.setattr(fit, "_remesh_clean", slow_remesh)
