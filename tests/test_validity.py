@@ -285,6 +285,32 @@ def test_a_thin_but_sound_face_may_not_turn_over():
     assert guard.turn_faces.tolist() == [False, True, True, True]
 
 
+def test_under_turn_from_step_a_sound_face_squeezed_thin_still_may_not_turn_over():
+    """A start with one sliver (quality 1e-5) lowers the quality floor below SLIVER_QUALITY. Under
+    reconstruction's turn_from="step", a sound face squeezed to quality 5e-5 in one accepted step was then
+    left out of the turn rule, and the next step turned it over by 152 degrees (review)."""
+    from meshmei.operators import face_normals
+    from meshmei.validity import SLIVER_QUALITY
+
+    V0, F0 = initial_mesh("sphere", n_vertices=100, dtype=torch.float64)
+    sliver = torch.tensor([[3.0, 0, 0], [4.0, 0, 0], [3.5, 1e-5 * 0.5 * 3 ** 0.5 / 2, 0]], dtype=torch.float64)
+    n = V0.shape[0]
+    V0, F = torch.cat([V0, sliver]), torch.cat([F0, torch.tensor([[n, n + 1, n + 2]])])
+    guard = StepGuard(V0, F, ValidityRules(turn_from="step", min_quality=0.01))
+    assert guard.quality_floor < SLIVER_QUALITY
+    v, a, b = F[0].tolist()
+    ab = (V0[b] - V0[a]) / (V0[b] - V0[a]).norm()
+    foot = V0[a] + ((V0[v] - V0[a]) @ ab) * ab  # v's foot on the opposite edge
+    out = V0[v] - foot
+    V1 = V0.clone()
+    V1[v] = foot + 2e-5 * out  # step 1: slid within the face's plane toward that edge
+    assert 5e-6 < float(triangle_quality(V1, F)[0]) < SLIVER_QUALITY and guard.accept(V1)
+    V2 = V1.clone()
+    V2[v] = foot - 0.2 * out + 0.02 * face_normals(V0, F)[0]  # step 2: across the edge
+    assert count_flipped_faces(V2, V1, F) >= 1 and count_self_intersections(V2, F) == 0
+    assert not guard.accept(V2) and guard.reasons["turn"] == 1
+
+
 def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_faces(ball):
     """The barrier builds its graph over the faces inside a band only; value and gradient must be those of
     the sum over every face (alone and in a batch)."""
