@@ -1,7 +1,8 @@
 """Valid steps: the rules a mesh must meet before an optimisation step that produced it is accepted.
 
-A mesh is valid when it has no more self-intersecting face pairs than the run started with (exact
-predicates, :func:`~meshmei.quality.count_self_intersections`), no face turned by more than
+A mesh is valid when it has no self-intersecting face pair that the last accepted mesh (at first, the start)
+did not have (exact predicates, :func:`~meshmei.quality.self_intersecting_pairs`): from a clean start, none
+at all; from a start that intersects itself, its pairs may go but no new one may come. No face is turned by more than
 ``max_turn_degrees`` against its reference orientation (the rest mesh, or the last accepted mesh), and no
 triangle whose quality fell below a bound. :class:`StepGuard` holds the reference and the counts;
 :func:`meshmei.optim.minimize` calls its :meth:`StepGuard.accept` after every step and halves the step
@@ -21,6 +22,7 @@ import numbers
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ._checks import check_positive
@@ -29,7 +31,7 @@ from .contact import log_barrier
 from .errors import MeshError
 from .mesh import check_mesh
 from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners
-from .quality import count_self_intersections
+from .quality import count_self_intersections, self_intersecting_pairs
 
 __all__ = ["ValidityRules", "StepGuard", "face_frame", "SLIVER_QUALITY"]
 
@@ -122,7 +124,10 @@ class StepGuard:
     Attributes
     ----------
     allowed_pairs : int
-        Intersecting pairs of the start, the most an accepted mesh may have.
+        Intersecting pairs of the start.
+    allowed : set of (int, int)
+        The intersecting face pairs of the last accepted mesh (at first, the start's): a candidate may have
+        these and no other (empty for a clean start).
     quality_floor : float
         The triangle-quality bound in force.
     checks, failures : int
@@ -151,7 +156,10 @@ class StepGuard:
         # face counts, as in every built-in start
         self.turn_faces = self._oriented(q)
         self.cos_bound = math.cos(math.radians(rules.max_turn_degrees))
-        self.allowed_pairs = count_self_intersections(ref, F) if rules.self_intersections else 0
+        start_pairs = self_intersecting_pairs(ref, F) if rules.self_intersections else np.zeros((0, 2), np.int64)
+        self.allowed = set(map(tuple, start_pairs.tolist()))
+        self.allowed_pairs = len(self.allowed)
+        self._candidate_pairs = None  # the pairs of the candidate just checked (a dirty start's)
         self.quality_floor = min(rules.min_quality, 0.5 * float(q.min()))
         # a disc start facing one way (the 3D-MEI's sheet) or a closed star-shaped one (its sphere): most
         # candidates are proven clean without libigl
@@ -207,9 +215,17 @@ class StepGuard:
             if self.certificate is not None and self.certificate.holds(Vd, n):
                 self.certified += 1  # proven a graph over a plane, or star-shaped: no pair can intersect
                 return None, None, frame
-            pairs = count_self_intersections(Vd, self.F)
-            if pairs > self.allowed_pairs:
-                return "intersection", f"{pairs} self-intersecting face pairs (start: {self.allowed_pairs})", frame
+            if not self.allowed:  # a clean start (every built-in one): any pair is new
+                pairs = count_self_intersections(Vd, self.F)
+                if pairs > 0:
+                    return "intersection", f"{pairs} self-intersecting face pairs (start: 0)", frame
+            else:
+                found = set(map(tuple, self_intersecting_pairs(Vd, self.F).tolist()))
+                new = found - self.allowed
+                if new:
+                    return ("intersection", f"{len(new)} new self-intersecting face pairs ({len(found)} in all; "
+                            f"the last accepted mesh: {len(self.allowed)})", frame)
+                self._candidate_pairs = found
         return None, None, frame
 
     def why_not(self, V: torch.Tensor) -> str | None:
@@ -224,6 +240,7 @@ class StepGuard:
         """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``.
         ``frame``: :func:`face_frame` of ``V`` in float64, when already computed."""
         t0 = time.perf_counter()
+        self._candidate_pairs = None
         rule, _, frame = self._verdict(V, frame)
         self.checks += 1
         self._accepted_frame = None
@@ -233,6 +250,8 @@ class StepGuard:
         else:
             Vd = V.detach().double()
             self._accepted_frame = (Vd, *frame)
+            if self._candidate_pairs is not None:  # pairs that went away may not come back
+                self.allowed = self._candidate_pairs
             if self.accepted is not None:
                 self.accepted = Vd
             if self.rules.turn_from == "step":

@@ -12,7 +12,7 @@ import torch
 from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
-from meshmei.quality import health_report
+from meshmei.quality import count_self_intersections, health_report
 from meshmei.reconstruct import (DEFAULT_STEPS, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
                                  reconstruct, resolve_source, source_mesh, target_surface)
 from meshmei.shapes import initial_mesh, target_mesh
@@ -1032,6 +1032,50 @@ def test_a_remesh_that_welds_pieces_is_refused_between_stages():
     assert st["remesh_iterations"] is None and "nonmanifold_vertices" in st["remesh_refused_topology"]
     assert topology(res.F) == before
     assert face_components(res.F, res.V.shape[0]).max() == face_components(F, V.shape[0]).max()
+
+
+def test_a_remesh_that_clears_one_crossing_and_makes_another_elsewhere_is_refused():
+    """The stage check compared counts: with a source that already crossed itself in one place, a remesh
+    that made a new crossing elsewhere passed as long as the total did not grow (5 new pairs in a clean
+    part of a fin with two overlapping balls beside it; review). Pairs are now told apart by place."""
+    import importlib
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+
+    def flat(c):
+        return torch.tensor([[c - 1, -1, 0], [c + 1, -1, 0], [c, 1, 0]], dtype=torch.float64)
+
+    def upright(c):
+        return torch.tensor([[c, -1, -1], [c, 1, -1], [c, 0, 1]], dtype=torch.float64)
+
+    F = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10, 11]])
+    before = torch.cat([flat(0.0), upright(0.0), flat(10.0), upright(20.0)])  # one crossing, at the origin
+    moved = torch.cat([flat(0.0), upright(0.3), flat(10.0), upright(20.0)])  # the same crossing, moved
+    elsewhere = torch.cat([flat(0.0), upright(5.0), flat(10.0), upright(10.0)])  # it cleared, one at x = 10
+    assert count_self_intersections(before, F) == count_self_intersections(elsewhere, F) == 1
+    assert fit._new_intersections(before, F, moved, F) == 0
+    assert fit._new_intersections(before, F, elsewhere, F) == 1
+    assert fit._new_intersections(before, F, torch.cat([flat(0.0), upright(0.0), flat(10.0), upright(10.0)]), F) == 1
+    assert fit._new_intersections(elsewhere, F, elsewhere, F) == 0
+
+
+def test_a_stage_whose_remesh_is_refused_takes_the_weights_of_the_mesh_it_runs_on(sphere, monkeypatch):
+    """A stage that kept its mesh (every remesh refused) took the weights of the count it asked for: a
+    9,917-vertex stage ran with the Laplacian weight of 100 vertices, 615x below the rule (review)."""
+    import importlib
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    monkeypatch.setattr(fit, "_remesh_clean", lambda V, F, n, clean: (V, F, {
+        "remesh_iterations": None, "remesh_refused_pairs": 3, "remesh_refused_topology": []}))
+    V, F = sphere
+    n = V.shape[0]
+    res = reconstruct(sphere, "bunny", "vertex", steps=2, stages=(n // 4, n // 2), **SMALL)  # asked: n / 2
+    s = res.settings
+    for st in res.info["stages"]:
+        assert st["n_vertices"] == n
+        assert st["w_laplacian"] == pytest.approx(s.w_laplacian * (n / s.reg_ref_vertices) ** 2, rel=1e-12)
+        assert st["w_edge"] == pytest.approx(s.w_edge * n / s.reg_ref_vertices, rel=1e-12)
+    assert sum("the stage runs on the mesh it had" in w for w in res.info["warnings"]) == 2
 
 
 def test_a_results_settings_replay_a_run_whose_stages_change_the_method():

@@ -285,6 +285,33 @@ def test_a_thin_but_sound_face_may_not_turn_over():
     assert guard.turn_faces.tolist() == [False, True, True, True]
 
 
+def test_from_a_start_that_intersects_itself_no_step_may_make_a_new_pair():
+    """The rule compared counts: a step that took triangle B out of A (the start's one pair) and into C (a
+    new pair) was accepted (review). Now a candidate may keep or lose the last accepted mesh's pairs, not
+    gain another, and a pair that went away may not come back."""
+    def flat(c):
+        return torch.tensor([[c - 1, -1, 0], [c + 1, -1, 0], [c, 1, 0]], dtype=torch.float64)
+
+    def upright(c):
+        return torch.tensor([[c, -1, -1], [c, 1, -1], [c, 0, 1]], dtype=torch.float64)
+
+    V0 = torch.cat([flat(0.0), upright(0.0), flat(10.0)])  # A, B through A, C far away
+    F = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    guard = StepGuard(V0, F, ValidityRules())
+    assert guard.allowed == {(0, 1)} and guard.allowed_pairs == 1
+    swapped = V0.clone()
+    swapped[3:6, 0] += 10.0  # B out of A and into C: one pair, but a new one
+    assert count_self_intersections(swapped, F) == 1
+    assert not guard.accept(swapped) and "1 new self-intersecting face pairs" in guard.why_not(swapped)
+    kept = V0.clone()
+    kept[3:6, 1] += 0.1  # B slides within A: the same pair
+    assert guard.accept(kept)
+    apart = V0.clone()
+    apart[3:6, 0] += 5.0  # B out of A, into nothing
+    assert guard.accept(apart) and guard.allowed == set()
+    assert not guard.accept(kept)  # the pair that went away may not come back
+
+
 def test_under_turn_from_step_a_sound_face_squeezed_thin_still_may_not_turn_over():
     """A start with one sliver (quality 1e-5) lowers the quality floor below SLIVER_QUALITY. Under
     reconstruction's turn_from="step", a sound face squeezed to quality 5e-5 in one accepted step was then
