@@ -65,7 +65,8 @@ class ValidityRules:
     Attributes
     ----------
     self_intersections : bool
-        No more intersecting face pairs than the start had (zero for the built-in starts).
+        No intersecting face pair that the last accepted mesh (at first the start) did not have: none from
+        a clean start (every built-in one).
     max_turn_degrees : float
         Largest angle by which a face's normal may turn from its reference (in ``(0, 180]``; 180 turns the
         check off). 90 rejects every inverted (flipped) face.
