@@ -392,3 +392,39 @@ def test_a_forked_child_can_prefetch_after_its_parent_did():
     if alive:
         child.kill()
     assert not alive and child.exitcode == 0 and queue.get(timeout=5) == want
+
+
+def test_log_barrier_is_the_closed_form_of_incremental_potential_contact():
+    """-(d - d_hat)^2 log(d / d_hat) inside the band and 0 outside, by the formula (not by itself)."""
+    from meshmei.contact import log_barrier
+
+    d_hat = 0.3
+    d = torch.tensor([1e-6, 0.01, 0.1, 0.2, 0.299, 0.3, 0.5, math.inf], dtype=torch.float64)
+    expected = [-(x - d_hat) ** 2 * math.log(x / d_hat) if x < d_hat else 0.0 for x in d.tolist()]
+    assert log_barrier(d, d_hat).tolist() == pytest.approx(expected, rel=1e-14, abs=0)
+
+
+def test_the_contact_energy_is_the_sum_over_every_near_vertex_face_pair_over_the_vertex_count():
+    """Two parallel sheets 0.05 apart, closer than the barrier's distance: the energy equals a brute-force
+    sum of the barrier over every (vertex, face not using it) pair, by libigl's exact distances, divided by
+    the vertex count."""
+    import igl
+
+    from conftest import grid_sheet
+
+    V1, F1 = grid_sheet(5, 5)  # spacing 0.25
+    V2 = V1.clone()
+    V2[:, 2] += 0.05
+    V2[:, :2] += 0.03  # not vertex over vertex
+    V, F = torch.cat([V1, V2]), torch.cat([F1, F1 + V1.shape[0]])
+    d_hat = 0.25 / 3
+    energy = float(ContactBarrier(F, distance=d_hat)(V))
+    Vn, Fn = V.numpy(), F.numpy()
+    total = 0.0
+    for f in range(len(Fn)):
+        d2 = igl.point_mesh_squared_distance(Vn, Vn, Fn[f:f + 1])[0]
+        for v in range(len(Vn)):
+            if v not in Fn[f] and math.sqrt(d2[v]) < d_hat:
+                d = math.sqrt(d2[v])
+                total += -(d - d_hat) ** 2 * math.log(d / d_hat)
+    assert total > 0 and energy == pytest.approx(total / len(Vn), rel=1e-10)
