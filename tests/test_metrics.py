@@ -140,3 +140,23 @@ def test_surface_metrics_ignore_vertices_the_target_faces_do_not_use():
     plain = surface_metrics(Vm, F, V, F, n_samples=500)
     assert plain.threshold == pytest.approx(0.01 * float((V.max(0).values - V.min(0).values).norm()))
     assert surface_metrics(Vm, F, Vt_unused, F, n_samples=500) == plain
+
+
+def test_surface_metrics_tell_the_two_directions_apart():
+    """The mesh is the left half of the target sheet (in its plane): every mesh point lies on the target
+    (accuracy 0, precision 1), while target points on the right half lie x - 1/2 from the mesh: completeness
+    E[d^2] = 1/2 * E[t^2], t uniform on [0, 1/2], = 1/24; recall = 1/2 + tau; Hausdorff 1/2. Swapping
+    precision and recall, or taking either direction for both, fails (review: every earlier case was
+    symmetric)."""
+    V, F = grid_sheet(21, 21)  # [0, 1]^2
+    half = V.clone()
+    half[:, 0] *= 0.5
+    m = surface_metrics(half, F, V, F, n_samples=40_000)
+    assert m.accuracy < 1e-25 and m.precision == 1.0
+    assert m.completeness == pytest.approx(1 / 24, rel=0.03)
+    assert m.chamfer_l2 == pytest.approx(m.accuracy + m.completeness, rel=1e-12)
+    assert m.threshold == pytest.approx(0.01 * np.sqrt(2), rel=1e-12)
+    assert m.recall == pytest.approx(0.5 + m.threshold, abs=0.01)
+    assert m.fscore == pytest.approx(2 * m.recall / (1 + m.recall), rel=1e-12)
+    assert m.hausdorff == pytest.approx(0.5, rel=0.01)
+    assert m.area_ratio == pytest.approx(0.5, rel=1e-12)
