@@ -219,3 +219,29 @@ def test_an_mei_run_uses_a_certificate_from_the_sheet_and_the_sphere_only(init, 
     # the start's check (valid_start asks why_not) is no candidate: it counted as certified, not as a check
     assert result.extra["guard"]["certified"] <= result.extra["guard"]["checks"]
     assert count_self_intersections(result.V.double(), result.F) == 0
+
+
+def test_a_patch_tucked_under_its_neighbours_is_not_certified():
+    """The orientation rule carries the proof: a small patch dragged in the plane until a face is seen from
+    behind can pass the angle and boundary rules and still cross its neighbours (libigl finds pairs); with
+    the rule deleted every earlier test passed (review). Such meshes, drawn with a fixed seed, are refused,
+    and the rule alone refuses them: given normals that all face +z, the certificate would hold."""
+    V, F = grid(8)
+    cert = certificate(V, F)
+    up = torch.zeros(F.shape[0], 3, dtype=torch.float64)
+    up[:, 2] = 1.0
+    gen = torch.Generator().manual_seed(0)
+    found = 0
+    for _ in range(200):
+        W = V.clone()
+        i = int(torch.randint(0, len(V), (1,), generator=gen))
+        r = (W[:, :2] - W[i, :2]).norm(dim=1)
+        shift = (torch.rand(2, generator=gen, dtype=torch.float64) - 0.5) * 0.5
+        W[:, :2] += torch.exp(-(r / 0.06) ** 4)[:, None] * shift
+        W[:, 2] += 0.01 * torch.randn(len(W), generator=gen, dtype=torch.float64)
+        n = face_frame(W, F)[0]
+        if float(n[:, 2].min()) > 0 or not cert.holds(W, up) or count_self_intersections(W, F) == 0:
+            continue
+        assert not cert.holds(W, n)  # a face seen from behind: refused
+        found += 1
+    assert found >= 2  # the search does reach such meshes (3 in its first 29 draws)
