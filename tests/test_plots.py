@@ -36,7 +36,9 @@ def test_mei_figures_write_the_render_views_and_activation(tmp_path, tiny_run):
     mei_figures(tiny_run, tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["activation.png", "render.png", "views.png"]
     render = matplotlib.image.imread(tmp_path / "render.png")
-    assert render.shape[:2] == (32, 32)  # the render itself, pixel for pixel
+    assert render.shape[:2] == (32, 32)  # the render itself, pixel for pixel (gray: R = G = B), the right way up
+    # (the gray colormap has 256 levels: within two of them)
+    np.testing.assert_allclose(render[..., 0], tiny_run.image[0, 0].clamp(0, 1).numpy(), atol=2 / 255)
 
 
 def test_reconstruction_figures_plot_loss_and_metrics(tmp_path):

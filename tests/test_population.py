@@ -239,13 +239,21 @@ def test_a_population_writes_one_run_per_neuron_and_a_table(tmp_path):
         assert r["seconds"] > 0
 
 
-def test_a_rerun_skips_finished_neurons_and_other_settings_are_refused(tmp_path):
+def test_a_rerun_skips_finished_neurons_and_other_settings_are_refused(tmp_path, monkeypatch):
+    import meshmei.population.run as population_run
+
+    asked, real = [], population_run.neuron_results
+    monkeypatch.setattr(population_run, "neuron_results",
+                        lambda enc, todo, *a, **k: asked.append(list(todo)) or real(enc, todo, *a, **k))
     enc, out = cells(), tmp_path / "pop"
     run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
     first = (out / "neurons" / "neuron_00000" / "summary.json").stat().st_mtime_ns
     rows = run_population(enc, [0, 1, 3], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
     assert [r["neuron"] for r in rows] == [0, 1, 3]
-    assert (out / "neurons" / "neuron_00000" / "summary.json").stat().st_mtime_ns == first  # not redone
+    # not redone: the rerun optimises neuron 3 alone (the file's time alone could not tell: a recomputed
+    # neuron's folder is not written again; review)
+    assert asked == [[0, 1], [3]]
+    assert (out / "neurons" / "neuron_00000" / "summary.json").stat().st_mtime_ns == first
     assert all(r["pixel_mei_response"] is None and r["ratio"] is None for r in rows)
     with pytest.raises(MEIError, match="other settings.*differing: settings"):
         run_population(enc, [2], out, settings=MEISettings(**{**SMALL, "steps": 7}), pixel_steps=0, progress=False)
