@@ -106,11 +106,28 @@ def _add_objective_options(p, d: MEISettings) -> None:
     p.add_argument("--valid-steps", action=argparse.BooleanOptionalAction, default=d.valid_steps,
                    help="accept only steps whose mesh has no self-intersection, flipped face or collapsed triangle "
                         f"(default {'on' if d.valid_steps else 'off'})")
+    p.add_argument("--reg-ref-vertices", type=_count_or_none, default=d.reg_ref_vertices, metavar="N|none",
+                   help=f"the vertex count the regularizer weights are stated for (default {d.reg_ref_vertices}): "
+                        "they are scaled to the run's mesh, and a finer mesh's step shrinks with its edge length; "
+                        "'none': the weights and --lr as given at every size")
+
+
+def _count_or_none(text: str):
+    """An argparse type: a positive integer, or ``none``."""
+    if text.lower() == "none":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'none', got {text!r}")
+    return value
 
 
 def _objective_settings(args) -> dict:
     return dict(valid_steps=args.valid_steps, albedo=args.albedo, robust_pose=args.robust_pose,
-                robust_light=args.robust_light)
+                robust_light=args.robust_light, reg_ref_vertices=args.reg_ref_vertices)
 
 
 def _weights(items: list) -> dict:

@@ -73,7 +73,9 @@ def test_guarded_items_equal_their_guarded_runs_alone():
                                                                                batched[n].extra["guard"]["seconds"]}
         assert solo.extra["guard"]["refused"] > 0  # the rate does make the guard refuse steps
         torch.testing.assert_close(batched[n].V, solo.V, rtol=1e-9, atol=1e-9)
-        torch.testing.assert_close(torch.tensor(batched[n].history), torch.tensor(solo.history), rtol=1e-9, atol=1e-9)
+        # the responses come from the float32 cells: a last-bit difference of V (summation order of the batched
+        # regularizers, whose weights are scaled to the 60-vertex mesh) may move them by a float32 ulp
+        torch.testing.assert_close(torch.tensor(batched[n].history), torch.tensor(solo.history), rtol=1e-6, atol=1e-9)
         assert count_self_intersections(batched[n].V, batched[n].F) == 0
         assert count_flipped_faces(batched[n].V, batched[n].V0, batched[n].F) == 0
 

@@ -39,8 +39,8 @@ class BatchScene:
     :class:`~meshmei.validity.StepGuard` and contact barrier, as alone (:meth:`acceptor`, :meth:`penalties`).
     """
 
-    def __init__(self, V0, settings: MEISettings, seeds, uv=None, F=None):
-        self.seeds = [SeedScene(V0, settings, s, uv) for s in seeds]  # the same initial draws as alone
+    def __init__(self, V0, settings: MEISettings, seeds, uv=None, F=None, n_weights: int | None = None):
+        self.seeds = [SeedScene(V0, settings, s, uv, n_weights) for s in seeds]  # the same initial draws as alone
         self.guards = self.contacts = None
         if settings.valid_steps and F is not None:  # each item's own guard, and the same valid first iterates
             self.guards = [StepGuard(V0, F, settings.validity_rules()) for _ in self.seeds]
@@ -189,7 +189,7 @@ def check_batch_size(batch_size) -> None:
 def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress, uv) -> list[dict]:
     """Optimise the ``(neuron, seed)`` items together; one run dict per item, as ``optimize_mei`` makes per seed."""
     neurons = [n for n, _ in items]
-    scene = BatchScene(V0, settings, [s for _, s in items], uv, F)
+    scene = BatchScene(V0, settings, [s for _, s in items], uv, F, n_weights)
     trace = Trace()
     out = minimize(_objective(encoder, neurons, F, scene, objective_weights(settings, n_weights), settings),
                    make_optimizer("adam", scene.groups), Budget(steps=settings.steps),

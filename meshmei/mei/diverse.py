@@ -113,7 +113,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     seeds = [settings.seeds[0] + i for i in range(k)]
     t0 = time.perf_counter()
     with frozen_encoder(encoder):
-        scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None, F)
+        scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None, F, n_weights)
         trace = Trace()
         minimize(_objective(encoder, neuron, F, scene, objective_weights(settings, n_weights), settings, diversity,
                             floor),

@@ -176,7 +176,7 @@ def valid_start(rbf, guard, halvings: int = 30) -> int:
 
 def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights,
               uv=None) -> dict:
-    scene = SeedScene(V0, settings, seed, uv)
+    scene = SeedScene(V0, settings, seed, uv, n_weights)
     if guard is not None:
         valid_start(scene.rbf, guard)
     trace = Trace()

@@ -17,14 +17,16 @@ __all__ = ["SeedScene", "sheet_uv", "robust_turns", "albedo_penalty"]
 class SeedScene:
     """The learnable scene of one seed: RBF offsets (and scales), optionally the light and the pose."""
 
-    def __init__(self, V0, settings: MEISettings, seed: int, uv=None):
+    def __init__(self, V0, settings: MEISettings, seed: int, uv=None, n_weights: int | None = None):
+        """``n_weights``: the vertex count the weights scale to (the start's own when None), which also sets
+        the offsets' learning rate (:meth:`MEISettings.offset_lr`)."""
         dtype = V0.dtype
         g = torch.Generator().manual_seed(int(seed))
         self.rbf = make_deformer(V0, settings)
         with torch.no_grad():
             self.rbf.offsets.copy_(settings.init_noise * torch.randn(self.rbf.offsets.shape, generator=g,
                                                                      dtype=torch.float64))
-        lr = settings.lr * (settings.albedo_shape_lr if settings.albedo else 1.0)  # with an albedo the shape follows
+        lr = settings.offset_lr(V0.shape[0] if n_weights is None else n_weights)
         self.groups = [{"params": [self.rbf.offsets], "lr": lr}]
         if settings.lr_scales > 0:
             self.groups.append({"params": [self.rbf.log_sigma], "lr": settings.lr_scales})

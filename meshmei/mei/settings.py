@@ -86,11 +86,16 @@ class MEISettings:
         from ``MEISettings().weights``). The command line's ``--weight NAME=W`` changes one and keeps the
         others.
     reg_ref_vertices : int or None
-        When set (e.g. 400, the default mesh, for which the default weights were chosen), ``weights`` are
-        stated for a mesh of this many vertices and scaled to the run's (its ``n_vertices`` for a built-in
-        start, its vertex count for a given mesh) by :func:`meshmei.regularizers.scale_weights`: the
-        Laplacian and area weights by ``(n / ref)^2``, edge and direction ARAP by ``n / ref``. None (the
-        default for now, issue 16): the weights as given.
+        (Default 400, the default mesh, for which the default weights were chosen.) ``weights`` are stated
+        for a mesh of this many vertices and scaled to the run's (its ``n_vertices`` for a built-in start,
+        its vertex count for a given mesh) by :func:`meshmei.regularizers.scale_weights`: the Laplacian and
+        area weights by ``(n / ref)^2``, edge and direction ARAP by ``n / ref``; and above it the offsets'
+        learning rate is ``lr * sqrt(ref / n)`` (see ``lr_by_edge``), so that the same settings behave alike
+        at 400 and 2,500 vertices (docs/mei.md, *Resolution*). None: the weights and ``lr`` as given.
+    lr_by_edge : bool
+        (Default on.) With ``reg_ref_vertices``, a mesh finer than it takes the learning rate of its offsets
+        shrunk as its edge length, ``lr * sqrt(reg_ref_vertices / n)``: a step stays the same share of an
+        edge, where the guard and the barriers work. Off: only the weights are scaled.
     valid_steps : bool
         (Default on.) Accept only steps whose mesh is valid (:class:`~meshmei.validity.ValidityRules`: no
         new self-intersections, no face flipped against the rest mesh, no triangle below ``min_quality``);
@@ -161,7 +166,8 @@ class MEISettings:
     centers: int | None = None
     r_cut: float = 4.0
     weights: dict = field(default_factory=_default_weights)
-    reg_ref_vertices: int | None = None
+    reg_ref_vertices: int | None = 400
+    lr_by_edge: bool = True
     valid_steps: bool = True
     min_quality: float = 0.01
     barrier_weight: float = 0.1
@@ -193,7 +199,7 @@ class MEISettings:
             v = getattr(self, f.name)
             if isinstance(v, np.generic):
                 object.__setattr__(self, f.name, v.item())
-        for name in ("valid_steps", "optimize_light", "optimize_pose", "albedo"):
+        for name in ("valid_steps", "lr_by_edge", "optimize_light", "optimize_pose", "albedo"):
             if not isinstance(getattr(self, name), bool):  # "false" is a true string
                 raise MEIError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name in ("image_size", "n_vertices", "steps", "robust_points"):
@@ -285,6 +291,16 @@ class MEISettings:
         if c is not None and (isinstance(c, bool) or not isinstance(c, numbers.Integral) or c < 1):
             raise MEIError(f"centers must be None or an int (a positive number of RBF centres), got {c!r}")
         object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
+
+    def offset_lr(self, n_vertices: int) -> float:
+        """The learning rate of the RBF offsets for a mesh of ``n_vertices`` (the count the weights scale
+        to): ``lr``, times ``albedo_shape_lr`` with an albedo, times ``sqrt(reg_ref_vertices / n)`` above
+        the reference with ``lr_by_edge``."""
+        lr = self.lr * (self.albedo_shape_lr if self.albedo else 1.0)  # with an albedo the shape follows
+        ref = self.reg_ref_vertices
+        if self.lr_by_edge and ref is not None and n_vertices > ref:
+            lr = lr * (ref / n_vertices) ** 0.5
+        return lr
 
     def for_start(self, init_name: str) -> "MEISettings":
         """These settings with ``steps`` and ``contact_weight`` set for the start ``init_name`` (a key of
