@@ -3,11 +3,12 @@ subclass) whose message names the argument and what arrived."""
 
 from __future__ import annotations
 
+import argparse
 import math
 
 import numpy as np
 
-__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds"]
+__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "positive_int"]
 
 
 def check_positive(name, value, *, integer=False, error: type[ValueError] = ValueError):
@@ -41,3 +42,14 @@ def check_distinct_seeds(seeds, *, error: type[ValueError] = ValueError) -> None
     same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
     if same:
         raise error(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a positive integer (argparse's one-line error otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value

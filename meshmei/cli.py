@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from ._checks import positive_int
 from ._files import atomic_directory, check_apart, check_output
 from .encoders import load_model, make_encoder
 from .errors import MEIError, ReconstructionError, TuningError
@@ -117,12 +118,9 @@ def _count_or_none(text: str):
     if text.lower() == "none":
         return None
     try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer or 'none', got {text!r}")
-    return value
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'none', got {text!r}") from None
 
 
 def _objective_settings(args) -> dict:

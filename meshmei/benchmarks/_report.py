@@ -12,6 +12,8 @@ from pathlib import Path
 
 import torch
 
+from meshmei._checks import positive_int  # re-exported: the benchmarks' argparse type
+
 __all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
            "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs"]
 
@@ -41,17 +43,6 @@ def int_list(text: str) -> list:
         return [int(x) for x in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-
-
-def positive_int(text: str) -> int:
-    """An argparse type: a positive integer."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 def keep_docs_for_full_runs(quick: bool) -> None:
