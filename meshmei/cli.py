@@ -362,7 +362,8 @@ def _run_reconstruct(args) -> int:
           f"F-score {f.fscore:.3f}, normal consistency {f.normal_consistency:.3f}, area {f.area_ratio:.2f}x the "
           f"target's; {f.self_intersections} self-intersecting pairs, {f.inverted_faces} faces against the "
           f"target's normals, {f.degenerate_faces} degenerate, min triangle quality {f.min_quality:.3f}, "
-          f"{closedness(f.boundary_edges, f.nonmanifold_edges)}; wrote {out}" + (f"; WARNING: {len(stalled)} warning(s) (below)" if stalled else ""))
+          f"{closedness(f.boundary_edges, f.nonmanifold_edges)}; wrote {out}"
+          + (f"; WARNING: {len(stalled)} warning(s) (below)" if stalled else ""))
     for message in stalled:
         print(f"meshmei reconstruct: warning: {message}", file=sys.stderr)
     return 0

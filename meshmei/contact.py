@@ -17,15 +17,15 @@ incremental potential contact does: two edges crossing like an X come close whil
 from the other's faces.
 
 Cost. The candidate pairs come from KD-trees over the vertices and the face centroids, searched again only
-when some vertex has moved more than ``margin`` since the last search (candidates are kept out to ``distance + 2 margin``, so no
-pair can come within ``distance`` unseen, with ``min_interval=1``, as reconstruction uses it). With a larger
-``min_interval`` (the 3D-MEI's 4) a search waits that many calls even when a vertex moved more than
-``margin``, so a pair can come within ``distance`` unseen between two searches (at ten times the 3D-MEI's
-learning rate a review found 115-121 such pairs over a run, the nearest at 0.2-0.3 ``distance``; none at the
-default rate): the barrier is then a preference, and the step guard holds the guarantee. A search is O(n log n): the trees' pairs, most of them a vertex
-and the faces of its own ring or the next, are cut by a cheap lower bound (the distance to the half-plane
-beyond the face's farthest edge) before the exact distances, about 50 ms at 10k vertices. Between
-searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's distance
+when some vertex has moved more than ``margin`` since the last search (candidates are kept out to
+``distance + 2 margin``, so no pair can come within ``distance`` unseen, with ``min_interval=1``, as
+reconstruction uses it). With a larger ``min_interval`` (the 3D-MEI's 4) a search waits that many calls even when a vertex moved
+more than ``margin``, so a pair can come within ``distance`` unseen between two searches (at ten times the
+3D-MEI's learning rate a review found 115-121 such pairs over a run, the nearest at 0.2-0.3 ``distance``; none
+at the default rate): the barrier is then a preference, and the step guard holds the guarantee. A search is
+O(n log n): the trees' pairs, most of them a vertex and the faces of its own ring or the next, are cut by a
+cheap lower bound (the distance to the half-plane beyond the face's farthest edge) before the exact distances,
+about 50 ms at 10k vertices. Between searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's distance
 shrinks at most by how far its vertices moved since the search) and costs their point-triangle distances,
 O(n) with a small constant. A larger ``margin`` would search less often, but beyond ``distance / 2`` (with
 ``distance`` a third of an edge) the candidates reach the faces one ring away: at ``margin = distance``

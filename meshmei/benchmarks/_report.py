@@ -15,7 +15,8 @@ import torch
 from meshmei._checks import positive_int  # re-exported: the benchmarks' argparse type
 
 __all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
-           "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs"]
+           "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs",
+           "HEALTH_COLUMNS", "HEALTH_LEGEND", "health_cells"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
@@ -108,3 +109,18 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(out)
+
+
+HEALTH_COLUMNS = ["SI", "flipped", "q", "watertight", "manifold"]
+HEALTH_LEGEND = ("SI = self-intersecting face pairs, flipped = faces flipped against the start (summed over the "
+                 "results of a row), q = the smallest triangle quality, watertight and manifold = how many of the "
+                 "row's results are (the sheet is open by design)")
+
+
+def health_cells(reports: list) -> list:
+    """The :data:`HEALTH_COLUMNS` of a table row from the :func:`meshmei.quality.health_report` of each of its
+    results (one, or a set's members)."""
+    n = len(reports)
+    return [sum(h["self_intersections"] for h in reports), sum(h["flipped_faces"] for h in reports),
+            f"{min(h['min_quality'] for h in reports):.3f}", f"{sum(bool(h['watertight']) for h in reports)}/{n}",
+            f"{sum(h['nonmanifold_edges'] == 0 for h in reports)}/{n}"]

@@ -13,7 +13,8 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import benchmark_parser, machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, machine_line,
+                                        markdown_table, write_section)
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell, make_encoder
 from meshmei.mei import diverse_meis
 
@@ -34,7 +35,8 @@ def run(k: int = 4) -> str:
             if isinstance(enc, GaborComplexCell):
                 phases = ", ".join(f"{float(enc.phase_of(r.image)[0]):+.2f}" for r in d.results)
             rows.append([name, w, ", ".join(f"{r:.3f}" for r in d.responses), f"{float(off.mean()):.3f}",
-                         f"{float(off.min()):.3f}", phases, f"{secs:.0f}"])
+                         f"{float(off.min()):.3f}", phases, *health_cells([r.health() for r in d.results]),
+                         f"{secs:.0f}"])
     body = "\n".join([
         "## Diverse 3D-MEIs (`python -m meshmei.benchmarks.diverse`)",
         "",
@@ -43,10 +45,10 @@ def run(k: int = 4) -> str:
         f"K = {k} members from the sheet, default settings (64 px, 300 steps); 'responses' per member; "
         "dissimilarity is the distance between two members' preprocessed images as a share of the largest "
         "possible (mean and smallest over pairs); 'phases' the complex cell members' phase against its "
-        "quadrature pair (radians).",
+        f"quadrature pair (radians); health over the K members: {HEALTH_LEGEND}.",
         "",
         markdown_table(["neuron", "diversity", "responses", "mean dissimilarity", "min dissimilarity", "phases",
-                        "s"], rows),
+                        *HEALTH_COLUMNS, "s"], rows),
     ])
     return write_section("diverse", body)
 

@@ -1,13 +1,13 @@
 """The same 3D-MEI settings at 400 and 2,500 vertices (issue 16, resolution-aware defaults).
 
-Run: ``python -m meshmei.benchmarks.resolution [--steps 300] [--sizes 400,2500]``; writes the
-"resolution" section of ``docs/benchmarks.md``. For a simple and a complex Gabor cell (the built-in cells'
-neuron 0), from the sheet and from the sphere, seed 0, 64 px, the guard on: each vertex count with the
-regularizer weights as given (``reg_ref_vertices=None``), with the weights stated for 400 vertices and
-scaled to the mesh (``reg_ref_vertices=400, lr_by_edge=False``), and, the default, scaled with the
-offsets' learning rate shrunk with the edge length as well (``lr * sqrt(400 / n)``). Reported: the fraction of the cell's bound, the health of the
-result (self-intersecting pairs, flipped faces, minimum triangle quality), the steps the guard refused and
-the wall time.
+Run: ``python -m meshmei.benchmarks.resolution [--steps 300] [--sizes 400,2500]``; writes the "resolution"
+section of ``docs/benchmarks.md``. For a simple and a complex Gabor cell (the built-in cells' neuron 0), from
+the sheet and from the sphere, seed 0, 64 px, the guard on: each vertex count with the regularizer weights as
+given (``reg_ref_vertices=None``), with the weights stated for 400 vertices and scaled to the mesh
+(``reg_ref_vertices=400, lr_by_edge=False``), and, the default, scaled with the offsets' learning rate shrunk
+with the edge length as well (``lr * sqrt(400 / n)``). Reported: the fraction of the cell's bound, the health
+of the result (self-intersecting pairs, flipped faces, minimum triangle quality), the steps the guard refused
+and the wall time.
 """
 
 from __future__ import annotations
@@ -63,7 +63,8 @@ def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-
         "the next column); weights 'as given' = `reg_ref_vertices=None`; 'scaled' = the default weights stated "
         f"for {REF} vertices and scaled to n (`reg_ref_vertices={REF}, lr_by_edge=False`: Laplacian and area by "
         f"(n/{REF})^2, edge and ARAP by n/{REF}); 'lr by edge' (the default since issue 16) also shrinks the "
-        f"offsets' learning rate as the edge length, `lr * sqrt({REF} / n)`. At {REF} vertices the three are the same run. Response = fraction of the "
+        f"offsets' learning rate as the edge length, `lr * sqrt({REF} / n)`. At {REF} vertices the three are "
+        "the same run. Response = fraction of the "
         "cell's bound; SI = self-intersecting pairs; flipped = faces flipped against the start; q = minimum "
         "triangle quality; refused = candidate steps the guard refused; s = wall time.",
         "",

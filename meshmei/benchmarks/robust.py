@@ -15,7 +15,8 @@ import time
 
 import numpy as np
 
-from meshmei.benchmarks._report import benchmark_parser, int_list, machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, int_list,
+                                        machine_line, markdown_table, write_section)
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.tuning import light_sweep, pose_sweep
@@ -39,13 +40,13 @@ def run(neurons: list[int]) -> str:
             res = optimize_mei(enc, n, "sheet", MEISettings(**kw))
             secs = time.perf_counter() - t0
             pose, light = pose_sweep(res, enc, neurons=[n]), light_sweep(res, enc, neurons=[n])
-            out[name] = (res.activation, _above_half(pose, n), _above_half(light, n), secs)
+            out[name] = (res.activation, _above_half(pose, n), _above_half(light, n), secs, res.health())
         plain = out["plain"]
-        for name, (act, pa, la, secs) in out.items():
+        for name, (act, pa, la, secs, health) in out.items():
             axis = 1 if "pose" in name else 2
             gain = "" if name == "plain" else f"{out[name][axis] / max(plain[axis], 1e-9):.2f}x"
             rows.append([n, name, f"{act:.3f} ({act / plain[0]:.2f})", f"{100 * pa:.1f} %", f"{100 * la:.1f} %",
-                         gain, f"{secs:.0f}"])
+                         gain, *health_cells([health]), f"{secs:.0f}"])
             if name != "plain":
                 checks.append(act / plain[0])
     keep = sum(c >= 0.8 for c in checks)
@@ -59,9 +60,10 @@ def run(neurons: list[int]) -> str:
         "its ratio to the plain 3D-MEI's; 'pose > half' is the share of the 37 x 37 pose grid (azimuth x "
         "elevation, -90 .. 90) where the response is at least half the sweep's peak; 'light > half' the same "
         "over the light hemisphere (10 x 36); 'gain' is the robust run's share over the plain run's on the axis "
-        "it was made robust to.",
+        f"it was made robust to; {HEALTH_LEGEND}.",
         "",
-        markdown_table(["neuron", "3D-MEI", "response", "pose > half", "light > half", "gain", "s"], rows),
+        markdown_table(["neuron", "3D-MEI", "response", "pose > half", "light > half", "gain", *HEALTH_COLUMNS, "s"],
+                       rows),
         "",
         f"Report (issue 19): the response at the original view stays at least 0.8 of the plain 3D-MEI's in "
         f"{keep} of {len(checks)} robust runs.",

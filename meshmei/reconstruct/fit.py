@@ -375,7 +375,8 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 weights = (w["laplacian"], w["edge"], w["arap"])
             info["warnings"].append(
                 f"stage {k}: every remesh to {n_stage} vertices added self-intersections or changed the topology "
-                f"({remeshed['remesh_refused_pairs']} new pairs; {', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): "
+                f"({remeshed['remesh_refused_pairs']} new pairs; "
+                f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): "
                 f"the stage runs on the mesh it had, {V.shape[0]} vertices, with the weights for that count")
         sk = _guarded_step(s, sk, V.shape[0])
         if isinstance(sk.centers, int) and sk.centers > V.shape[0]:  # resolved: a count is an int
