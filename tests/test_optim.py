@@ -204,6 +204,12 @@ def test_a_non_finite_final_iterate_is_refused_when_it_is_the_one_kept():
     x.data.fill_(1.0)
     out = minimize(objective, torch.optim.SGD([x], lr=1e306), Budget(steps=1), keep="best")
     assert out.step == 0 and math.isfinite(out.loss) and torch.equal(x.detach(), torch.ones(2, dtype=torch.float64))
+    # ... but with nothing offered before (keep_from past every step) the final iterate is the one kept, and
+    # its non-finite loss is refused as under keep="last" (review: returning it passed every test)
+    x.data.fill_(1.0)
+    with pytest.raises(KeyError, match=r"the loss became (nan|inf) at step 1"):
+        minimize(objective, torch.optim.SGD([x], lr=1e306), Budget(steps=1), keep="best", keep_from=1.0,
+                 error=KeyError)
 
 
 def test_a_non_finite_starting_loss_points_at_the_inputs_not_the_learning_rate():

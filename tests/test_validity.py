@@ -85,9 +85,11 @@ def test_minimize_halves_a_refused_step_and_undoes_one_never_accepted():
     assert trace.history[0]["step_scale"] == 0.25 and float(x.detach()) == pytest.approx(0.25)
     y = torch.zeros(1, dtype=torch.float64, requires_grad=True)
     trace = Trace()
+    tried = []  # the step sizes each accept call saw: the full step, then max_halvings halvings, no more
     minimize(lambda p: (((y - 1.0) ** 2).sum(), {}), torch.optim.SGD([y], lr=0.5), Budget(steps=3), trace=trace,
-             accept=lambda: False, max_halvings=2)
+             accept=lambda: tried.append(float(y.detach())) or False, max_halvings=2)
     assert [r["step_scale"] for r in trace.history] == [0.0] * 3 and float(y.detach()) == 0.0
+    assert tried == [1.0, 0.5, 0.25] * 3
 
 
 def _clean(V, F, V0):
