@@ -338,7 +338,10 @@ def test_a_model_run_sweeps_pose_like_a_built_in_cell():
     enc = encoder_from_model(model, mean=0.5, std=0.2, forward_kwargs={"data_key": "s1"}, image_size=48)
     res = optimize_mei(enc, 1, "sheet", **SMALL)
     sweep = pose_sweep(res, enc, elevation=[0.0], azimuth=[-5.0, 0.0, 5.0], roll=[0.0])
-    assert torch.isfinite(torch.as_tensor(sweep.responses)).all()
+    r = torch.as_tensor(sweep.responses, dtype=torch.float64).flatten()
+    # at the MEI's own pose the sweep gives back its response (as for the built-in cells), and the pose matters
+    assert torch.isfinite(r).all() and float(r[1]) == pytest.approx(res.activation, rel=1e-5)
+    assert float(r.max() - r.min()) > 0
 
 
 def test_the_main_job_runs_on_a_labs_model(tmp_path):
