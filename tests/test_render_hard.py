@@ -114,6 +114,12 @@ def test_faces_behind_and_crossing_the_near_plane(dtype):
     fr = rasterize(V, F, settings=RenderSettings(image_size=32))
     assert set(fr.face_id.unique().tolist()) <= {-1}  # clipped: every face has a vertex behind znear
     assert (g[6:] == 0).all()
+    # one corner behind the eye, two in view and apart on the screen: culled too (faces whose corners were
+    # all behind, or whose behind corners met on the screen, could not tell 'every corner in range' from
+    # 'some corner': review)
+    one = torch.tensor([[-0.3, -0.2, 0.0], [0.3, -0.2, 0.0], [0.0, 0.1, 3.0]], dtype=dtype)
+    fr = rasterize(one, torch.tensor([[0, 1, 2]]), settings=RenderSettings(image_size=32))
+    assert int((fr.face_id >= 0).sum()) == 0 and float(fr.coverage.max()) == 0.0
 
 
 def test_object_outside_view_gives_background_and_zero_gradient():
