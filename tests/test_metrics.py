@@ -160,3 +160,19 @@ def test_surface_metrics_tell_the_two_directions_apart():
     assert m.fscore == pytest.approx(2 * m.recall / (1 + m.recall), rel=1e-12)
     assert m.hausdorff == pytest.approx(0.5, rel=0.01)
     assert m.area_ratio == pytest.approx(0.5, rel=1e-12)
+
+
+def test_surface_metrics_count_health_defects_that_are_there():
+    """Every earlier expectation of self_intersections, degenerate_faces and inverted_faces was 0 or None
+    (hard-coding 0 passed; review). Half the faces of a sphere turned over are inverted against the sphere;
+    two crossing triangles and a collinear one give one pair and one degenerate face."""
+    V, F = icosphere(2)
+    half = F.clone()
+    half[: len(F) // 2] = half[: len(F) // 2][:, [0, 2, 1]]
+    assert surface_metrics(V, half, V, F, n_samples=2000).inverted_faces == len(F) // 2
+    W = torch.tensor([[-1, -1, 0], [1, -1, 0], [0, 1, 0], [0, -1, -1], [0, 1, -1], [0, 0, 1],
+                      [5, 0, 0], [6, 0, 0], [7, 0, 0]], dtype=torch.float64)  # A, B through A, a segment
+    T = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    m = surface_metrics(W, T, W, T, n_samples=2000)
+    assert (m.self_intersections, m.degenerate_faces) == (1, 1)
+

@@ -285,6 +285,12 @@ def test_a_thin_but_sound_face_may_not_turn_over():
     Vs[4] = torch.tensor([0.5, 1e-7, 0.0], dtype=V.dtype)
     guard = StepGuard(Vs, F, ReconstructionSettings().validity_rules())
     assert guard.turn_faces.tolist() == [False, True, True, True]
+    # ... and the verdict follows the mask: the sliver's apex across its base edge flips only the sliver, which
+    # the turn rule leaves to the quality floor (half the start's smallest quality); the mask alone was checked
+    assert guard.quality_floor == 0.5 * float(triangle_quality(Vs, F).min())
+    across = Vs.clone()
+    across[4] = torch.tensor([0.5, -1e-7, 0.01], dtype=V.dtype)
+    assert count_flipped_faces(across, Vs, F) == 1 and guard.why_not(across) is None
 
 
 def test_from_a_start_that_intersects_itself_no_step_may_make_a_new_pair():
