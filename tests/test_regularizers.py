@@ -479,3 +479,50 @@ def test_rest_pose_errors_name_the_rest_pose():
         reg.arap_direction_loss(V, V.long(), F)
     with pytest.raises(MeshError, match="rest pose V0 of shape .* does not match V"):
         count_flipped_faces(V, V[:-1], F)
+
+
+# ------------------------------------------------------------ documented details, against references
+# (review of the suite: each of these could be changed with every earlier test passing)
+def test_the_cotangent_loss_is_normalised_by_the_interior_mass():
+    V, F = grid_sheet(6, 6)
+    V = V.clone()
+    V[:, 2] = 0.3 * torch.sin(3 * V[:, 0]) * torch.cos(2 * V[:, 1])
+    Vn, Fn = V.numpy(), F.numpy()
+    LV = igl.cotmatrix(Vn, Fn) @ Vn
+    M = igl.massmatrix(Vn, Fn, igl.MASSMATRIX_TYPE_VORONOI).diagonal()
+    interior = np.ones(len(Vn), dtype=bool)
+    interior[igl.boundary_loop(Fn)] = False
+    expected = ((LV ** 2).sum(1) / M)[interior].sum() / M[interior].sum()
+    assert float(reg.laplacian_loss(V, F, method="cotangent")) == pytest.approx(expected, rel=1e-10)
+
+
+def test_the_uniform_loss_averages_over_the_vertices_faces_use():
+    V, F = hard_cases()["unreferenced_vertices"]
+    used = len(torch.unique(F))
+    assert used < V.shape[0]
+    # the reference sums over every vertex with neighbours and divides by their count, not by every vertex
+    assert float(reg.laplacian_loss(V, F)) == pytest.approx(float(ref_uniform_laplacian(V, F)), rel=1e-12)
+
+
+def test_a_zero_length_rest_edge_costs_its_whole_length_in_the_direction_loss():
+    V0 = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=torch.float64)  # rest edge 2-3: length 0
+    F = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    W = V0.clone()
+    W[3] = torch.tensor([0.3, 1.0, 0.4], dtype=torch.float64)
+    terms = []
+    for i, j in _edge_set(F):
+        e, e0 = W[j] - W[i], V0[j] - V0[i]
+        d = torch.zeros(3, dtype=torch.float64) if float(e0.norm()) == 0 else e0 / e0.norm()
+        terms.append(float(((e - (e @ d) * d) ** 2).sum()))  # no direction: the whole |e|^2
+    assert float(reg.arap_direction_loss(W, V0, F)) == pytest.approx(float(np.mean(terms)), rel=1e-12)
+
+
+def test_albedo_roughness_is_the_mean_over_vertices_of_the_squared_umbrella():
+    V, F = hard_cases()["unreferenced_vertices"]
+    a = torch.linspace(0, 1, V.shape[0], dtype=torch.float64) ** 2
+    neighbours = [set() for _ in range(V.shape[0])]
+    for f in F.tolist():
+        for x in f:
+            neighbours[x] |= set(f) - {x}
+    expected = np.mean([(float(a[i]) - np.mean([float(a[j]) for j in s])) ** 2 for i, s in enumerate(neighbours) if s])
+    assert float(reg.albedo_roughness(a, F)) == pytest.approx(expected, rel=1e-12)
