@@ -1040,6 +1040,8 @@ def test_a_remesh_that_clears_one_crossing_and_makes_another_elsewhere_is_refuse
     part of a fin with two overlapping balls beside it; review). Pairs are now told apart by place."""
     import importlib
 
+    from meshmei.quality import self_intersecting_pairs
+
     fit = importlib.import_module("meshmei.reconstruct.fit")
 
     def flat(c):
@@ -1053,10 +1055,11 @@ def test_a_remesh_that_clears_one_crossing_and_makes_another_elsewhere_is_refuse
     moved = torch.cat([flat(0.0), upright(0.3), flat(10.0), upright(20.0)])  # the same crossing, moved
     elsewhere = torch.cat([flat(0.0), upright(5.0), flat(10.0), upright(10.0)])  # it cleared, one at x = 10
     assert count_self_intersections(before, F) == count_self_intersections(elsewhere, F) == 1
-    assert fit._new_intersections(before, F, moved, F) == 0
-    assert fit._new_intersections(before, F, elsewhere, F) == 1
-    assert fit._new_intersections(before, F, torch.cat([flat(0.0), upright(0.0), flat(10.0), upright(10.0)]), F) == 1
-    assert fit._new_intersections(elsewhere, F, elsewhere, F) == 0
+    assert fit._new_intersections(before, F, self_intersecting_pairs(before, F), moved, F) == 0
+    assert fit._new_intersections(before, F, self_intersecting_pairs(before, F), elsewhere, F) == 1
+    assert fit._new_intersections(before, F, self_intersecting_pairs(before, F),
+                                 torch.cat([flat(0.0), upright(0.0), flat(10.0), upright(10.0)]), F) == 1
+    assert fit._new_intersections(elsewhere, F, self_intersecting_pairs(elsewhere, F), elsewhere, F) == 0
 
 
 def test_a_stage_whose_remesh_is_refused_takes_the_weights_of_the_mesh_it_runs_on(sphere, monkeypatch):

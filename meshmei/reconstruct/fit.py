@@ -101,13 +101,17 @@ class _Evaluation:
         return self.last
 
 
-def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int | None, n_source: int) -> tuple:
+def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int | None, n_source: int,
+                  n_mesh: int | None = None) -> tuple:
     """The Laplacian, edge and ARAP weights of stage ``k`` (None: a run without stages), scaled from
     ``reg_ref_vertices`` to the count the stage's weights are stated for: its own, except the first stage,
-    which takes the second's (see :class:`ReconstructionSettings`)."""
+    which takes the second's (see :class:`ReconstructionSettings`); ``n_mesh``, when given, instead (a stage
+    whose every remesh was refused runs on the mesh it had)."""
     if s.reg_ref_vertices is None:
         return sk.w_laplacian, sk.w_edge, sk.w_arap
-    if k is None:
+    if n_mesh is not None:
+        n_k = n_mesh
+    elif k is None:
         n_k = s.stages[-1] if s.stages else n_source
     else:
         n_k = s.stages[1] if k == 0 and len(s.stages) > 1 else s.stages[k]  # (max of the two gave a later,
@@ -315,15 +319,15 @@ def _contact_info(contact, edges_from) -> dict:
             "contact_edges_from": edges_from}
 
 
-def _new_intersections(V, F, V2, F2) -> int:
-    """Intersecting pairs a remesh ``(V2, F2)`` of ``(V, F)`` added. Faces are renumbered by a remesh, so
+def _new_intersections(V, F, old: np.ndarray, V2, F2) -> int:
+    """Intersecting pairs a remesh ``(V2, F2)`` of ``(V, F)``, whose own pairs are ``old``
+    (:func:`~meshmei.quality.self_intersecting_pairs`), added. Faces are renumbered by a remesh, so
     pairs are told apart by place: the excess over the old count, or, if more, the pairs of the new mesh with
     a face farther than two of its mean edge lengths from every intersecting face of the old one (a count
     alone let a remesh that cleared one place and crossed another through: review)."""
     new = self_intersecting_pairs(V2, F2)
     if len(new) == 0:
         return 0
-    old = self_intersecting_pairs(V, F)
     if len(old) == 0:
         return len(new)
     Vn, Fn = numpy_mesh(V, F)
@@ -343,11 +347,11 @@ def _remesh_clean(V, F, n: int, clean: bool):
     V2, F2 = remesh(V, F, n)
     if not clean:
         return V2, F2, {}
-    shape = topology(F)
+    old, shape = self_intersecting_pairs(V, F), topology(F)  # the source's, once for every try
     for iterations in (None, 10, 3):
         if iterations is not None:
             V2, F2 = remesh(V, F, n, iterations=iterations)
-        added = _new_intersections(V, F, V2, F2)
+        added = _new_intersections(V, F, old, V2, F2)
         changed = sorted(k for k, v in topology(F2).items() if v != shape[k])
         if added == 0 and not changed:
             return V2, F2, {"remesh_iterations": iterations or 5}
@@ -365,14 +369,11 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
             V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps)
         sk = per_stage[k] if per_stage else s
-        weights = stage_weights(s, sk, k if n_stage is not None else None, n_source)
-        if remeshed.get("remesh_iterations", 0) is None:  # every remesh refused: the stage keeps the mesh it had
-            # and takes the weights of that mesh's count, not of the count it asked for (a 9,917-vertex
-            # stage ran with the weights of 100 vertices, its Laplacian 615x below the rule's; review)
-            if s.reg_ref_vertices is not None:
-                w = scale_weights({"laplacian": sk.w_laplacian, "edge": sk.w_edge, "arap": sk.w_arap}, V.shape[0],
-                                  s.reg_ref_vertices)
-                weights = (w["laplacian"], w["edge"], w["arap"])
+        # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
+        # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
+        refused = remeshed.get("remesh_iterations", 0) is None
+        weights = stage_weights(s, sk, k if n_stage is not None else None, n_source, V.shape[0] if refused else None)
+        if refused:
             info["warnings"].append(
                 f"stage {k}: every remesh to {n_stage} vertices added self-intersections or changed the topology "
                 f"({remeshed['remesh_refused_pairs']} new pairs; "
