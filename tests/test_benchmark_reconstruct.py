@@ -87,11 +87,16 @@ def test_render_shows_areas_and_checks_blocking_results_against_the_membrane_flo
                                       "fscore": 1.0, "normal_consistency": 0.99, "area_ratio": 1.0}}
     membrane = {"teapot": {"integral": 4e-6, "accuracy": 5e-6, "target_area": 0.8, "spacing": 0.001,
                            "limit": 5.2e-6, "limit_spacing": 0.0005}}
+    results["teapot|2500|rbf"]["budgets"]["100.0"].update(inverted_faces=3, min_quality=0.2, watertight=False,
+                                                          boundary_edges=4, nonmanifold_edges=0)
     text = render(results, floors, False, (10.0, 30.0, 100.0), membrane)
     row = next(line for line in text.splitlines() if line.startswith("| teapot-centred | 2500 | rbf |"))
-    assert row.split(" | ")[9] == "1.80"  # the area column, after three Chamfer and three SI columns
+    # after three Chamfer and three SI columns: inverted, q and watertight at 100 s, then the area
+    assert row.split(" | ")[9:13] == ["-", "-", "-", "1.80"]  # a record from before health was measured
+    healthy = next(line for line in text.splitlines() if line.startswith("| teapot | 2500 | rbf |"))
+    assert healthy.split(" | ")[9:13] == ["3", "0.200", "open: 4 boundary edges", "0.10"]
     vertex = next(line for line in text.splitlines() if line.startswith("| teapot-centred | 2500 | vertex |"))
-    assert vertex.split(" | ")[9] == "-"  # measured before areas were
+    assert vertex.split(" | ")[12] == "-"  # measured before areas were
     floor = next(line for line in text.splitlines() if "floor (decimated, 5000 faces)" in line)
     assert "| 1.00 |" in floor
     # accuracy * area * target area / integral over the six centred-teapot results with an area; the lowest is
@@ -206,3 +211,21 @@ def test_benchmark_options_are_checked_before_any_work(module, argv, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(argv)
     assert exit_.value.code == 2 and "error:" in capsys.readouterr().err
+
+
+def test_surface_health_reads_a_reconstruction_result_as_the_health_columns():
+    from meshmei.benchmarks._report import SURFACE_HEALTH_COLUMNS, health_cells, surface_health
+    from meshmei.metrics import surface_metrics
+    from meshmei.shapes import initial_mesh
+
+    V, F = initial_mesh("sphere", n_vertices=400)
+    V, F = V.double().numpy(), F.numpy()
+    closed = surface_metrics(V, F, V, F, n_samples=2000)
+    opened = surface_metrics(V, F[1:], V, F, n_samples=2000)  # one face off: a hole of three edges
+    inside_out = surface_metrics(V, F[:, ::-1].copy(), V, F, n_samples=2000)
+    cells = health_cells([surface_health(closed), surface_health(opened), surface_health(inside_out.as_dict())])
+    assert len(cells) == len(SURFACE_HEALTH_COLUMNS)
+    assert cells[0] == 0  # no self-intersection in any
+    assert cells[1] == F.shape[0]  # every face of the reversed sphere points against the target, none of the others
+    assert float(cells[2]) == pytest.approx(closed.min_quality, abs=5e-4)
+    assert cells[3:] == ["2/3", "3/3"]  # the holed sphere is open, and all three are manifold

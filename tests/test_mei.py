@@ -201,8 +201,10 @@ def test_grid_search_reports_activation_and_quality():
     rows = grid_search(GaborSimpleCell(), 0, "sphere", {"laplacian": [0.0, 100.0]}, **TINY)
     assert [r["weights"]["laplacian"] for r in rows] == [0.0, 100.0]
     for r in rows:
-        assert {"activation", "fraction_of_bound", "min_quality", "mean_quality", "self_intersections", "seconds"} <= set(r)
-        assert isinstance(r["self_intersections"], int)
+        assert {"activation", "fraction_of_bound", "min_quality", "mean_quality", "self_intersections", "seconds",
+                "flipped_faces", "watertight"} <= set(r)
+        assert isinstance(r["self_intersections"], int) and isinstance(r["flipped_faces"], int)
+        assert r["watertight"] is True  # the sphere stays closed
 
 
 def test_bad_input_raises_mei_error():

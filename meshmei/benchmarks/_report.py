@@ -16,7 +16,8 @@ from meshmei._checks import positive_int  # re-exported: the benchmarks' argpars
 
 __all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
            "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs",
-           "HEALTH_COLUMNS", "HEALTH_LEGEND", "health_cells"]
+           "HEALTH_COLUMNS", "HEALTH_LEGEND", "health_cells", "SURFACE_HEALTH_COLUMNS", "SURFACE_HEALTH_LEGEND",
+           "surface_health"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
@@ -124,3 +125,20 @@ def health_cells(reports: list) -> list:
     return [sum(h["self_intersections"] for h in reports), sum(h["flipped_faces"] for h in reports),
             f"{min(h['min_quality'] for h in reports):.3f}", f"{sum(bool(h['watertight']) for h in reports)}/{n}",
             f"{sum(h['nonmanifold_edges'] == 0 for h in reports)}/{n}"]
+
+
+SURFACE_HEALTH_COLUMNS = ["SI", "inverted", "q", "watertight", "manifold"]
+SURFACE_HEALTH_LEGEND = ("SI = self-intersecting face pairs, inverted = faces whose normal points against the "
+                         "target's at the nearest target point (a remeshed result has no start to be flipped "
+                         "against; summed over the results of a row), q = the smallest triangle quality, "
+                         "watertight and manifold = how many of the row's results are")
+
+
+def surface_health(metrics) -> dict:
+    """A reconstruction result's health from its :class:`~meshmei.metrics.SurfaceMetrics` (or their
+    ``as_dict()``), in the keys :func:`health_cells` reads; its flipped faces are the faces against the
+    target (``inverted_faces``): with :func:`health_cells`, the :data:`SURFACE_HEALTH_COLUMNS`."""
+    m = metrics if isinstance(metrics, dict) else metrics.as_dict()
+    return {"self_intersections": m["self_intersections"], "flipped_faces": m["inverted_faces"],
+            "min_quality": m["min_quality"], "watertight": m["watertight"],
+            "nonmanifold_edges": m["nonmanifold_edges"]}

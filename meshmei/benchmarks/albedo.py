@@ -12,8 +12,8 @@ from __future__ import annotations
 import os
 import time
 
-
-from meshmei.benchmarks._report import benchmark_parser, int_list, machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, int_list,
+                                        machine_line, markdown_table, write_section)
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, pixel_mei
 
@@ -35,8 +35,8 @@ def run(neurons: list[int]) -> str:
         full_ratios.append(r_full)
         rows.append([n, f"{pm.activation:.3f}", f"{shape.activation:.3f} ({shape.activation / pm.activation:.3f})",
                      f"{alb.activation:.3f} ({r:.3f})", f"{float(alb.albedo.min()):.2f}-{float(alb.albedo.max()):.2f}",
-                     alb.health()["self_intersections"], f"{full.activation:.3f} ({r_full:.3f})",
-                     full.health()["self_intersections"], f"{secs:.0f}"])
+                     *health_cells([alb.health()]), f"{full.activation:.3f} ({r_full:.3f})",
+                     *health_cells([full.health()])[:2], f"{secs:.0f}"])
     met = sum(r >= 0.95 for r in ratios)
     body = "\n".join([
         "## Shape + albedo 3D-MEIs (`python -m meshmei.benchmarks.albedo`)",
@@ -48,10 +48,11 @@ def run(neurons: list[int]) -> str:
         "offsets at their full `lr`), then the same with the offsets at a tenth of `lr` (`albedo_shape_lr=0.1`, "
         "the default while steps were unguarded). "
         "Responses, with their ratio to the pixel MEI's in brackets; 'albedo' is the range the texture uses; "
-        "SI = self-intersecting face pairs of the albedo run's mesh.",
+        "then the health of the albedo run's mesh: " + HEALTH_LEGEND + "; and SI and flipped of the run with the "
+        "shape at a tenth of lr.",
         "",
-        markdown_table(["neuron", "pixel MEI", "shape only", "shape + albedo", "albedo", "SI",
-                        "shape + albedo, shape at a tenth of lr", "SI", "s"], rows),
+        markdown_table(["neuron", "pixel MEI", "shape only", "shape + albedo", "albedo", *HEALTH_COLUMNS,
+                        "shape + albedo, shape at a tenth of lr", *HEALTH_COLUMNS[:2], "s"], rows),
         "",
         f"Target (issue 19): shape + albedo at least 0.95 of the pixel MEI on at least 5 demo neurons: "
         f"{'met' if met >= 5 else 'not met'} at the defaults ({met} of {len(ratios)}; ratios "

@@ -12,10 +12,10 @@ from dataclasses import replace
 
 import torch
 
-from meshmei.benchmarks._report import benchmark_parser, docs_dir, machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, docs_dir, health_cells,
+                                        machine_line, markdown_table, write_section)
 from meshmei.encoders import DEMO_MODEL_PATH, GaborComplexCell, GaborSimpleCell, load_demo_model
 from meshmei.mei import MEISettings, grid_search, optimize_mei, pixel_mei, random_mesh_responses
-from meshmei.quality import mesh_quality
 
 
 def _first(xs, ts, level):
@@ -48,13 +48,11 @@ def cell_runs(settings: MEISettings, pixel_steps: int) -> tuple[dict, list, list
             h = res.history
             best = [max(h[: i + 1]) for i in range(len(h))]
             curves[(cname, init)] = (h, res.time_history)
-            q = mesh_quality(res.V, res.F)
             rows.append([cname, init, f"{res.activation:.3f}", f"{max(h):.3f}",
                          _fmt(_first(best, range(1, len(h) + 1), 0.9), "d"),
                          _fmt(_first(best, res.time_history, 0.9), ".1f"),
                          _fmt(_first(best, range(1, len(h) + 1), 0.95), "d"),
-                         f"{1000 * res.seconds_per_step:.0f}", f"{q['min_quality']:.3f}", q["self_intersections"],
-                         f"{pm.activation:.4f}"])
+                         f"{1000 * res.seconds_per_step:.0f}", *health_cells([res.health()]), f"{pm.activation:.4f}"])
             bars.append((f"{cname}\n{init}", res.activation, pm.activation))
             print(rows[-1], flush=True)
     return curves, rows, bars
@@ -115,7 +113,7 @@ def grid_rows(settings: MEISettings) -> list:
                              replace(settings, steps=200, seeds=(0,), weights={"edge": 30.0})):
             w = r["weights"]
             rows.append([init, w["laplacian"], w["edge"], w["area"], f"{r['activation']:.3f}",
-                         f"{r['min_quality']:.3f}", f"{r['mean_quality']:.3f}", r["self_intersections"]])
+                         f"{r['mean_quality']:.3f}", *health_cells([r])])
             print(rows[-1], flush=True)
     return rows
 
@@ -143,10 +141,10 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
         f"Default `MEISettings` ({settings.n_vertices}-vertex initial mesh, {settings.image_size} x "
         f"{settings.image_size} image, RBF on every vertex, weights {settings.weights}), {steps} steps, "
         f"seeds {list(seeds)}; the response of a Gabor cell is its fraction of the upper bound 1. "
-        "'steps/s to 0.9' count until the best response so far first reaches 0.9.",
+        "'steps/s to 0.9' count until the best response so far first reaches 0.9; " + HEALTH_LEGEND + ".",
         "",
         markdown_table(["cell", "init", "final", "best", "steps to 0.9", "s to 0.9", "steps to 0.95", "ms/step",
-                        "min tri quality", "self-intersections", "pixel MEI"], rows),
+                        *HEALTH_COLUMNS, "pixel MEI"], rows),
         "",
         demo_line,
         "",
@@ -156,8 +154,8 @@ def run(steps: int = 400, seeds=(0,), pixel_steps: int = 200, out_dir=None):
         "",
         "Grid search over regularizer weights (`grid_search`; complex cell, 200 steps, seed 0, edge weight 30):",
         "",
-        markdown_table(["init", "laplacian", "edge", "area", "response", "min tri quality", "mean tri quality",
-                        "self-intersections"], grid_rows(settings)),
+        markdown_table(["init", "laplacian", "edge", "area", "response", "mean tri quality", *HEALTH_COLUMNS],
+                       grid_rows(settings)),
         "",
         "Time per optimisation step (render + encoder + regularizers + backward + Adam; sphere, simple cell):",
         "",

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import torch
 
-from meshmei.benchmarks._report import benchmark_parser, machine_line, markdown_table, median, step_intervals, write_section
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, SURFACE_HEALTH_COLUMNS, SURFACE_HEALTH_LEGEND,
+                                        benchmark_parser, health_cells, machine_line, markdown_table, median,
+                                        step_intervals, surface_health, write_section)
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
@@ -52,20 +54,22 @@ MEI_MODES = {"off": dict(valid_steps=False), "guard alone": dict(barrier_weight=
 
 def mei_cost_split(steps: int = 60, rounds: int = 5) -> list:
     """Median ms per 3D-MEI step (simple cell, 64 px, 400 vertices) from the sphere and the sheet, for each
-    of :data:`MEI_MODES`, alternating; ratios to off; and the response after ``steps`` steps."""
+    of :data:`MEI_MODES`, alternating; ratios to off; and the response and :data:`HEALTH_COLUMNS` after
+    ``steps`` steps (last round)."""
     rows = []
     for init in ("sphere", "sheet"):
         times = {m: [] for m in MEI_MODES}
-        act = {}
+        last = {}
         for _ in range(rounds):
             for mode, kw in MEI_MODES.items():
                 res = optimize_mei(GaborSimpleCell(), 0, init, steps=steps, seeds=(0,), **kw)
                 times[mode].append(median(step_intervals(res.time_history, 5)))
-                act[mode] = res.activation
+                last[mode] = res
         off = median(times["off"])
         for mode in MEI_MODES:
             t = median(times[mode])
-            rows.append([init, mode, f"{1000 * t:.1f}", f"{t / off:.2f}", f"{act[mode]:.3f}"])
+            rows.append([init, mode, f"{1000 * t:.1f}", f"{t / off:.2f}", f"{last[mode].activation:.3f}",
+                         *health_cells([last[mode].health()])])
             print(rows[-1], flush=True)
     return rows
 
@@ -80,12 +84,13 @@ def run_mei_cost() -> Path:
         "",
         "Simple cell, 64 px, 400-vertex start, 60 steps, seed 0; median ms per step over five alternated "
         "rounds (wall time, including the halvings of refused steps); response = fraction of the bound "
-        "after 60 steps (last round). The default is the guard with its barrier, plus the contact barrier "
+        "after 60 steps (last round), and the health of that result: " + HEALTH_LEGEND + ". "
+        "The default is the guard with its barrier, plus the contact barrier "
         "from the sphere, not from the sheet (`meshmei.mei.DEFAULT_CONTACT_WEIGHT`); the guard's "
         "intersection test is a certificate where it holds (`meshmei.certify`), else libigl's. Issue 16's "
         "target: the guarantee costs at most 1.30 times the step.",
         "",
-        markdown_table(["start", "mode", "ms/step", "ratio to off", "response"], rows),
+        markdown_table(["start", "mode", "ms/step", "ratio to off", "response", *HEALTH_COLUMNS], rows),
     ])
     return write_section("validity-mei-cost", body)
 
@@ -121,23 +126,25 @@ def _default_run(V, F, target, method: str, seed: int, **kwargs):
 
 
 def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=(("bunny", "sphere"), ("teapot", "torus"))) -> list:
-    """Chamfer-L2, self-intersections and wall time of the CLI's default run per problem, mode and seed."""
+    """Chamfer-L2, self-intersections (and the rest of :data:`SURFACE_HEALTH_COLUMNS`, over the seeds),
+    refused steps and wall time of the CLI's default run per problem, mode and seed."""
     rows = []
     for problem, init in problems:
         target = target_surface(problem)
         for label, (method, kw) in RECONSTRUCTION_MODES.items():
             V, F, _ = resolve_source(init, n_vertices, torch.float32, target)
-            cds, sis, walls, refused = [], [], [], []
+            cds, sis, walls, refused, health = [], [], [], [], []
             for seed in seeds:
                 res = _default_run(V, F, target, method, seed, **kw)
                 cds.append(res.final.chamfer_l2)
                 sis.append(res.final.self_intersections)
+                health.append(surface_health(res.final))
                 walls.append(res.wall_time)
                 refused.append(sum(st.get("refused", 0) for st in res.info["stages"]))
                 print(problem, label, seed, cds[-1], sis[-1], walls[-1], refused[-1], flush=True)
             rows.append([f"{problem}, {V.shape[0]} vertices", label, ", ".join(f"{c:.2e}" for c in cds), f"{median(cds):.2e}",
-                         ", ".join(str(s) for s in sis), ", ".join(str(r) for r in refused) if kw == {} else "-",
-                         f"{sum(walls) / len(walls):.1f}"])
+                         ", ".join(str(s) for s in sis), *health_cells(health)[1:],
+                         ", ".join(str(r) for r in refused) if kw == {} else "-", f"{sum(walls) / len(walls):.1f}"])
     return rows
 
 
@@ -186,7 +193,7 @@ def thin_outcomes(names=("dumbbell", "fin", "cup"), seed: int = 0) -> list:
             res = _default_run(V, F, target, method, seed, **kw, **budget)
             out[label] = res
             refused = sum(st.get("refused", 0) for st in res.info["stages"])
-            rows.append([name, label, f"{res.final.chamfer_l2:.2e}", res.final.self_intersections,
+            rows.append([name, label, f"{res.final.chamfer_l2:.2e}", *health_cells([surface_health(res.final)]),
                          refused if kw == {} else "-", f"{res.wall_time:.1f}"])
             print(rows[-1], flush=True)
     return rows
@@ -206,10 +213,10 @@ def run_thin():
         "and `cup` (walls 0.05 thick), unit diagonal, watertight, made for this and used to tune nothing "
         "(`meshmei.shapes.targets.THIN_TARGETS`). From a 2,500-vertex sphere, seed 0: meshmei's default run "
         f"({DEFAULT_STEPS:,} steps), the same without guard and barrier, and large steps as published with the default "
-        "run's wall time as its budget. SI = self-intersecting face pairs; refused = candidates the guard "
+        "run's wall time as its budget. " + SURFACE_HEALTH_LEGEND + "; refused = candidates the guard "
         "refused; s = optimisation wall time.",
         "",
-        markdown_table(["target", "run", "Chamfer-L2", "SI", "refused", "s"], rows),
+        markdown_table(["target", "run", "Chamfer-L2", *SURFACE_HEALTH_COLUMNS, "refused", "s"], rows),
     ])
     return write_section("validity-thin", body)
 
@@ -227,12 +234,12 @@ def run_reconstruction(seeds=(0, 1, 2)):
         "The CLI's default run (`meshmei reconstruct --init sphere --target bunny` and `--init torus --target "
         f"teapot`: 2,500 vertices, {DEFAULT_STEPS:,} steps, `--stages auto`, which gives rbf three levels), seeds " + ", ".join(map(str, seeds)) + "; and "
         "the bunny at `--n-vertices 10000`, seed 0 only. "
-        "Chamfer-L2 from 100,000 samples per surface; SI = self-intersecting face pairs of the result (the "
-        "teapot target has 294 of its own); refused = candidate steps the guard refused, summed over stages; "
-        "s = mean optimisation wall time.",
+        "Chamfer-L2 from 100,000 samples per surface; " + SURFACE_HEALTH_LEGEND + " (the teapot target has "
+        "294 self-intersecting pairs of its own); refused = candidate steps the guard refused, summed over "
+        "stages; s = mean optimisation wall time.",
         "",
-        markdown_table(["problem", "run", "Chamfer-L2 per seed", "median", "SI per seed", "refused per seed",
-                        "s"], rows),
+        markdown_table(["problem", "run", "Chamfer-L2 per seed", "median", "SI per seed",
+                        *SURFACE_HEALTH_COLUMNS[1:], "refused per seed", "s"], rows),
     ])
     return write_section("validity-reconstruction", body)
 

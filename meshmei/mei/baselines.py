@@ -11,7 +11,7 @@ import torch
 
 from ..encoders import Encoder, eval_mode
 from ..errors import MEIError
-from ..quality import mesh_quality
+from ..quality import health_report
 from ..regularizers import REGULARIZERS
 from ..render import render
 from .optimize import check_neuron, initial, optimize_mei, settings_for_encoder
@@ -33,8 +33,9 @@ def grid_search(encoder: Encoder, neuron: int, init="sphere", grid: dict | None 
 
     Returns
     -------
-    list of dict, one per setting: ``weights``, ``activation``, ``fraction_of_bound``, ``min_quality``,
-    ``mean_quality``, ``self_intersections``, ``seconds``.
+    list of dict, one per setting: ``weights``, ``activation``, ``fraction_of_bound``, ``seconds``, and the
+    result's :func:`~meshmei.quality.health_report` (``min_quality``, ``mean_quality``, ``self_intersections``
+    (None with ``self_intersections=False``), ``flipped_faces`` against the start, ``watertight``, ...).
     """
     settings = MEISettings.with_overrides(settings, overrides)
     grid = grid if grid is not None else {"laplacian": [0.0, 1.0, 10.0], "edge": [0.0, 1.0, 10.0]}
@@ -53,7 +54,7 @@ def grid_search(encoder: Encoder, neuron: int, init="sphere", grid: dict | None 
         w = dict(settings.weights)
         w.update(dict(zip(names, (float(x) for x in combo))))
         res = optimize_mei(encoder, neuron, init, replace(settings, weights=w), progress=progress)
-        q = mesh_quality(res.V, res.F, self_intersections=self_intersections)
+        q = health_report(res.V, res.F, res.V0, self_intersections=self_intersections)
         rows.append({"weights": w, "activation": res.activation, "fraction_of_bound": res.fraction_of_bound,
                      **q, "seconds": res.wall_time})
     return rows

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ...quality import closedness
 from .._report import machine_line, markdown_table
 from .curves import best_of_runs, slower_levels
 from .problems import BLOCKING, BUDGETS, PROBLEMS, TARGETS
@@ -14,7 +15,9 @@ _METHODS_NOTE = (
     "Both targets normalised to unit bounding-box diagonal. Chamfer-L2 is the sum over both directions of "
     "the mean squared point-to-surface distance of 100,000 area-uniform samples (exact distances, seed 0); "
     "F-score at 1 % of the diagonal; NC = normal consistency; SI = self-intersecting face pairs of the "
-    "result (the teapot target has its own, see the floor rows); area = the result's surface area over the "
+    "result (the teapot target has its own, see the floor rows); inverted = faces whose normal points against "
+    "the target's at the nearest target point; q = the smallest triangle quality; watertight = closed and "
+    "edge-manifold (rows measured before these were recorded show '-'); area = the result's surface area over the "
     "target's (`area_ratio`: folds lying on the target add area and dilute the accuracy term). Time is "
     "optimisation wall time, single "
     "torch thread, metric evaluation excluded; each budget is a separate run whose schedule follows its "
@@ -117,22 +120,37 @@ def _results_table(results, floors, budgets):
     can be folded where the long one is not; the rest at the longest), then the decimation floors."""
     T = f"{budgets[-1]:g} s"
     header = (["problem", "n", "method"] + [f"CD-L2 @{t:g} s" for t in budgets] + [f"SI @{t:g} s" for t in budgets]
-              + [f"area @{T}", f"F @{T}", f"NC @{T}", f"steps @{T}"])
+              + [f"{c} @{T}" for c in _HEALTH] + [f"area @{T}", f"F @{T}", f"NC @{T}", f"steps @{T}"])
     rows = []
     for key, r in ordered(results):
         b = r["budgets"]
         last = b.get(str(budgets[-1]))
         rows.append(list(key) + [_fmt(b[str(t)]["chamfer_l2"]) if str(t) in b else "-" for t in budgets]
                     + [str(b[str(t)]["self_intersections"]) if str(t) in b else "-" for t in budgets]
-                    + ([_area(last), f"{last['fscore']:.4f}", f"{last['normal_consistency']:.4f}", str(last["steps"])]
-                       if last else ["-"] * 4))
+                    + (_health(last) + [_area(last), f"{last['fscore']:.4f}", f"{last['normal_consistency']:.4f}",
+                                        str(last["steps"])] if last else ["-"] * (len(_HEALTH) + 4)))
     for case, fl in floors.items():
         what = "target itself" if fl["chamfer_l2"] < 1e-15 else "decimated"
         pad = [""] * (len(budgets) - 1)
         rows.append(list(case) + [f"floor ({what}, {fl['faces']} faces)"] + pad + [_fmt(fl["chamfer_l2"])] + pad
-                    + [str(fl["self_intersections"]), _area(fl), f"{fl['fscore']:.4f}",
-                       f"{fl['normal_consistency']:.4f}", ""])
+                    + [str(fl["self_intersections"])] + _health(fl) + [_area(fl), f"{fl['fscore']:.4f}",
+                                                                      f"{fl['normal_consistency']:.4f}", ""])
     return markdown_table(header, rows)
+
+
+# The rest of a result's health beside its SI (records from before these were measured show "-").
+_HEALTH = ["inverted", "q", "watertight"]
+
+
+def _health(d) -> list:
+    """Inverted faces, smallest triangle quality and watertight (yes, or what keeps it from it) of a record."""
+    cells = [str(d["inverted_faces"]) if "inverted_faces" in d else "-",
+             f"{d['min_quality']:.3f}" if "min_quality" in d else "-"]
+    if "watertight" in d:
+        cells.append("yes" if d["watertight"] else closedness(d["boundary_edges"], d["nonmanifold_edges"]))
+    else:
+        cells.append("-")
+    return cells
 
 
 def _membrane_note(results, target, mf):
@@ -216,20 +234,21 @@ def _level_lines(key: RunKey, r, ls):
 def _parts_table(results, budgets):
     """Where the teapot error sits at the longest budget, per piece of the teapot."""
     end = str(budgets[-1])
-    parts = [(key, r["budgets"][end]["by_part"]) for key, r in ordered(results)
+    parts = [(key, r["budgets"][end]) for key, r in ordered(results)
              if end in r["budgets"] and "by_part" in r["budgets"][end]]
     if not parts:
         return []
     rows = []
-    for key, pp in parts:
+    for key, r_end in parts:
+        pp = r_end["by_part"]
         named = teapot_piece_names(pp)
         acc = sum(p["accuracy"] for p in pp)
         comp = sum(p["completeness"] for p in pp)
-        rows.append(list(key) + [_fmt(acc), _fmt(comp)]
+        rows.append(list(key) + [str(r_end["self_intersections"]), _fmt(acc), _fmt(comp)]
                     + [f"{named[k]['accuracy']:.1e} ({named[k]['area_share']:.0%})"
                        for k in ("body", "lid", "spout", "handle")])
     return ["", f"**Where the teapot error sits** ({budgets[-1]:g} s results; "
             "`meshmei.metrics.error_by_part`: each result sample is charged to the teapot piece nearest "
             "to it, each teapot sample to its own piece).", "",
-            markdown_table(["problem", "n", "method", "accuracy (result to teapot)", "completeness (teapot to result)",
+            markdown_table(["problem", "n", "method", "SI", "accuracy (result to teapot)", "completeness (teapot to result)",
                             "accuracy on body (area share)", "lid", "spout", "handle"], rows)]
