@@ -14,7 +14,7 @@ import torch
 
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
-from meshmei.mei import DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.mei import ALBEDO_MIN_STEPS, DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
 from meshmei.quality import health_line
 from meshmei.shapes import initial_mesh
 
@@ -123,6 +123,10 @@ def test_steps_and_contact_weight_default_by_start():
     assert {k: MEISettings().for_start(k).contact_weight for k in DEFAULT_CONTACT_WEIGHT} == DEFAULT_CONTACT_WEIGHT
     assert DEFAULT_STEPS["sphere"] > DEFAULT_STEPS["sheet"] and DEFAULT_STEPS["torus"] > DEFAULT_STEPS["sheet"]
     assert MEISettings(steps=7).for_start("torus").steps == 7
+    # with an albedo at least ALBEDO_MIN_STEPS (its texture climbs for longer); a given count is still kept
+    assert MEISettings(albedo=True).for_start("sheet").steps == ALBEDO_MIN_STEPS > DEFAULT_STEPS["sheet"]
+    assert MEISettings(albedo=True).for_start("sphere").steps == max(ALBEDO_MIN_STEPS, DEFAULT_STEPS["sphere"])
+    assert MEISettings(albedo=True, steps=7).for_start("sheet").steps == 7
     # the sheet alone goes without the contact barrier (it stays a graph); an explicit weight is kept
     assert MEISettings().for_start("sheet").contact_weight == 0 < MEISettings().for_start("torus").contact_weight
     assert MEISettings(contact_weight=5.0).for_start("sheet").contact_weight == 5.0

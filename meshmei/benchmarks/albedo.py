@@ -15,7 +15,7 @@ import time
 from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, int_list,
                                         machine_line, markdown_table, write_section)
 from meshmei.encoders import make_encoder
-from meshmei.mei import MEISettings, optimize_mei, pixel_mei
+from meshmei.mei import ALBEDO_MIN_STEPS, DEFAULT_STEPS, MEISettings, optimize_mei, pixel_mei
 
 
 
@@ -43,7 +43,8 @@ def run(neurons: list[int]) -> str:
         "",
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
         "",
-        "The demo model at 64 px, from the sheet, default settings (300 steps, seeds 0-2); the albedo run adds "
+        f"The demo model at 64 px, from the sheet, default settings (seeds 0-2; {DEFAULT_STEPS['sheet']} steps for "
+        f"the shape alone, {max(DEFAULT_STEPS['sheet'], ALBEDO_MIN_STEPS)} with an albedo); the albedo run adds "
         "`albedo=True` (a 64 x 64 texture in [0, 1] over the sheet's grid, `lr_albedo` 0.2, smoothness 1, the "
         "offsets at their full `lr`), then the same with the offsets at a tenth of `lr` (`albedo_shape_lr=0.1`, "
         "the default while steps were unguarded). "

@@ -20,12 +20,18 @@ from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
 from ..validity import ValidityRules
 
-__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer", "rebuild_deformer"]
+__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "ALBEDO_MIN_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer", "rebuild_deformer"]
 
 # Steps per seed when ``MEISettings.steps`` is None, by start. A closed start has farther to travel to a
 # relief than the sheet: from the sphere and the torus, 300 steps left Gabor cells at 0.88-0.95 of their
 # bound and 800 reach 0.95 (docs/mei.md, *How many steps*). A mesh of your own gets the sheet's count.
 DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 800, "custom": 300}
+
+# With an albedo (and ``steps`` None) a run takes at least this many steps: its texture's 4,096 values are
+# still climbing at 300. Demo neuron 9 at 300 steps ended at 0.921-0.970 of its pixel MEI depending on
+# rounding-level changes to the renderer (three versions of the code), at 500 at 0.957-0.977; neurons 2, 4,
+# 5, 7 and 8 (none of the albedo benchmark's) ended 0.1-0.5 % higher at 500 (docs/mei.md, *Shape and albedo*).
+ALBEDO_MIN_STEPS = 500
 
 # A robust 3D-MEI renders robust_points^2 views per robust axis (pose, light; both: every pair) at every step,
 # in one batch: 4,096 is robust_points 8 with both axes (64 px: about 65 MB of float32 images per step)
@@ -62,7 +68,8 @@ class MEISettings:
         Approximate vertex count of a built-in initial mesh (ignored for a given mesh).
     steps : int or None
         Adam steps per seed; None (default): by start, :data:`DEFAULT_STEPS` (300 from the sheet or a mesh
-        of your own, 800 from the sphere or the torus). A run records the count it used.
+        of your own, 800 from the sphere or the torus), and at least :data:`ALBEDO_MIN_STEPS` (500) with
+        ``albedo``. A run records the count it used.
     lr : float
         Learning rate of the RBF offsets (world units; the initial meshes span 1).
     lr_scales : float
@@ -304,9 +311,13 @@ class MEISettings:
 
     def for_start(self, init_name: str) -> "MEISettings":
         """These settings with ``steps`` and ``contact_weight`` set for the start ``init_name`` (a key of
-        :data:`DEFAULT_STEPS` and :data:`DEFAULT_CONTACT_WEIGHT`, else ``"custom"``) where they are None."""
+        :data:`DEFAULT_STEPS` and :data:`DEFAULT_CONTACT_WEIGHT`, else ``"custom"``; with ``albedo``, at
+        least :data:`ALBEDO_MIN_STEPS` steps) where they are None."""
         known = init_name if init_name in DEFAULT_STEPS else "custom"
-        steps = DEFAULT_STEPS[known] if self.steps is None else self.steps
+        if self.steps is not None:
+            steps = self.steps
+        else:
+            steps = max(DEFAULT_STEPS[known], ALBEDO_MIN_STEPS) if self.albedo else DEFAULT_STEPS[known]
         contact = DEFAULT_CONTACT_WEIGHT[known] if self.contact_weight is None else self.contact_weight
         if steps == self.steps and contact == self.contact_weight:
             return self
