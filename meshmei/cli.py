@@ -326,6 +326,9 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--contact-weight", type=float, default=d.w_contact,
                    help="weight of the contact barrier that keeps the surface from touching itself (0: off; "
                         f"default {d.w_contact:g})")
+    p.add_argument("--facing-weight", type=float, default=d.w_facing,
+                   help="weight of the term on surface turned away from the target's nearest normal, which "
+                        f"unfolds folds lying on the target (0: off; default {d.w_facing:g})")
     p.add_argument("--contact-edges", choices=("auto", "on", "off"), default="auto",
                    help="pair edges with edges in the contact barrier: 'auto' (default) in a stage once the guard "
                         "has refused a few steps at an edge contact, 'on' in every stage (slower), 'off' never")
@@ -352,7 +355,7 @@ def _run_reconstruct(args) -> int:
         res = reconstruct((V, F), target, args.method, steps=args.steps, time_budget=args.time_budget, lr=args.lr,
                           n_samples=args.samples, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
                           eval_every=args.eval_every, eval_samples=args.eval_samples, seed=args.seed,
-                          valid_steps=args.valid_steps, w_contact=args.contact_weight,
+                          valid_steps=args.valid_steps, w_contact=args.contact_weight, w_facing=args.facing_weight,
                           contact_edges={"auto": "auto", "on": True, "off": False}[args.contact_edges],
                           progress=not args.no_progress)
     out = save_reconstruction(res, args.out, overwrite=args.overwrite, init=str(args.init), target=str(args.target))

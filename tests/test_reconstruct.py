@@ -1122,3 +1122,38 @@ def test_cli_n_vertices_zero_is_refused_not_replaced_by_the_default(tmp_path, ca
     rc, out = _cli(["--init", "sphere", "--n-vertices", 0, "--target", "bunny", "--out", tmp_path / "o",
                     "--steps", 2], capsys)
     assert rc == 2 and "n_vertices must be positive" in out.err and not (tmp_path / "o").exists()
+
+
+def test_the_facing_term_charges_surface_turned_away_from_the_target_only():
+    """The facing term against closed forms: a sphere against itself faces the same way everywhere (0), the
+    same sphere with every face reversed faces away at every sample (1); the Chamfer term is the same for
+    both, and the same as without target normals (the pool and the samples are drawn alike)."""
+    import importlib
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    V, F = icosphere(3)
+    V, F = V.double(), F
+    values = {}
+    for name, faces in (("out", F), ("in", F[:, [0, 2, 1]])):
+        for normals in (True, False):
+            chamfer = fit._SampledChamfer(V, F, 20_000, torch.Generator().manual_seed(0), normals=normals)
+            values[name, normals] = chamfer(V, faces, 5000, 0, 1e-3)
+    assert values["out", True][1].item() == pytest.approx(0.0, abs=1e-12)
+    assert values["in", True][1].item() == pytest.approx(1.0, abs=0.05)  # faces tilted a little off the pool's
+    assert values["out", False][1] is None and values["in", False][1] is None
+    for name in ("out", "in"):
+        assert torch.equal(values[name, True][0], values[name, False][0])
+
+
+def test_a_facing_weight_adds_the_term_and_records_it_and_bad_weights_are_refused():
+    from meshmei.errors import ReconstructionError
+
+    src = initial_mesh("sphere", n_vertices=200)
+    plain = reconstruct(src, "bunny", "rbf", steps=8, eval_samples=2000)
+    facing = reconstruct(src, "bunny", "rbf", steps=8, eval_samples=2000, w_facing=1e-3)
+    assert all("facing" not in h for h in plain.history)
+    assert all(h["facing"] >= 0 for h in facing.history) and len(facing.history) == len(plain.history)
+    assert not torch.equal(plain.V, facing.V)  # the term moves the mesh
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ReconstructionError, match=r"^w_facing must be non-negative and finite"):
+            ReconstructionSettings(w_facing=bad).resolved()

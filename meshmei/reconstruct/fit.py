@@ -41,16 +41,26 @@ class _SampledChamfer:
     exact KD-tree queries get slow and the neighbour's exact identity hardly matters).
     """
 
-    def __init__(self, Vt, Ft, pool_size: int, generator: torch.Generator):
-        with torch.no_grad():
-            self.pool = sample_points(Vt, Ft, pool_size, generator=generator)  # (Np, 3) fixed target samples
+    def __init__(self, Vt, Ft, pool_size: int, generator: torch.Generator, *, normals: bool = False):
+        with torch.no_grad():  # (Np, 3) fixed target samples, and their unit normals when asked for
+            if normals:
+                self.pool, self.pool_normals = sample_points(Vt, Ft, pool_size, generator=generator,
+                                                             return_normals=True)
+            else:
+                self.pool, self.pool_normals = sample_points(Vt, Ft, pool_size, generator=generator), None
         self.index = PointIndex(self.pool)
         self.generator = generator
         self.far_share = 1.0  # share of target samples far from the current samples at the last step
 
-    def __call__(self, Vc, F, n_samples: int, step: int, lr: float) -> torch.Tensor:
+    def __call__(self, Vc, F, n_samples: int, step: int, lr: float):
+        """``(chamfer, facing)``: the sampled Chamfer term and, with target normals, the facing term (the
+        mean of ``max(0, -n . n_t)`` over the mesh samples, ``n_t`` the normal of the nearest target sample;
+        None without them)."""
         try:
-            P = sample_points(Vc, F, n_samples, generator=self.generator)
+            if self.pool_normals is not None:
+                P, N = sample_points(Vc, F, n_samples, generator=self.generator, return_normals=True)
+            else:
+                P, N = sample_points(Vc, F, n_samples, generator=self.generator), None
         except MeshError as err:
             if step == 0:
                 raise
@@ -64,8 +74,11 @@ class _SampledChamfer:
         i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5))
         self.far_share = samples_index.far_share
         # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
-        return (((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean()
-                + ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean())
+        cd = (((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean()
+              + ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean())
+        if N is None:
+            return cd, None
+        return cd, torch.relu(-(N * self.pool_normals.index_select(0, i_pq)).sum(-1)).mean()
 
 
 class _Evaluation:
@@ -138,9 +151,11 @@ def _objective(param, F, sk, weights, chamfer, k, latest, contact):
         latest[0] = Vc
         if contact is not None:  # its candidate search runs beside the Chamfer term's KD-tree queries
             contact.prefetch(Vc)
-        cd = chamfer(Vc, F, sk.n_samples, point.step, sk.lr)
+        cd, facing = chamfer(Vc, F, sk.n_samples, point.step, sk.lr)
         wr = point.factor if sk.reg_decay else 1.0
         loss = cd
+        if facing is not None:
+            loss = loss + sk.w_facing * facing
         if w_lap > 0:
             loss = loss + wr * w_lap * laplacian_loss(Vc, F)
         if w_edge > 0:
@@ -148,6 +163,8 @@ def _objective(param, F, sk, weights, chamfer, k, latest, contact):
         if w_arap > 0:  # the rest pose is the shape at the start of the stage
             loss = loss + wr * w_arap * arap_direction_loss(Vc, param.V0, F)
         record = {"stage": k, "chamfer": float(cd.detach())}
+        if facing is not None:
+            record["facing"] = float(facing.detach())
         if contact is not None:
             loss = loss + sk.w_contact * contact(Vc)
             record["contact_pairs"] = contact.active
@@ -226,7 +243,7 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     V, F = source_mesh(source, target=(Vt, Ft))
     Vt = Vt.to(V.dtype)
     g = torch.Generator(device=V.device).manual_seed(s.seed)
-    chamfer = _SampledChamfer(Vt, Ft, s.target_pool, g)
+    chamfer = _SampledChamfer(Vt, Ft, s.target_pool, g, normals=s.w_facing > 0)
     trace = Trace()
     evaluation = _Evaluation(Vt, Ft, s, trace)
     budget = Budget(s.steps, s.time_budget)

@@ -170,6 +170,12 @@ class ReconstructionSettings:
         at which the guard has refused :data:`AUTO_EDGE_REFUSALS` candidates by the intersection rule (the
         sign of such a stall), so that stages that do not stall pay nothing; False: never
         (docs/reconstruction.md, *Stalls at edge contacts*).
+    w_facing : float
+        Weight of the facing term: the mean over the Chamfer term's mesh samples of ``max(0, -n . n_t)``, the
+        mesh normal ``n`` at a sample against the target normal ``n_t`` at the target sample nearest to it,
+        so that only a surface turned away from the target pays. A fold lying on the target costs the
+        Chamfer term almost nothing, and the guard will not let it pass through itself; this term unfolds
+        it. 0 (default) leaves it out (docs/reconstruction.md, *Folds lying on the target*).
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
@@ -206,6 +212,7 @@ class ReconstructionSettings:
     w_contact: float = 100.0
     contact_distance: float = 0.25
     contact_edges: bool | str = "auto"
+    w_facing: float = 0.0
 
     def resolved(self) -> "ReconstructionSettings":
         """A copy with the per-method defaults filled in and every value checked.
@@ -318,7 +325,7 @@ def _check_values(s: ReconstructionSettings) -> None:
         raise ReconstructionError(f"coarse_ratio must be 0 (off) or an integer of at least 2, got {cr!r}")
     if cr and s.method == "rbf" and not s.coarse_lr > 0:  # other methods: refused by _check_used
         raise ReconstructionError(f"coarse_lr must be positive with coarse kernels, got {s.coarse_lr!r}")
-    for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam", "coarse_lr", "w_contact"):
+    for name in ("lr_scale", "w_laplacian", "w_edge", "w_arap", "lam", "coarse_lr", "w_contact", "w_facing"):
         if not (getattr(s, name) >= 0 and math.isfinite(getattr(s, name))):
             raise ReconstructionError(f"{name} must be non-negative and finite, got {getattr(s, name)!r}")
     ref = s.reg_ref_vertices
