@@ -802,6 +802,10 @@ def test_cli_refuses_options_it_would_ignore(sphere, tmp_path, capsys):
     rc, out = _cli(base + ["--init", tmp_path / "start.obj", "--out", tmp_path / "c"], capsys)  # the file as it is
     assert rc == 0, out.err
     assert json.loads((tmp_path / "c" / "history.json").read_text())["n_vertices"] == sphere[0].shape[0]
+    rc, out = _cli(base + ["--init", "sphere", "--n-vertices", 100, "--facing-weight", -1, "--out", tmp_path / "d"],
+                   capsys)
+    assert rc == 2 and out.err.strip().endswith("w_facing must be non-negative and finite, got -1.0")
+    assert not (tmp_path / "d").exists()
 
 
 def test_save_reconstruction_writes_a_whole_folder_or_none(sphere, tmp_path, monkeypatch):
