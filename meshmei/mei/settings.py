@@ -20,7 +20,8 @@ from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
 from ..validity import ValidityRules
 
-__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "ALBEDO_MIN_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer", "rebuild_deformer"]
+__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "ALBEDO_MIN_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer",
+           "rebuild_deformer"]
 
 # Steps per seed when ``MEISettings.steps`` is None, by start. A closed start has farther to travel to a
 # relief than the sheet: from the sphere and the torus, 300 steps left Gabor cells at 0.88-0.95 of their

@@ -43,11 +43,8 @@ class _SampledChamfer:
 
     def __init__(self, Vt, Ft, pool_size: int, generator: torch.Generator, *, normals: bool = False):
         with torch.no_grad():  # (Np, 3) fixed target samples, and their unit normals when asked for
-            if normals:
-                self.pool, self.pool_normals = sample_points(Vt, Ft, pool_size, generator=generator,
-                                                             return_normals=True)
-            else:
-                self.pool, self.pool_normals = sample_points(Vt, Ft, pool_size, generator=generator), None
+            drawn = sample_points(Vt, Ft, pool_size, generator=generator, return_normals=normals)
+        self.pool, self.pool_normals = drawn if normals else (drawn, None)
         self.index = PointIndex(self.pool)
         self.generator = generator
         self.far_share = 1.0  # share of target samples far from the current samples at the last step
@@ -57,10 +54,9 @@ class _SampledChamfer:
         mean of ``max(0, -n . n_t)`` over the mesh samples, ``n_t`` the normal of the nearest target sample;
         None without them)."""
         try:
-            if self.pool_normals is not None:
-                P, N = sample_points(Vc, F, n_samples, generator=self.generator, return_normals=True)
-            else:
-                P, N = sample_points(Vc, F, n_samples, generator=self.generator), None
+            normals = self.pool_normals is not None
+            drawn = sample_points(Vc, F, n_samples, generator=self.generator, return_normals=normals)
+            P, N = drawn if normals else (drawn, None)
         except MeshError as err:
             if step == 0:
                 raise
