@@ -6,8 +6,8 @@ the sheet and from the sphere, seed 0, 64 px, the guard on: each vertex count wi
 given (``reg_ref_vertices=None``), with the weights stated for 400 vertices and scaled to the mesh
 (``reg_ref_vertices=400, lr_by_edge=False``), and, the default, scaled with the offsets' learning rate shrunk
 with the edge length as well (``lr * sqrt(400 / n)``). Reported: the fraction of the cell's bound, the health
-of the result (self-intersecting pairs, flipped faces, minimum triangle quality), the steps the guard refused
-and the wall time.
+of the result (self-intersecting pairs, flipped faces, minimum triangle quality, watertight, manifold), the
+steps the guard refused and the wall time.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from __future__ import annotations
 import os
 import time
 
-from meshmei.benchmarks._report import benchmark_parser, int_list, machine_line, markdown_table, write_section
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, int_list,
+                                        machine_line, markdown_table, write_section)
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei
 
@@ -43,8 +44,8 @@ def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-
                     h, g = res.health(), res.extra.get("guard") or {}
                     frac = res.fraction_of_bound
                     label = name if n != REF else "(all)"
-                    rows.append([cell, start, n, res.V.shape[0], label, f"{frac:.3f}", h["self_intersections"],
-                                 h["flipped_faces"], f"{h['min_quality']:.3f}", g.get("refused", "-"), f"{secs:.0f}"])
+                    rows.append([cell, start, n, res.V.shape[0], label, f"{frac:.3f}", *health_cells([h]),
+                                 g.get("refused", "-"), f"{secs:.0f}"])
                     print(rows[-1], flush=True)
                     for v in VARIANTS if n == REF else (name,):
                         spread.setdefault((cell, start, v), []).append(frac)
@@ -64,12 +65,11 @@ def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-
         f"for {REF} vertices and scaled to n (`reg_ref_vertices={REF}, lr_by_edge=False`: Laplacian and area by "
         f"(n/{REF})^2, edge and ARAP by n/{REF}); 'lr by edge' (the default since issue 16) also shrinks the "
         f"offsets' learning rate as the edge length, `lr * sqrt({REF} / n)`. At {REF} vertices the three are "
-        "the same run. Response = fraction of the "
-        "cell's bound; SI = self-intersecting pairs; flipped = faces flipped against the start; q = minimum "
-        "triangle quality; refused = candidate steps the guard refused; s = wall time.",
+        f"the same run. Response = fraction of the cell's bound; {HEALTH_LEGEND}; refused = candidate steps "
+        "the guard refused; s = wall time.",
         "",
-        markdown_table(["cell", "start", "n", "vertices", "weights", "response", "SI", "flipped", "q", "refused",
-                        "s"], rows),
+        markdown_table(["cell", "start", "n", "vertices", "weights", "response", *HEALTH_COLUMNS, "refused", "s"],
+                       rows),
         "",
         *lines,
     ])
