@@ -157,6 +157,21 @@ def test_point_index_is_exact_near_and_close_to_exact_far():
         PointIndex(np.zeros((0, 3)))
 
 
+def test_point_index_answers_the_same_with_query_threads():
+    # workers only splits the queries among scipy's threads (reconstruction uses two beside its contact
+    # search): every answer, near and far, by either search order, is the one-thread answer
+    V, F = icosphere(3)
+    Q = sample_points(V, F, 50_000, generator=0)
+    near = sample_points(V, F, 3000, generator=1) * 1.001
+    far = torch.randn(3000, 3, dtype=V.dtype, generator=torch.Generator().manual_seed(2)) * 2.0
+    for queries in (near, far, torch.cat([near, far])):
+        for near_first in (True, False):
+            one, two = PointIndex(Q, min_points=1000), PointIndex(Q, min_points=1000)
+            a = one.query(queries, near_first=near_first, workers=1)
+            b = two.query(queries, near_first=near_first, workers=2)
+            assert np.array_equal(a, b) and one.far_share == two.far_share
+
+
 def test_point_index_on_duplicated_points_stays_exact_near():
     # every point twice (as a mesh's seams or an STL file's vertices give them): the spacing estimate was
     # 0, so no answer was exact and near queries got points of the coarsest level, up to 20x too far

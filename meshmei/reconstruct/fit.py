@@ -33,6 +33,9 @@ from .sources import source_mesh, target_surface
 
 __all__ = ["reconstruct"]
 
+# scipy query threads of the sampled Chamfer term in a run with the contact barrier (PointIndex.query)
+CONTACT_QUERY_WORKERS = 2
+
 
 class _SampledChamfer:
     """The sampled Chamfer term: fresh samples of the current mesh against a fixed pool of target samples.
@@ -41,7 +44,9 @@ class _SampledChamfer:
     exact KD-tree queries get slow and the neighbour's exact identity hardly matters).
     """
 
-    def __init__(self, Vt, Ft, pool_size: int, generator: torch.Generator, *, normals: bool = False):
+    def __init__(self, Vt, Ft, pool_size: int, generator: torch.Generator, *, normals: bool = False,
+                 workers: int = 1):
+        self.workers = workers  # scipy's query threads (PointIndex.query): two beside the contact search
         with torch.no_grad():  # (Np, 3) fixed target samples, and their unit normals when asked for
             drawn = sample_points(Vt, Ft, pool_size, generator=generator, return_normals=normals)
         self.pool, self.pool_normals = drawn if normals else (drawn, None)
@@ -65,9 +70,9 @@ class _SampledChamfer:
                                      f"rate (lr={lr})") from None
         sub = torch.randint(0, self.pool.shape[0], (n_samples,), generator=self.generator, device=Vc.device)
         Q = self.pool[sub]
-        i_pq = torch.from_numpy(self.index.query(P))
+        i_pq = torch.from_numpy(self.index.query(P, workers=self.workers))
         samples_index = PointIndex(P)
-        i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5))
+        i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5, workers=self.workers))
         self.far_share = samples_index.far_share
         # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
         cd = (((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean()
@@ -239,7 +244,11 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     V, F = source_mesh(source, target=(Vt, Ft))
     Vt = Vt.to(V.dtype)
     g = torch.Generator(device=V.device).manual_seed(s.seed)
-    chamfer = _SampledChamfer(Vt, Ft, s.target_pool, g, normals=s.w_facing > 0)
+    # the contact search runs in a worker thread beside the Chamfer term's queries, which then need scipy's
+    # threads to let go of the GIL (the default 2.5k bunny: 47 s against 38 s, the same result bit for bit);
+    # without it one query thread is as fast on two cores (docs/reconstruction.md, *Valid steps*)
+    chamfer = _SampledChamfer(Vt, Ft, s.target_pool, g, normals=s.w_facing > 0,
+                              workers=CONTACT_QUERY_WORKERS if s.w_contact > 0 else 1)
     trace = Trace()
     evaluation = _Evaluation(Vt, Ft, s, trace)
     budget = Budget(s.steps, s.time_budget)
