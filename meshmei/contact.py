@@ -31,10 +31,11 @@ O(n) with a small constant. A larger ``margin`` would search less often, but bey
 ``distance`` a third of an edge) the candidates reach the faces one ring away: at ``margin = distance``
 a search of the 10k bunny keeps 103,000 pairs instead of 3,600 and costs 2.4 times as much, for 40 % fewer
 searches. Reconstruction starts each step's search in a worker thread (:meth:`ContactBarrier.prefetch`)
-before its sampled Chamfer term, whose KD-tree queries, like most of the search, run without the GIL: on
-two cores the 10k bunny's default run took 3 to 14 % less time (162.0 s for 167.1 s, and 143.9 s for
-168.2 s, in two A/B pairs), the 2.5k run the same (96.6 s and 96.8 s, means of two runs each), with the
-same result bit for bit.
+before its sampled Chamfer term: on two cores the 10k bunny's default run took 3 to 14 % less time (162.0 s
+for 167.1 s, and 143.9 s for 168.2 s, in two A/B pairs), the 2.5k run the same (96.6 s and 96.8 s, means of
+two runs each), with the same result bit for bit. The two overlap only where the Chamfer term's KD-tree
+queries let go of the GIL, which scipy's do with two or more query threads, not with one
+(:meth:`meshmei.sampling.PointIndex.query`): with two, the default 2.5k bunny run went from 47 s to 38 s.
 """
 
 from __future__ import annotations
@@ -454,8 +455,9 @@ class ContactBarrier:
     def prefetch(self, V: torch.Tensor) -> None:
         """Start :meth:`candidates` for ``V`` in a worker thread; the next call of :meth:`candidates` (or of
         the energy) with these vertices takes its result. The search is NumPy and SciPy work that mostly runs
-        without the GIL, as do the KD-tree queries of a sampled Chamfer term, so the two overlap on two cores
-        (reconstruction: the search starts before the Chamfer term and is taken after it). The result is the
+        without the GIL, as do the KD-tree queries of a sampled Chamfer term with two or more scipy threads
+        (one keeps the GIL), so the two overlap on two cores (reconstruction: the search starts before the
+        Chamfer term and is taken after it). The result is the
         one the call would have given: the same search on the same vertices, in the same order of calls.
         ``V`` must not be changed in place before it is taken."""
         self._take_pending()
