@@ -457,9 +457,9 @@ class ContactBarrier:
         the energy) with these vertices takes its result. The search is NumPy and SciPy work that mostly runs
         without the GIL, as do the KD-tree queries of a sampled Chamfer term with two or more scipy threads
         (one keeps the GIL), so the two overlap on two cores (reconstruction: the search starts before the
-        Chamfer term and is taken after it). The result is the
-        one the call would have given: the same search on the same vertices, in the same order of calls.
-        ``V`` must not be changed in place before it is taken."""
+        Chamfer term and is taken after it). The result is the one the call would have given: the same search
+        on the same vertices, in the same order of calls. ``V`` must not be changed in place before it is
+        taken."""
         self._take_pending()
         Vd = V.detach()
         self._pending = (Vd, _worker().submit(self._search, Vd))

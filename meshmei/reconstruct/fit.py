@@ -33,7 +33,10 @@ from .sources import source_mesh, target_surface
 
 __all__ = ["reconstruct"]
 
-# scipy query threads of the sampled Chamfer term in a run with the contact barrier (PointIndex.query)
+# scipy query threads of the sampled Chamfer term in a run with the contact barrier (PointIndex.query): its
+# search runs in a worker thread beside the queries, and scipy's one-thread query keeps the GIL (the default
+# 2.5k bunny: 47 s against 38 s, the same result bit for bit); without the barrier one thread is as fast on
+# two cores (docs/reconstruction.md, *Valid steps*)
 CONTACT_QUERY_WORKERS = 2
 
 
@@ -244,9 +247,6 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     V, F = source_mesh(source, target=(Vt, Ft))
     Vt = Vt.to(V.dtype)
     g = torch.Generator(device=V.device).manual_seed(s.seed)
-    # the contact search runs in a worker thread beside the Chamfer term's queries, which then need scipy's
-    # threads to let go of the GIL (the default 2.5k bunny: 47 s against 38 s, the same result bit for bit);
-    # without it one query thread is as fast on two cores (docs/reconstruction.md, *Valid steps*)
     chamfer = _SampledChamfer(Vt, Ft, s.target_pool, g, normals=s.w_facing > 0,
                               workers=CONTACT_QUERY_WORKERS if s.w_contact > 0 else 1)
     trace = Trace()
