@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from meshmei.contact import (ContactBarrier, _closest_weights, _point_triangle, _segment_segment, mean_edge_length, point_triangle_sqdist,
-                             segment_sqdist)
+from meshmei.contact import (ContactBarrier, _closest_weights, _point_triangle, _segment_segment, contact_energies,
+                             mean_edge_length, point_triangle_sqdist, segment_sqdist)
 from meshmei.errors import MeshError
 from meshmei.shapes import initial_mesh
 
@@ -127,8 +127,6 @@ def test_bad_distances_are_refused():
 
 @pytest.mark.parametrize("edges", [False, True])
 def test_batched_energies_equal_each_items_own_with_their_gradients(edges):
-    from meshmei.contact import contact_energies
-
     V0, F = initial_mesh("sphere", n_vertices=150, dtype=torch.float64)
     g = torch.Generator().manual_seed(3)
     V = torch.stack([V0, V0 + 0.02 * torch.randn(V0.shape, generator=g, dtype=V0.dtype), 1.3 * V0])
@@ -211,6 +209,23 @@ def test_edge_pairs_see_two_edges_crossing_that_vertex_face_pairs_miss():
     Y, _ = _crossing_edges(0.005)
     assert float(both(Y)) > float(e.detach())  # closer: more energy
     assert float(both(_crossing_edges(0.6)[0])) == 0.0  # beyond reach: none
+
+
+def test_the_3d_meis_contact_barriers_see_two_edges_crossing():
+    """The 3D-MEI pairs edges with edges: without them a torus start pushed into an X-shaped contact had
+    every later step refused by the intersection test (docs/mei.md, *Edge contacts*)."""
+    from meshmei.mei import MEISettings
+    from meshmei.mei.optimize import contact_barriers
+
+    V, F = _crossing_edges(0.05)
+    barriers = contact_barriers(V, F, MEISettings(contact_weight=100.0), items=2)  # a batch of two, as alone
+    assert barriers[0].distance == pytest.approx(0.25 * mean_edge_length(V, F)) and barriers[0].distance > 0.05
+    assert float(ContactBarrier(F, barriers[0].distance)(V)) == 0.0  # no vertex within reach of a face
+    X = torch.stack([V, V]).requires_grad_()
+    e = contact_energies(barriers, X)
+    e.sum().backward()
+    assert bool((e.detach() > 0).all()) and all(b.active == 1 for b in barriers)
+    assert bool((X.grad[:, [3, 4], 2] < 0).all()) and bool((X.grad[:, [0, 1], 2] > 0).all())  # pushed apart
 
 
 def test_edge_pairs_turned_on_later_give_the_energy_of_a_barrier_built_with_them():

@@ -116,9 +116,9 @@ class MEISettings:
         with ``valid_steps``: it turns the run away from the turn and quality bounds before a step reaches
         them, so that few steps are refused.
     contact_weight : float or None
-        With ``valid_steps``, weight of the contact barrier (:class:`~meshmei.contact.ContactBarrier`),
-        which keeps the surface from touching itself (0: no barrier; the guard alone then stalls a run whose
-        optimum presses parts together). None (default): by start, :data:`DEFAULT_CONTACT_WEIGHT` (100, but
+        With ``valid_steps``, weight of the contact barrier (:class:`~meshmei.contact.ContactBarrier`, over
+        vertex-face and edge-edge pairs), which keeps the surface from touching itself (0: no barrier; the
+        guard alone then stalls a run whose optimum presses parts together). None (default): by start, :data:`DEFAULT_CONTACT_WEIGHT` (100, but
         0 from the sheet, which stays a graph over the image plane). A run records the weight it used.
     contact_distance : float
         The contact barrier's reach, as a share of the start's mean edge length.
