@@ -168,8 +168,21 @@ def test_a_torus_start_does_not_stall_at_an_edge_contact(monkeypatch):
     monkeypatch.setattr(mo, "minimize", minimize)
     res = optimize_mei(cells(1)[0][2], 0, "torus", seeds=(0,))
     assert len(scales) == res.settings.steps == 800
-    assert sum(s == 0 for s in scales) < 0.05 * len(scales)  # undone steps
+    assert res.extra["guard"]["undone"] == sum(s == 0 for s in scales) < 0.05 * len(scales)
     assert _clean(res.V, res.F, res.V0)
+
+
+def test_a_3d_mei_reports_the_steps_it_undid():
+    """Every step at lr=1e30 turns faces over and is undone (seven candidates each: the step and its six
+    halvings); at the default rate none is. Batched items report as they do alone."""
+    from meshmei.mei import optimize_mei_batch
+
+    kw = dict(steps=3, seeds=(0,), image_size=16, n_vertices=80)
+    wild = optimize_mei(GaborSimpleCell(), 0, "sphere", **kw, lr=1e30).extra["guard"]
+    assert wild["undone"] == 3 and wild["refused"] == wild["checks"] == 3 * 7
+    assert optimize_mei(GaborSimpleCell(), 0, "sphere", **kw).extra["guard"]["undone"] == 0
+    batched = optimize_mei_batch(GaborSimpleCell(), [0], "sphere", **kw, lr=1e30)[0].extra["guard"]
+    assert batched == {**wild, "seconds": batched["seconds"]}
 
 
 @pytest.mark.parametrize("scale", [0.02, 1e-3])

@@ -22,8 +22,8 @@ from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
-from .optimize import (check_neuron, contact_barriers, initial, objective_weights, optimize_mei, reg_terms,
-                       result_from_seeds, settings_for_encoder, start_name, valid_start, validity_barriers)
+from .optimize import (check_neuron, contact_barriers, guard_report, initial, objective_weights, optimize_mei,
+                       reg_terms, result_from_seeds, settings_for_encoder, start_name, valid_start, validity_barriers)
 from .scene import SeedScene, albedo_penalty, sheet_uv
 from .settings import MEIResult, MEISettings
 
@@ -152,7 +152,8 @@ class BatchScene:
             time_history=[r["time"] for r in h], deformer_state=self.item_state(b),
             light=None if self.light is None else self.light[b].detach().clone(),
             albedo=None if self.albedo_logit is None else self.albedo()[b].detach().clone(),
-            albedo_uv=self.seeds[0].uv, guard=None if self.guards is None else self.guards[b].report(),
+            albedo_uv=self.seeds[0].uv,
+            guard=None if self.guards is None else guard_report(self.guards[b], [r["step_scale"][b] for r in h]),
             rotation=self.rotation[b].detach().clone(), translation=self.translation[b].detach().clone())
             for b in range(V.shape[0])]
 

@@ -26,7 +26,7 @@ from .scene import SeedScene, sheet_uv
 from .settings import MEIResult, MEISettings
 
 __all__ = ["optimize_mei", "initial", "start_from_file", "check_neuron", "settings_for_encoder", "result_from_seeds", "objective_weights",
-           "validity_barriers", "contact_barriers"]
+           "validity_barriers", "contact_barriers", "guard_report"]
 
 
 def check_neuron(encoder, neuron, error: type[ValueError] = MEIError) -> int:
@@ -201,11 +201,18 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     light = None if scene.light is None else scene.light.detach().clone()
     albedo = None if scene.albedo_logit is None else scene.albedo().detach().clone()
     return dict(V=V, image=image, activation=act, loss=out.loss, best_step=out.step, albedo=albedo, albedo_uv=scene.uv,
-                guard=None if guard is None else guard.report(),
+                guard=None if guard is None else guard_report(guard, [r["step_scale"] for r in h]),
                 history=[r["response"] for r in h], loss_history=[r["loss"] for r in h],
                 reg_history={k: [r[k] for r in h] for k in reg_terms(settings, h)},
                 time_history=[r["time"] for r in h], deformer_state=state, light=light,
                 rotation=scene.rotation.detach().clone(), translation=scene.translation.detach().clone())
+
+
+def guard_report(guard, scales) -> dict:
+    """``guard``'s :meth:`~meshmei.validity.StepGuard.report` of one seed's run, with ``"undone"``: its steps
+    of which no halving was accepted (``scales``: each step's ``step_scale``), where the mesh stayed put. A
+    run that undoes most of its steps has stalled at a contact or a bound, whatever its response."""
+    return {**guard.report(), "undone": sum(1 for s in scales if s == 0)}
 
 
 def reg_terms(settings: MEISettings, history) -> list:
