@@ -439,9 +439,10 @@ class ContactBarrier:
             once = ~big[other] | (first < other)  # a pair of two long edges is found from both
             ij = np.concatenate([ij, np.column_stack([first[once], other[once]])])
         i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
-        keep = ((mid[i] - mid[j]) ** 2).sum(1) <= (reach + half[i] + half[j]) ** 2
+        a0, a1, b0, b1 = En[i, 0], En[i, 1], En[j, 0], En[j, 1]
+        keep = (a0 != b0) & (a0 != b1) & (a1 != b0) & (a1 != b1)  # no shared vertex
         i, j = i[keep], j[keep]
-        keep = (En[i][:, :, None] != En[j][:, None, :]).all((1, 2))
+        keep = ((mid[i] - mid[j]) ** 2).sum(1) <= (reach + half[i] + half[j]) ** 2
         i, j = torch.from_numpy(i[keep]), torch.from_numpy(j[keep])
         Vd, Et = torch.from_numpy(Vn), torch.from_numpy(En)
         d2 = segment_sqdist(Vd[Et[i, 0]], Vd[Et[i, 1]], Vd[Et[j, 0]], Vd[Et[j, 1]])
