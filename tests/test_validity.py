@@ -136,9 +136,10 @@ def test_mei_at_ten_times_the_learning_rate_is_clean_in_every_iterate(init, monk
     monkeypatch.setattr(mo, "SeedScene", Scene)
     monkeypatch.setattr(mo, "minimize", minimize)
     cell = GaborSimpleCell()
-    # from the torus three seeds, as a default run: at ten times the rate a single seed's climb depends on
-    # rounding (seed 0 climbed on one machine and not on another, where seed 2 did)
-    seeds = (0,) if init == "sheet" else (0, 1, 2)
+    # from the torus five seeds: at ten times the rate a single seed's climb depends on rounding (seed 0 climbed
+    # on one machine and not on another, where seed 2 did) and within 40 steps few climb at all (of seeds
+    # 0-9, 3 with the contact barrier's edge pairs (3, 5, 6) and 4 without them (1, 3, 6, 9); none of 0-2 with them)
+    seeds = (0,) if init == "sheet" else (0, 1, 2, 3, 4)
     res = optimize_mei(cell, 0, init, steps=40, seeds=seeds, image_size=32, n_vertices=150, lr=3e-2)
     assert len(seen) == 40 * len(seeds) and all(_clean(V, res.F, res.V0) for V in seen)
     assert _clean(res.V, res.F, res.V0) and res.extra["guard"]["checks"] >= 40
