@@ -247,6 +247,9 @@ def _run_mei(args) -> int:
     save_run(res, out, overwrite=args.overwrite)
     h = res.health()
     line += f"; {health_line(h)}"
+    undone = res.extra.get("guard", {}).get("undone", 0)
+    if undone:  # a stalled run: its response says nothing of the neuron
+        line += f"; the step guard undid {undone} of its {res.settings.steps} steps"
     print(line)
     albedo = ", albedo.png" if res.albedo is not None else ""
     print(f"wrote {out}/: mesh.obj, rest.obj, state.pt, summary.json, render.png, views.png, activation.png{albedo} "

@@ -300,6 +300,21 @@ def test_a_start_of_your_own_drops_the_vertices_no_face_uses():
     assert torch.equal(a.V, b.V) and b.V0.shape == V.shape
 
 
+def test_cli_says_how_many_steps_the_guard_undid(tmp_path, capsys):
+    """A stalled run (here every step at lr=1e30 turns faces over) names it on the final line; a run that
+    undid none says nothing of it."""
+    from meshmei.cli import main
+
+    common = ["mei", "--init", "sphere", "--steps", "3", "--seeds", "0", "--image-size", "16", "--n-vertices", "80",
+              "--quiet"]
+    assert main(common + ["--out", str(tmp_path / "wild"), "--lr", "1e30"]) == 0
+    printed = capsys.readouterr().out
+    assert "; the step guard undid 3 of its 3 steps" in printed
+    assert json.loads((tmp_path / "wild" / "summary.json").read_text())["guard"]["undone"] == 3
+    assert main(common + ["--out", str(tmp_path / "calm")]) == 0
+    assert "undid" not in capsys.readouterr().out
+
+
 def test_cli_starts_from_a_mesh_file_placed_as_the_built_in_starts(tmp_path, capsys):
     import trimesh
     from meshmei.cli import main
