@@ -118,8 +118,9 @@ class MEISettings:
     contact_weight : float or None
         With ``valid_steps``, weight of the contact barrier (:class:`~meshmei.contact.ContactBarrier`, over
         vertex-face and edge-edge pairs), which keeps the surface from touching itself (0: no barrier; the
-        guard alone then stalls a run whose optimum presses parts together). None (default): by start, :data:`DEFAULT_CONTACT_WEIGHT` (100, but
-        0 from the sheet, which stays a graph over the image plane). A run records the weight it used.
+        guard alone then stalls a run whose optimum presses parts together). None (default): by start,
+        :data:`DEFAULT_CONTACT_WEIGHT` (100, but 0 from the sheet, which stays a graph over the image plane).
+        A run records the weight it used.
     contact_distance : float
         The contact barrier's reach, as a share of the start's mean edge length.
     keep : str
