@@ -272,11 +272,10 @@ def run(steps: int | None, n_cells: int):
         "an AABB tree, the triangle quality and the face turn, after every step, plus the halvings of "
         "refused steps; the contact barrier adds a KD-tree search for near vertex-face pairs (and, in the "
         "3D-MEI, edge-edge pairs) when a vertex has moved an eighth of an edge since the last search. The "
-        "reconstruction rows time the first 40 "
-        "steps of one stage from a sphere toward the bunny, where the guard's star certificate "
-        "(`meshmei.certify`) still stands in for libigl; a default run leaves star shape within its first "
-        "stage, so its later stages pay libigl's test: the whole-run ratio is in *Valid steps in "
-        "reconstruction* (wall times).",
+        "reconstruction rows time the first 40 steps of one stage from a sphere toward the bunny, where the "
+        "guard's star certificate (`meshmei.certify`) still stands in for libigl; a default run leaves star "
+        "shape within its first stage, so its later stages pay libigl's test: the whole-run ratio is in "
+        "*Valid steps in reconstruction* (wall times).",
         "",
         markdown_table(["problem", "ms/step off", "ms/step guard (ratio)", "ms/step guard + contact barrier",
                         "ratio"], cost),
