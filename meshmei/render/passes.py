@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as nnf
 
 from ..topology import mesh_topology
+from . import native
 from .camera import Camera
 from .samples import PixelSamples, sample_geometry, seg_dist, used_faces
 from .settings import RenderSettings
@@ -201,6 +202,9 @@ def _zbuffer(sc: _Screen, Z, F, B, S, chunk, flip) -> torch.Tensor:
     lo, hi = _ranges(sc.box[:, 0::2], sc.box[:, 1::2], S)  # (K, 2): columns, rows
     table = torch.cat([ax, ay, dx, dy, kiz], 1).t().contiguous()  # (15, K): one gather per chunk
     pix0 = kb * (S * S)
+    if native.available(table):
+        native.zbuffer(table, lo, hi, pix0, S, zkey)
+        return zkey
     for it, ii, jj in _pairs(lo, hi, chunk):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         t_ax, t_ay, t_dx, t_dy, t_iz = table.index_select(1, it).view(5, 3, -1).unbind(0)  # (3, P) each
@@ -261,6 +265,9 @@ def _segment_buffer(sc: _Screen, seg, ends, B, S, st: RenderSettings) -> torch.T
     lo, hi = _ranges(torch.minimum(a, b) - margin, torch.maximum(a, b) + margin, S)  # (Q, 2): columns, rows
     table = torch.cat([a, b], 1)  # (Q, 4): one gather per chunk
     pix0 = sc.kb.index_select(0, s_) * (S * S)
+    if native.available(table):
+        native.segment_buffer(table, lo, hi, pix0, S, margin, eps, skey)
+        return skey
     for it, ii, jj in _pairs(lo, hi, st.chunk_size):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         ax, ay, bx, by = table.index_select(0, it).unbind(1)

@@ -1,0 +1,143 @@
+"""The compiled no-grad passes (``meshmei.render.native``) against their torch reference: the same keys, so
+the same fragments, images and gradients bit for bit, on easy and hard scenes; and the fallback where no
+compiler works."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from contextlib import nullcontext
+
+import pytest
+import torch
+
+from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_from_angles, rasterize, render
+from meshmei.render import native
+from meshmei.render.native import native_status, torch_passes
+from meshmei.shapes import initial_mesh, target_mesh
+
+from test_render_hard import degenerate_mesh, uv_sphere
+
+HAS_CC = any(shutil.which(c) for c in ("cc", "gcc", "clang"))
+pytestmark = pytest.mark.skipif(not HAS_CC, reason="no C compiler on this machine: the torch passes run")
+
+
+def both(V, F, **kw):
+    """Fragments, image and vertex gradient of one render, compiled passes and torch passes."""
+    out = []
+    for ctx in (nullcontext, torch_passes):
+        with ctx():
+            Vg = V.detach().clone().requires_grad_(True)
+            img, fr = render(Vg, F, return_fragments=True, **kw)
+            W = torch.randn(img.shape, generator=torch.Generator().manual_seed(1), dtype=img.dtype)
+            (img * W).sum().backward()
+            out.append((fr, img.detach(), Vg.grad))
+    return out
+
+
+def assert_same(a, b):
+    (fa, ia, ga), (fb, ib, gb) = a, b
+    assert torch.equal(fa.face_id, fb.face_id)
+    for x, y in ((fa.bary, fb.bary), (fa.depth, fb.depth), (fa.coverage, fb.coverage), (ia, ib), (ga, gb)):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+
+
+def test_this_machine_compiles_the_passes():
+    st = native_status()
+    assert st["compiled"], st["reason"]
+    assert native.available(torch.zeros(1)) and native.available(torch.zeros(1, dtype=torch.float64))
+    assert not native.available(torch.zeros(1, dtype=torch.float16))
+    with torch_passes():
+        assert not native.available(torch.zeros(1))
+    assert native.available(torch.zeros(1))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("S", [16, 64, 131])
+def test_compiled_passes_give_the_torch_passes_result_bit_for_bit(dtype, S):
+    V, F = initial_mesh("sphere", n_vertices=500, dtype=dtype)
+    V = V + 0.05 * torch.randn(V.shape, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    a, b = both(V, F, camera=camera_from_angles(30.0, 20.0), settings=RenderSettings(image_size=S))
+    assert int((a[0].face_id >= 0).sum()) > S * S // 10  # the scene is not empty
+    assert_same(a, b)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_passes_on_hard_scenes(dtype):
+    S = RenderSettings(image_size=40)
+    scenes = [
+        (*degenerate_mesh(dtype), dict(camera=camera_from_angles(60.0, 0.0))),  # zero-area faces, an edge-on fin
+        (*initial_mesh("sheet", n_vertices=200, dtype=dtype), dict(camera=Camera(eye=(2.5, 0.0, 0.0), up=(0.0, 0.0, 1.0)))),
+        (*initial_mesh("sphere", n_vertices=500, dtype=dtype), dict(camera=Camera(eye=(0.05, -0.1, 0.2), at=(0.0, 0.3, -1.0)))),
+        (torch.tensor([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [0.0, 80.0, 0.0]], dtype=dtype), torch.tensor([[0, 1, 2]]),
+         {}),  # larger than the screen
+        (*(lambda V, F: (V.to(dtype), F))(*uv_sphere(60, 80)), {}),  # subpixel slivers at the poles
+        (*target_mesh("teapot", dtype=dtype), dict(camera=camera_from_angles(200.0, -30.0))),  # open, its own folds
+    ]
+    for V, F, kw in scenes:
+        assert_same(*both(V, F, settings=S, **kw))
+
+
+def test_compiled_passes_on_a_batch_of_poses_and_cameras():
+    V, F = degenerate_mesh()
+    B = 5
+    cams = Camera(eye=torch.tensor([[0, 0, 2.5], [0, 0, 2.5], [0.05, -0.1, 0.2], [2.5, 0, 0], [0, 0, 0.6]],
+                                   dtype=torch.float64),
+                  at=torch.tensor([[0, 0, 0], [0, 0, 0], [0, 0.3, -1.0], [0, 0, 0], [0, 0, 0]], dtype=torch.float64),
+                  up=(0.0, 1.0, 0.0))
+    t = torch.tensor([[0, 0, 0], [0.4, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]], dtype=torch.float64)
+    rot = axis_angle_to_matrix(torch.tensor([[0, 0, 0], [0.1, 0.2, 0.3], [0, 0, 0], [0, 0, 0], [1.0, 0, 0]],
+                                            dtype=torch.float64))
+    a, b = both(V, F, camera=cams, translation=t, rotation=rot, settings=RenderSettings(image_size=24))
+    assert a[1].shape == (B, 1, 24, 24)
+    assert_same(a, b)
+
+
+_PROBE = """
+import warnings, torch
+warnings.simplefilter("always")
+from meshmei.render import render, RenderSettings
+from meshmei.render.native import native_status
+from meshmei.shapes import initial_mesh
+V, F = initial_mesh("sphere", n_vertices=300)
+with warnings.catch_warnings(record=True) as w:
+    img = render(V, F, settings=RenderSettings(image_size=24))
+    st = native_status()
+torch.save({"img": img, "st": st, "warnings": [str(x.message) for x in w]}, OUT)
+"""
+
+
+@pytest.mark.parametrize("how", ["no compiler", "disabled"])
+def test_without_a_compiler_the_torch_passes_render_the_same_image(tmp_path, how):
+    out = tmp_path / "probe.pt"
+    env = {k: v for k, v in os.environ.items() if k != "CC"}
+    env["MESHMEI_CACHE_DIR"] = str(tmp_path / "cache")  # nothing cached: a compiler would be needed
+    if how == "no compiler":
+        env["PATH"] = str(tmp_path)  # finds no cc, gcc or clang
+    else:
+        env["MESHMEI_NATIVE"] = "0"
+    r = subprocess.run([sys.executable, "-c", _PROBE.replace("OUT", repr(str(out)))], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = torch.load(out)
+    assert not got["st"]["compiled"]
+    if how == "no compiler":
+        assert "no C compiler" in got["st"]["reason"]
+        assert any("compiled rasterizer passes are not available" in m for m in got["warnings"])
+    else:
+        assert got["st"]["reason"] == "disabled by MESHMEI_NATIVE" and not got["warnings"]
+    V, F = initial_mesh("sphere", n_vertices=300)
+    torch.testing.assert_close(got["img"], render(V, F, settings=RenderSettings(image_size=24)), rtol=0, atol=0)
+
+
+def test_a_build_is_cached_and_reused(tmp_path):
+    """A second process finds the first one's build and compiles nothing."""
+    env = {**os.environ, "MESHMEI_CACHE_DIR": str(tmp_path)}
+    code = "from meshmei.render.native import native_status; print(native_status())"
+    for _ in range(2):
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0 and "'compiled': True" in r.stdout, r.stderr[-2000:]
+    builds = list(tmp_path.glob("raster-*.so"))
+    assert len(builds) == 1 and sorted(tmp_path.iterdir()) == builds  # no temporary left behind
