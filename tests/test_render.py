@@ -8,6 +8,7 @@ import torch
 
 from meshmei.render import (Camera, RenderError, RenderSettings, axis_angle_to_matrix, camera_from_angles, lambert,
                             rasterize, render)
+from meshmei.render.native import native_status, torch_reference
 from meshmei.render.passes import run_passes
 from meshmei.render.raster import prepare_inputs
 from meshmei.render.samples import _SampleGeometry, face_table, seg_dist
@@ -370,7 +371,19 @@ def _shade_reference(l, iz, corners, light):
     return lambert(PN[:, :3], PN[:, 3:], light.t(), ambient=0.2, intensity=0.8, albedo=0.9)
 
 
-def test_shade_samples_gradient_matches_autograd_and_finite_differences():
+@pytest.fixture(params=["compiled", "torch"])
+def kernels(request):
+    """The hand-written backwards run twice: the compiled kernels (where a C compiler is found) and torch."""
+    if request.param == "torch":
+        with torch_reference():
+            yield request.param
+    else:
+        if not native_status()["compiled"]:
+            pytest.skip(f"no compiled kernels: {native_status()['reason']}")
+        yield request.param
+
+
+def test_shade_samples_gradient_matches_autograd_and_finite_differences(kernels):
     """The hand-written backward of shade_samples against gradcheck and against the autograd composition,
     including unlit points (n . l < 0), a zero-length normal and a sample with l * iz summing to zero."""
     l, iz, corners, light = _shade_inputs()
@@ -413,7 +426,7 @@ def _sample_reference(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, f
     return torch.cat([l_in, l_fr[:, out]], 1), torch.cat([iz, iz_fr[:, out]], 1), cov
 
 
-def test_sample_geometry_gradient_matches_autograd_and_finite_differences():
+def test_sample_geometry_gradient_matches_autograd_and_finite_differences(kernels):
     """The hand-written backward of the per-pixel geometry against the autograd composition and gradcheck:
     covered pixels, and fringe pixels whose foot lies inside the segment or is clamped to an end."""
     g = torch.Generator().manual_seed(0)

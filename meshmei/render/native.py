@@ -1,17 +1,23 @@
-"""The compiled half of the rasterizer's no-grad passes: a small C file built on first use, with the torch
-code as its reference and fallback.
+"""The renderer's compiled kernels: a small C file built on first use, with the torch code as its reference
+and fallback.
 
-The two enumeration passes (the z-buffer over (face, pixel) pairs and the nearest-segment buffer over
-(segment, pixel) pairs) are, in torch, a sequence of some twenty tensor operations per chunk of pairs: at
-the image sizes of a 3D-MEI most of their time is spent dispatching operations, not computing. Their loop
-bodies in C (``_raster.c``) compute the same keys bit for bit (same operations, same order, same dtype, no
-fused multiply-add), on CPU tensors, in a single pass over the pairs and without materialising them.
+At the image sizes of a 3D-MEI (64-100 px, a few thousand pixels) the torch renderer spends most of its
+time dispatching some 1,200 small tensor operations per forward and backward, not computing. Two parts
+are compiled (``_raster.c``), CPU tensors only:
+
+- the two no-grad enumeration passes (the z-buffer over (face, pixel) pairs and the nearest-segment
+  buffer over (segment, pixel) pairs): their loop bodies, run in one pass over the pairs without
+  materialising them, compute the same keys **bit for bit** (same operations, same order, same dtype, no
+  fused multiply-add), so every pixel sees the same face and the same contour segment;
+- the per-pixel arithmetic with hand-written backwards (:class:`~meshmei.render.samples._SampleGeometry`,
+  :class:`~meshmei.render.shading._ShadeSamples`): the same formulas, forward and backward, equal to the
+  torch code to rounding (sums may associate differently).
 
 The C file is compiled once per source version with the system's C compiler (``$CC``, else ``cc``, ``gcc``
 or ``clang``) into the cache directory (``$MESHMEI_CACHE_DIR``, else ``$XDG_CACHE_HOME/meshmei`` or
-``~/.cache/meshmei``), in well under a second, and loaded with :mod:`ctypes` (which releases the GIL for the
-call). Where no compiler works, or with ``MESHMEI_NATIVE=0``, the torch passes run instead, unchanged, with
-one warning; :func:`native_status` says which is in use and why. CUDA tensors always take the torch path.
+``~/.cache/meshmei``), in about a second, and loaded with :mod:`ctypes` (which releases the GIL for the
+call). Where no compiler works, or with ``MESHMEI_NATIVE=0``, the torch code runs instead, unchanged, with
+one warning; :func:`native_status` says which is in use and why. CUDA tensors always run the torch code.
 """
 
 from __future__ import annotations
@@ -30,15 +36,16 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["native_status", "zbuffer", "segment_buffer", "available", "torch_passes"]
+__all__ = ["native_status", "zbuffer", "segment_buffer", "sample_forward", "sample_backward", "shade_forward",
+           "shade_backward", "available", "torch_reference"]
 
 _SOURCE = Path(__file__).with_name("_raster.c")
-_FLAGS = ["-O2", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
-_ABI = 1
+_FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
+_ABI = 2
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}
-_local = threading.local()  # torch_passes() in this thread
+_local = threading.local()  # torch_reference() in this thread
 
 
 def _compiler() -> str | None:
@@ -88,6 +95,15 @@ def _build() -> ctypes.CDLL:
     for name in ("segbuffer_f32", "segbuffer_f64"):
         getattr(lib, name).argtypes = [i64, p, p, p, p, i64, dbl, dbl, p]
         getattr(lib, name).restype = None
+    for t in ("f32", "f64"):
+        getattr(lib, f"sample_fwd_{t}").argtypes = [i64, p, p, p, p, i64, p, p, i64, p, p, p, p, i64, p, i64, dbl,
+                                                    dbl, p, p, p, p]
+        getattr(lib, f"sample_bwd_{t}").argtypes = [i64, p, p, i64, i64, p, p, i64, p, p, p, p, i64, p, i64, dbl,
+                                                    dbl, p, p, p, p, p, p, p, p]
+        getattr(lib, f"shade_fwd_{t}").argtypes = [i64, i64, p, p, p, p, dbl, dbl, dbl, dbl, p]
+        getattr(lib, f"shade_bwd_{t}").argtypes = [i64, i64, p, p, p, p, dbl, dbl, dbl, dbl, p, p, p, p, p]
+        for kind in ("sample_fwd", "sample_bwd", "shade_fwd", "shade_bwd"):
+            getattr(lib, f"{kind}_{t}").restype = None
     return lib
 
 
@@ -103,23 +119,23 @@ def _lib():
                     _state["lib"] = _build()
                 except (OSError, RuntimeError, subprocess.SubprocessError) as e:
                     _state["reason"] = f"{type(e).__name__}: {e}"
-                    warnings.warn(f"meshmei: the compiled rasterizer passes are not available ({_state['reason']}); "
-                                  "the torch passes run instead (the same images, slower on CPU)", RuntimeWarning,
+                    warnings.warn(f"meshmei: the renderer's compiled kernels are not available ({_state['reason']}); "
+                                  "the torch code runs instead (the same images, slower on CPU)", RuntimeWarning,
                                   stacklevel=3)
             _state["tried"] = True
     return _state["lib"]
 
 
 def native_status() -> dict:
-    """``{"compiled": bool, "reason": str | None}``: whether CPU renders use the compiled passes, and why not."""
+    """``{"compiled": bool, "reason": str | None}``: whether CPU renders use the compiled kernels, and why not."""
     lib = _lib()
     return {"compiled": lib is not None, "reason": _state["reason"]}
 
 
 @contextmanager
-def torch_passes():
-    """Within this block (in this thread) renders take the torch passes: the reference the compiled ones are
-    tested against, and what CUDA tensors always take."""
+def torch_reference():
+    """Within this block (in this thread) renders run the torch code throughout: the reference the compiled
+    kernels are tested against, and what CUDA tensors always run. A render's backward follows its forward."""
     before = getattr(_local, "off", False)
     _local.off = True
     try:
@@ -129,7 +145,7 @@ def torch_passes():
 
 
 def available(t: torch.Tensor) -> bool:
-    """Whether the compiled passes take this tensor's device and dtype here and now."""
+    """Whether the compiled kernels take this tensor's device and dtype here and now."""
     return (t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and not getattr(_local, "off", False)
             and _lib() is not None)
 
@@ -159,3 +175,77 @@ def segment_buffer(table, lo, hi, pix0, S: int, margin: float, eps: float, skey)
     fn = lib.segbuffer_f32 if table.dtype == torch.float32 else lib.segbuffer_f64
     fn(Q, _ptr(table, table.dtype), _ptr(lo, torch.int64), _ptr(hi, torch.int64), _ptr(pix0, torch.int64), S,
        float(margin), float(eps), _ptr(skey, torch.int64))
+
+
+# --------------------------------------------------------------------------------------------------
+# the differentiable per-pixel arithmetic (the autograd Functions of samples.py and shading.py call these)
+
+def _suffix(dt) -> str:
+    return "f32" if dt == torch.float32 else "f64"
+
+
+def _c(*ts):
+    return [t.contiguous() for t in ts]
+
+
+def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, S, sigma, eps):
+    """:class:`~meshmei.render.samples._SampleGeometry`'s forward: ``(l, iz, cov, table)``; ``table``
+    ``(U, 21)`` is kept for :func:`sample_backward`."""
+    lib, dt = _lib(), u.dtype
+    u, v, z, ci, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out = _c(u, v, z, corner_index, in_pix, in_slot,
+                                                                           fr_pix, fr_slot, fr_k, fr_sign, out)
+    U, Ni, Q, No = ci.shape[1], in_pix.shape[0], fr_pix.shape[0], out.shape[0]
+    table = torch.empty(U, 21, dtype=dt)
+    l, iz = torch.empty(3, Ni + No, dtype=dt), torch.empty(3, Ni + No, dtype=dt)
+    cov = torch.empty(Q, dtype=dt)
+    i64 = torch.int64
+    getattr(lib, f"sample_fwd_{_suffix(dt)}")(
+        U, _ptr(u, dt), _ptr(v, dt), _ptr(z, dt), _ptr(ci, i64), Ni, _ptr(in_pix, i64), _ptr(in_slot, i64), Q,
+        _ptr(fr_pix, i64), _ptr(fr_slot, i64), _ptr(fr_k, i64), _ptr(fr_sign, dt), No, _ptr(out, i64), int(S),
+        float(sigma), float(eps), _ptr(table, dt), _ptr(l, dt), _ptr(iz, dt), _ptr(cov, dt))
+    return l, iz, cov, table
+
+
+def sample_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, table, cov, S, sigma, eps,
+                    g_l, g_iz, g_cov):
+    """:class:`~meshmei.render.samples._SampleGeometry`'s backward: gradients of ``u, v, z`` (shaped as ``z``)."""
+    lib, dt = _lib(), z.dtype
+    shape = z.shape
+    z, ci, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov = _c(
+        z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov)
+    U, Ni, Q, No = ci.shape[1], in_pix.shape[0], fr_pix.shape[0], out.shape[0]
+    pos = torch.full((Q,), -1, dtype=torch.int64).index_put_((out,), torch.arange(No))  # shaded column - Ni
+    g = torch.zeros(3, z.numel(), dtype=dt)
+    i64 = torch.int64
+    getattr(lib, f"sample_bwd_{_suffix(dt)}")(
+        U, _ptr(z, dt), _ptr(ci, i64), z.numel(), Ni, _ptr(in_pix, i64), _ptr(in_slot, i64), Q, _ptr(fr_pix, i64),
+        _ptr(fr_slot, i64), _ptr(fr_k, i64), _ptr(fr_sign, dt), No, _ptr(pos, i64), int(S), float(sigma),
+        float(eps), _ptr(table, dt), _ptr(cov, dt), _ptr(g_l, dt), _ptr(g_iz, dt), _ptr(g_cov, dt),
+        _ptr(g[0], dt), _ptr(g[1], dt), _ptr(g[2], dt))
+    return g[0].view(shape), g[1].view(shape), g[2].view(shape)
+
+
+def shade_forward(l, iz, corners, light, ambient, intensity, albedo, eps):
+    """:class:`~meshmei.render.shading._ShadeSamples`'s forward: the shade ``(N,)``."""
+    lib, dt = _lib(), l.dtype
+    l, iz, corners, light = _c(l, iz, corners, light)
+    N, C = l.shape[1], corners.shape[1]
+    shade = torch.empty(N, dtype=dt)
+    getattr(lib, f"shade_fwd_{_suffix(dt)}")(N, C, _ptr(l, dt), _ptr(iz, dt), _ptr(corners, dt), _ptr(light, dt),
+                                              float(ambient), float(intensity), float(albedo), float(eps),
+                                              _ptr(shade, dt))
+    return shade
+
+
+def shade_backward(l, iz, corners, light, ambient, intensity, albedo, eps, g):
+    """:class:`~meshmei.render.shading._ShadeSamples`'s backward: gradients of ``l, iz, corners, light``."""
+    lib, dt = _lib(), l.dtype
+    l, iz, corners, light, g = _c(l, iz, corners, light, g)
+    N, C = l.shape[1], corners.shape[1]
+    g_l, g_iz, g_light = torch.empty_like(l), torch.empty_like(iz), torch.empty_like(light)
+    g_corners = torch.empty_like(corners)
+    getattr(lib, f"shade_bwd_{_suffix(dt)}")(N, C, _ptr(l, dt), _ptr(iz, dt), _ptr(corners, dt), _ptr(light, dt),
+                                              float(ambient), float(intensity), float(albedo), float(eps),
+                                              _ptr(g, dt), _ptr(g_l, dt), _ptr(g_iz, dt), _ptr(g_corners, dt),
+                                              _ptr(g_light, dt))
+    return g_l, g_iz, g_corners, g_light

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch.autograd.function import once_differentiable
 
+from . import native
 from .settings import RenderSettings
 
 __all__ = ["PixelSamples", "seg_dist", "face_table", "pixel_centres", "sample_geometry", "used_faces"]
@@ -116,6 +117,13 @@ class _SampleGeometry(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, S, sigma, eps):
+        ctx.native = native.available(u)
+        if ctx.native:  # the same formulas, compiled (meshmei.render.native)
+            l, iz, cov, table = native.sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k,
+                                                      fr_sign, out, S, sigma, eps)
+            ctx.save_for_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, table, cov)
+            ctx.S, ctx.sigma, ctx.eps = S, sigma, eps
+            return l, iz, cov
         dt = u.dtype
         table = face_table(u, v, z, corner_index, eps)
         # covered pixels: the affine barycentrics at the pixel centre
@@ -150,6 +158,9 @@ class _SampleGeometry(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_l, g_iz, g_cov):
+        if ctx.native:
+            g_u, g_v, g_z = native.sample_backward(*ctx.saved_tensors, ctx.S, ctx.sigma, ctx.eps, g_l, g_iz, g_cov)
+            return (g_u, g_v, g_z) + (None,) * 11
         (z, corner_index, in_slot, fr_slot, du, dv, Pu, Pv, tot, l_in, ends, Qu, Qv, au, av, dx, dy, L2, t_raw, t,
          ex, ey, d2, d, cov, fr_sign, out) = ctx.saved_tensors
         eps, Ni = ctx.eps, in_slot.shape[0]
