@@ -11,7 +11,7 @@ import torch
 from meshmei.errors import MeshError
 from meshmei.render import (Camera, RenderError, Renderer, RenderSettings, apply_pose, axis_angle_to_matrix,
                             camera_from_angles, rasterize, render)
-from meshmei.render.native import torch_passes
+from meshmei.render.native import torch_reference
 from meshmei.shapes import initial_mesh
 
 
@@ -286,9 +286,9 @@ def test_bad_mesh_and_scene_input():
 
 
 def test_chunking_does_not_change_the_result():
-    """The torch passes' chunks (the compiled passes, used where a C compiler is found, have none)."""
+    """The torch code's chunks (the compiled passes, used where a C compiler is found, have none)."""
     V, F = initial_mesh("sphere", n_vertices=500, dtype=torch.float64)
-    with torch_passes():
+    with torch_reference():
         a = render(V, F, settings=RenderSettings(image_size=48))
         b = render(V, F, settings=RenderSettings(image_size=48, chunk_size=1024))
     torch.testing.assert_close(a, b, rtol=0, atol=0)

@@ -23,7 +23,7 @@ from meshmei.shapes import initial_mesh, target_mesh
 from test_render_hard import degenerate_mesh, uv_sphere
 
 HAS_CC = any(shutil.which(c) for c in ("cc", "gcc", "clang"))
-pytestmark = pytest.mark.skipif(not HAS_CC, reason="no C compiler on this machine: the torch passes run")
+needs_cc = pytest.mark.skipif(not HAS_CC, reason="no C compiler on this machine: the torch code runs")
 
 
 def both(V, F, **kw):
@@ -59,7 +59,8 @@ def assert_same(a, b):
     torch.testing.assert_close(ga, gb, rtol=tol_g, atol=tol_g * float(gb.abs().max()))
 
 
-def test_this_machine_compiles_the_passes():
+@needs_cc
+def test_this_machine_compiles_the_kernels():
     st = native_status()
     assert st["compiled"], st["reason"]
     assert native.available(torch.zeros(1)) and native.available(torch.zeros(1, dtype=torch.float64))
@@ -69,6 +70,7 @@ def test_this_machine_compiles_the_passes():
     assert native.available(torch.zeros(1))
 
 
+@needs_cc
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("S", [16, 64, 131])
 def test_compiled_kernels_agree_with_the_torch_code(dtype, S):
@@ -79,22 +81,27 @@ def test_compiled_kernels_agree_with_the_torch_code(dtype, S):
     assert_same(a, b)
 
 
+@needs_cc
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_compiled_kernels_on_hard_scenes(dtype):
     S = RenderSettings(image_size=40)
+    sphere = initial_mesh("sphere", n_vertices=500, dtype=dtype)
+    big = torch.tensor([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [0.0, 80.0, 0.0]], dtype=dtype)
+    poles = uv_sphere(60, 80)
     scenes = [
         (*degenerate_mesh(dtype), dict(camera=camera_from_angles(60.0, 0.0))),  # zero-area faces, an edge-on fin
-        (*initial_mesh("sheet", n_vertices=200, dtype=dtype), dict(camera=Camera(eye=(2.5, 0.0, 0.0), up=(0.0, 0.0, 1.0)))),
-        (*initial_mesh("sphere", n_vertices=500, dtype=dtype), dict(camera=Camera(eye=(0.05, -0.1, 0.2), at=(0.0, 0.3, -1.0)))),
-        (torch.tensor([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [0.0, 80.0, 0.0]], dtype=dtype), torch.tensor([[0, 1, 2]]),
-         {}),  # larger than the screen
-        (*(lambda V, F: (V.to(dtype), F))(*uv_sphere(60, 80)), {}),  # subpixel slivers at the poles
+        (*initial_mesh("sheet", n_vertices=200, dtype=dtype),
+         dict(camera=Camera(eye=(2.5, 0.0, 0.0), up=(0.0, 0.0, 1.0)))),  # seen exactly edge-on
+        (*sphere, dict(camera=Camera(eye=(0.05, -0.1, 0.2), at=(0.0, 0.3, -1.0)))),  # the camera inside
+        (big, torch.tensor([[0, 1, 2]]), {}),  # larger than the screen
+        (poles[0].to(dtype), poles[1], {}),  # subpixel slivers at the poles
         (*target_mesh("teapot", dtype=dtype), dict(camera=camera_from_angles(200.0, -30.0))),  # open, its own folds
     ]
     for V, F, kw in scenes:
         assert_same(*both(V, F, settings=S, **kw))
 
 
+@needs_cc
 def test_compiled_kernels_on_a_batch_of_poses_and_cameras():
     V, F = degenerate_mesh()
     B = 5
@@ -110,6 +117,7 @@ def test_compiled_kernels_on_a_batch_of_poses_and_cameras():
     assert_same(a, b)
 
 
+@needs_cc
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_compiled_shading_with_an_albedo_and_a_texture(dtype):
     """The shading kernel's seventh channel (a surface albedo), per vertex and from a texture, and a light."""
@@ -139,7 +147,7 @@ torch.save({"img": img, "st": st, "warnings": [str(x.message) for x in w]}, OUT)
 
 
 @pytest.mark.parametrize("how", ["no compiler", "disabled"])
-def test_without_a_compiler_the_torch_reference_render_the_same_image(tmp_path, how):
+def test_without_a_compiler_the_torch_code_renders_the_image(tmp_path, how):
     out = tmp_path / "probe.pt"
     env = {k: v for k, v in os.environ.items() if k != "CC"}
     env["MESHMEI_CACHE_DIR"] = str(tmp_path / "cache")  # nothing cached: a compiler would be needed
@@ -147,8 +155,8 @@ def test_without_a_compiler_the_torch_reference_render_the_same_image(tmp_path, 
         env["PATH"] = str(tmp_path)  # finds no cc, gcc or clang
     else:
         env["MESHMEI_NATIVE"] = "0"
-    r = subprocess.run([sys.executable, "-c", _PROBE.replace("OUT", repr(str(out)))], env=env, capture_output=True, text=True,
-                       timeout=300)
+    r = subprocess.run([sys.executable, "-c", _PROBE.replace("OUT", repr(str(out)))], env=env, capture_output=True,
+                       text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     got = torch.load(out)
     assert not got["st"]["compiled"]
@@ -162,6 +170,7 @@ def test_without_a_compiler_the_torch_reference_render_the_same_image(tmp_path, 
         torch.testing.assert_close(got["img"], render(V, F, settings=RenderSettings(image_size=24)), rtol=0, atol=0)
 
 
+@needs_cc
 def test_a_build_is_cached_and_reused(tmp_path):
     """A second process finds the first one's build and compiles nothing."""
     env = {**os.environ, "MESHMEI_CACHE_DIR": str(tmp_path)}

@@ -29,6 +29,7 @@ from meshmei.mei.optimize import initial
 from meshmei.mei.settings import make_deformer
 from meshmei.regularizers import REGULARIZERS, scale_weights
 from meshmei.render import render
+from meshmei.render.native import native_status, torch_reference
 
 
 class Bottleneck(torch.nn.Module):
@@ -91,9 +92,11 @@ class V4Model(torch.nn.Module):
         return torch.nn.functional.elu(self.readout(self.core(x))) + 1
 
 
-# the same step with parts of valid steps off, measured in the same rounds: how much of meshmei's share they are
+# the same step with parts of valid steps off, measured in the same rounds: how much of meshmei's share they are;
+# and with the renderer's torch code in place of its compiled kernels (meshmei.render.native)
 VARIANTS = {"guard, no barriers": dict(barrier_weight=0.0, contact_weight=0.0),
-            "valid steps off": dict(valid_steps=False, contact_weight=0.0)}
+            "valid steps off": dict(valid_steps=False, contact_weight=0.0),
+            "renderer's torch code": None}
 
 
 def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
@@ -129,10 +132,15 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
     def preprocess():
         enc.preprocess(x).expand(-1, 3, -1, -1).sum().backward()
 
+    def draw_torch():
+        with torch_reference():
+            draw()
+
     parts = {}
     with frozen_encoder(enc):
         for name, fn in (("model forward + backward", model_only), ("RBF deformation", deform),
-                         ("render 100 px", draw), ("regularizers", regularize), ("preprocessing", preprocess)):
+                         ("render 100 px", draw), ("render 100 px, torch code", draw_torch),
+                         ("regularizers", regularize), ("preprocessing", preprocess)):
             parts[name] = timings(fn, repeat=repeats)[0]
     def step_times(s):
         d = step_intervals(optimize_mei(enc, 7, "sheet", s).time_history, 3)
@@ -145,7 +153,11 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
         s_med, s_best = step_times(settings)
         rounds.append((s_med, m_med, s_best, m_best))
         for name, kw in VARIANTS.items():
-            variants[name].append(step_times(MEISettings.with_overrides(settings, kw))[0] - m_med)
+            if kw is None:
+                with torch_reference():
+                    variants[name].append(step_times(settings)[0] - m_med)
+            else:
+                variants[name].append(step_times(MEISettings.with_overrides(settings, kw))[0] - m_med)
     shares = sorted((s - m) / m for s, m, _, _ in rounds)
     best_shares = sorted((s - m) / m for _, _, s, m in rounds)
     step, m = median([r[0] for r in rounds]), median([r[1] for r in rounds])
@@ -174,8 +186,10 @@ def run(steps: int):
         "100 x 100 px with 3 channels, statistics in 0-255 units (`encoder_from_model`). Median milliseconds; "
         "each part on its own (forward and backward), then a whole 3D-MEI step (sheet, 400 vertices, "
         "default settings), the model's own cost measured alternately with it in rounds of "
-        f"{steps} steps; in the same rounds, the step with the guard's and contact barriers off, and with "
-        "valid steps off (their share: step - model, median over rounds).",
+        f"{steps} steps; in the same rounds, the step with the guard's and contact barriers off, with "
+        "valid steps off, and with the renderer's torch code in place of its compiled kernels (their share: "
+        "step - model, median over rounds). Compiled kernels: "
+        f"{'in use' if native_status()['compiled'] else 'not available (' + str(native_status()['reason']) + ')'}.",
         "",
         markdown_table(["part", "ms"], rows),
         "",

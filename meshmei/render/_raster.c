@@ -1,13 +1,16 @@
-/* The rasterizer's two no-grad enumeration passes, compiled (see meshmei/render/native.py).
+/* The renderer's compiled kernels (see meshmei/render/native.py).
  *
- * Each function is the loop body of its torch twin in meshmei/render/passes.py, pair by pair, with the
- * same operations in the same order on the same dtype, so that the keys come out bit for bit the same
- * (compiled with -ffp-contract=off: no fused multiply-add; no -ffast-math). The tables, box ranges and
- * pixel offsets are built by the torch code and passed in; the boxes are clipped to the image there.
+ * front_*: the no-grad front of passes.run_passes (cull, z-buffer, contour segments, nearest-segment
+ * buffer, soft pixels, samples and used faces), with the same operations in the same order on the same
+ * dtype as the torch code, so that every decision comes out bit for bit the same (compiled with
+ * -ffp-contract=off: no fused multiply-add; no -ffast-math).
  *
  * Keys are int64: (float32 bits of the depth or distance) << 32 | the face's or segment's slot, and each
  * pixel keeps the smallest (the packed-key "amin" of the torch code; the order of the pairs does not
  * matter for a minimum).
+ *
+ * sample_* and shade_*: the per-pixel arithmetic with hand-written backwards, equal to the torch code to
+ * rounding.
  */
 #include <stdint.h>
 #include <string.h>
@@ -22,106 +25,6 @@ static inline int64_t pack(float x, int64_t slot)
     /* the torch code views the float as int32 and widens it with its sign, then shifts */
     return (int64_t)((uint64_t)(int64_t)bits << 32) | slot;
 }
-
-/* Pass 1 (passes._zbuffer). table: (15, K) row-major, rows ax[3], ay[3], dx[3], dy[3], iz[3] of the K
- * kept faces (edge k from a along d, canonical order); lo, hi: (K, 2) inclusive (column, row) ranges;
- * pix0: (K,) the flat offset of the face's batch member's image; zkey: (B * S * S,). */
-#define ZBUFFER(NAME, T)                                                                                   \
-    void NAME(int64_t K, const T *table, const int64_t *lo, const int64_t *hi, const int64_t *pix0,      \
-              int64_t S, int64_t *zkey)                                                                 \
-    {                                                                                                      \
-        for (int64_t f = 0; f < K; ++f) {                                                                  \
-            T ax[3], ay[3], dx[3], dy[3], iz[3];                                                           \
-            for (int k = 0; k < 3; ++k) {                                                                  \
-                ax[k] = table[(0 + k) * K + f];                                                            \
-                ay[k] = table[(3 + k) * K + f];                                                            \
-                dx[k] = table[(6 + k) * K + f];                                                            \
-                dy[k] = table[(9 + k) * K + f];                                                            \
-                iz[k] = table[(12 + k) * K + f];                                                           \
-            }                                                                                              \
-            int64_t *img = zkey + pix0[f];                                                                 \
-            for (int64_t i = lo[2 * f + 1]; i <= hi[2 * f + 1]; ++i) {                                     \
-                T py = (T)i + (T)0.5;                                                                      \
-                for (int64_t j = lo[2 * f]; j <= hi[2 * f]; ++j) {                                         \
-                    T px = (T)j + (T)0.5;                                                                  \
-                    T w[3];                                                                                \
-                    for (int k = 0; k < 3; ++k) {                                                          \
-                        T a = dx[k] * (py - ay[k]);                                                        \
-                        T b = dy[k] * (px - ax[k]);                                                        \
-                        w[k] = a - b;                                                                      \
-                    }                                                                                      \
-                    T tot = w[0] + w[1];                                                                   \
-                    tot = tot + w[2];                                                                      \
-                    int inside;                                                                            \
-                    if (tot > 0)                                                                           \
-                        inside = w[0] >= 0 && w[1] >= 0 && w[2] >= 0;                                      \
-                    else if (tot < 0)                                                                      \
-                        inside = w[0] <= 0 && w[1] <= 0 && w[2] <= 0;                                      \
-                    else                                                                                   \
-                        inside = 0; /* zero or NaN */                                                      \
-                    if (!inside)                                                                           \
-                        continue;                                                                          \
-                    T wz0 = w[0] * iz[0], wz1 = w[1] * iz[1], wz2 = w[2] * iz[2];                          \
-                    T den = wz0 + wz1;                                                                     \
-                    den = den + wz2;                                                                       \
-                    float depth = (float)(tot / den);                                                      \
-                    if (depth < 0)                                                                         \
-                        depth = 0;                                                                         \
-                    int64_t key = pack(depth, f);                                                          \
-                    int64_t *px_key = img + i * S + j;                                                     \
-                    if (key < *px_key)                                                                     \
-                        *px_key = key;                                                                     \
-                }                                                                                          \
-            }                                                                                              \
-        }                                                                                                  \
-    }
-
-ZBUFFER(zbuffer_f32, float)
-ZBUFFER(zbuffer_f64, double)
-
-/* Pass 2 (passes._segment_buffer with samples.seg_dist). table: (Q, 4) row-major, a = (ax, ay) and
- * b = (bx, by) of the Q contour segments; lo, hi, pix0 as above over the boxes grown by the margin;
- * a pair within the margin writes its distance's key. */
-#define SEGBUFFER(NAME, T, SQRT)                                                                           \
-    void NAME(int64_t Q, const T *table, const int64_t *lo, const int64_t *hi, const int64_t *pix0,      \
-              int64_t S, double margin_, double eps_, int64_t *skey)                                    \
-    {                                                                                                      \
-        const T margin = (T)margin_, eps = (T)eps_;                                                        \
-        for (int64_t q = 0; q < Q; ++q) {                                                                  \
-            const T ax = table[4 * q], ay = table[4 * q + 1], bx = table[4 * q + 2], by = table[4 * q + 3]; \
-            const T dx = bx - ax, dy = by - ay;                                                            \
-            T L2 = dx * dx;                                                                                \
-            L2 = L2 + dy * dy;                                                                             \
-            const T L2c = L2 < eps ? eps : L2;                                                             \
-            int64_t *img = skey + pix0[q];                                                                 \
-            for (int64_t i = lo[2 * q + 1]; i <= hi[2 * q + 1]; ++i) {                                     \
-                T py = (T)i + (T)0.5;                                                                      \
-                for (int64_t j = lo[2 * q]; j <= hi[2 * q]; ++j) {                                         \
-                    T px = (T)j + (T)0.5;                                                                  \
-                    T num = (px - ax) * dx;                                                                \
-                    num = num + (py - ay) * dy;                                                            \
-                    T t = num / L2c;                                                                       \
-                    t = t < 0 ? 0 : (t > 1 ? 1 : t);                                                       \
-                    T ex = ax + t * dx;                                                                    \
-                    ex = ex - px;                                                                          \
-                    T ey = ay + t * dy;                                                                    \
-                    ey = ey - py;                                                                          \
-                    T d2 = ex * ex;                                                                        \
-                    d2 = d2 + ey * ey;                                                                     \
-                    T d = SQRT(d2);                                                                        \
-                    if (!(d <= margin))                                                                    \
-                        continue;                                                                          \
-                    int64_t key = pack((float)d, q);                                                       \
-                    int64_t *px_key = img + i * S + j;                                                     \
-                    if (key < *px_key)                                                                     \
-                        *px_key = key;                                                                     \
-                }                                                                                          \
-            }                                                                                              \
-        }                                                                                                  \
-    }
-
-SEGBUFFER(segbuffer_f32, float, sqrtf)
-SEGBUFFER(segbuffer_f64, double, sqrt)
 
 /* ------------------------------------------------------------------------------------------------------
  * The differentiable per-pixel arithmetic: samples._SampleGeometry and shading._ShadeSamples, forward and
@@ -417,4 +320,282 @@ UNIT_LEN(double, sqrt, fabs, 1.7976931348623157e308)
 SHADE(shade_fwd_f32, shade_bwd_f32, float, sqrtf)
 SHADE(shade_fwd_f64, shade_bwd_f64, double, sqrt)
 
-int meshmei_raster_abi(void) { return 2; }
+/* ------------------------------------------------------------------------------------------------------
+ * The whole no-grad front of passes.run_passes in one call: cull (passes._cull), z-buffer, contour
+ * segments (passes._contour_segments), nearest-segment buffer, soft pixels (passes._soft_pixels), the
+ * covered and fringe samples and the used faces (samples.used_faces), with the same arithmetic as the
+ * torch code, so every decision is the same bit for bit.
+ *
+ * Inputs: U, Vv, Z (B, n) pixel coordinates and depth (1 where outside [znear, zfar]), ok (B, n) in depth
+ * range; F (m, 3); et (m, 15) the topology's edge table. Work arrays (caller-allocated): keep, front
+ * (B * m) uint8; slot_of, kept (B * m) int64; seg (9 * B * m) int64, (slot, k, b) per contour segment;
+ * zkey, skey (B * S * S) int64; table (15 * B * m) T; integral (B * (S + 1)^2) int32.
+ * Outputs (caller-allocated at their largest): face_id (B*S*S); in_pix, in_b, in_f, in_slot (B*S*S);
+ * fr_pix, fr_b, fr_f, fr_k, fr_slot (B*S*S); used (B * m); corner_index (3, B * m) read as (3, U) with the
+ * row stride B * m; counts[4] = {K kept faces, Ni covered, Nf fringe, U used}.
+ */
+static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int64_t *hi, int is_f32)
+{
+    /* passes._ranges: ceil(clamp(lo, -2, S + 2) - 0.5) clamped to [0, S], floor(clamp(hi, ...) - 0.5)
+     * clamped to [-1, S - 1], in the dtype of the coordinates */
+    double a = lo_ < -2.0 ? -2.0 : (lo_ > S + 2.0 ? S + 2.0 : lo_);
+    double b = hi_ < -2.0 ? -2.0 : (hi_ > S + 2.0 ? S + 2.0 : hi_);
+    double la, hb;
+    if (is_f32) {
+        la = ceilf((float)a - 0.5f);
+        hb = floorf((float)b - 0.5f);
+    } else {
+        la = ceil(a - 0.5);
+        hb = floor(b - 0.5);
+    }
+    int64_t l = (int64_t)la, h = (int64_t)hb;
+    *lo = l < 0 ? 0 : (l > S ? S : l);
+    *hi = h < -1 ? -1 : (h > S - 1 ? S - 1 : h);
+}
+
+#define FRONT(NAME, T, IS_F32, SQRT)                                                                       \
+    void NAME(int64_t B, int64_t n, int64_t m, const T *U, const T *Vv, const T *Z, const uint8_t *ok,     \
+              const int64_t *F, const int64_t *et, int64_t S, double margin_, double eps_, uint8_t *keep,    \
+              uint8_t *front, int64_t *slot_of, int64_t *kept, int64_t *seg, int64_t *zkey, int64_t *skey,   \
+              T *table, int32_t *integral, int64_t *face_id, int64_t *in_pix, int64_t *in_b, int64_t *in_f,  \
+              int64_t *in_slot, int64_t *fr_pix, int64_t *fr_b, int64_t *fr_f, int64_t *fr_k,                \
+              int64_t *fr_slot, int64_t *used, int64_t *corner_index, int64_t *counts)                       \
+    {                                                                                                      \
+        const T margin = (T)margin_, eps = (T)eps_;                                                        \
+        /* the torch code compares with the Python floats -margin and S + margin, cast to the dtype */     \
+        const T lo_m = (T)(-margin_), hi_m = (T)((double)S + margin_);                                     \
+        const int64_t P = S * S, BM = B * m;                                                               \
+        /* cull: keep faces with every corner in depth range whose box reaches the grown image */          \
+        int64_t K = 0;                                                                                     \
+        for (int64_t b = 0; b < B; ++b)                                                                    \
+            for (int64_t f = 0; f < m; ++f) {                                                              \
+                const int64_t *c = F + 3 * f, g = b * m + f;                                               \
+                const T *u = U + b * n, *v = Vv + b * n;                                                   \
+                T u0 = u[c[0]], u1 = u[c[1]], u2 = u[c[2]], v0 = v[c[0]], v1 = v[c[1]], v2 = v[c[2]];      \
+                T umin = u0 < u1 ? u0 : u1, umax = u0 > u1 ? u0 : u1;                                      \
+                umin = umin < u2 ? umin : u2;                                                              \
+                umax = umax > u2 ? umax : u2;                                                              \
+                T vmin = v0 < v1 ? v0 : v1, vmax = v0 > v1 ? v0 : v1;                                      \
+                vmin = vmin < v2 ? vmin : v2;                                                              \
+                vmax = vmax > v2 ? vmax : v2;                                                              \
+                const uint8_t *o = ok + b * n;                                                             \
+                int k_ = o[c[0]] && o[c[1]] && o[c[2]] && umax >= lo_m && umin <= hi_m && vmax >= lo_m &&  \
+                         vmin <= hi_m;                                                                     \
+                T area2 = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0);                                   \
+                keep[g] = (uint8_t)k_;                                                                     \
+                front[g] = area2 < 0;                                                                      \
+                slot_of[g] = -1;                                                                           \
+                if (k_) {                                                                                  \
+                    T *row = table + 15 * K;                                                               \
+                    row[0] = umin;                                                                         \
+                    row[1] = umax;                                                                         \
+                    row[2] = vmin;                                                                         \
+                    row[3] = vmax;                                                                         \
+                    kept[K++] = g;                                                                         \
+                }                                                                                          \
+            }                                                                                              \
+        counts[0] = K;                                                                                     \
+        for (int64_t i = 0; i < B * P; ++i)                                                                \
+            zkey[i] = skey[i] = NONE;                                                                      \
+        /* z-buffer (passes._zbuffer): edge k from corner k + 1 to k + 2 in canonical order */             \
+        for (int64_t s = 0; s < K; ++s) {                                                                  \
+            int64_t g = kept[s], b = g / m, f = g % m;                                                     \
+            const int64_t *c = F + 3 * f;                                                                  \
+            const T *u = U + b * n, *v = Vv + b * n, *zz = Z + b * n;                                      \
+            const T *row = table + 15 * s;                                                                 \
+            T ax[3], ay[3], dx[3], dy[3], iz[3];                                                           \
+            for (int k = 0; k < 3; ++k) {                                                                  \
+                int64_t p1 = c[(k + 1) % 3], p2 = c[(k + 2) % 3];                                          \
+                int flip = et[15 * f + 12 + k] != 0;                                                       \
+                T u1 = u[p1], u2 = u[p2], v1 = v[p1], v2 = v[p2];                                          \
+                T sg = flip ? (T)-1 : (T)1;                                                                \
+                ax[k] = flip ? u2 : u1;                                                                    \
+                ay[k] = flip ? v2 : v1;                                                                    \
+                dx[k] = sg * ((flip ? u1 : u2) - ax[k]);                                                   \
+                dy[k] = sg * ((flip ? v1 : v2) - ay[k]);                                                   \
+                iz[k] = (T)1 / zz[c[k]];                                                                   \
+            }                                                                                              \
+            int64_t lo[2], hi[2];                                                                          \
+            pix_range((double)row[0], (double)row[1], S, &lo[0], &hi[0], IS_F32);                          \
+            pix_range((double)row[2], (double)row[3], S, &lo[1], &hi[1], IS_F32);                          \
+            int64_t *img = zkey + b * P;                                                                   \
+            for (int64_t i = lo[1]; i <= hi[1]; ++i) {                                                     \
+                T py = (T)i + (T)0.5;                                                                      \
+                for (int64_t j = lo[0]; j <= hi[0]; ++j) {                                                 \
+                    T px = (T)j + (T)0.5;                                                                  \
+                    T w[3];                                                                                \
+                    for (int k = 0; k < 3; ++k) {                                                          \
+                        T a = dx[k] * (py - ay[k]);                                                        \
+                        T bb = dy[k] * (px - ax[k]);                                                       \
+                        w[k] = a - bb;                                                                     \
+                    }                                                                                      \
+                    T tot = w[0] + w[1];                                                                   \
+                    tot = tot + w[2];                                                                      \
+                    int inside;                                                                            \
+                    if (tot > 0)                                                                           \
+                        inside = w[0] >= 0 && w[1] >= 0 && w[2] >= 0;                                      \
+                    else if (tot < 0)                                                                      \
+                        inside = w[0] <= 0 && w[1] <= 0 && w[2] <= 0;                                      \
+                    else                                                                                   \
+                        inside = 0;                                                                        \
+                    if (!inside)                                                                           \
+                        continue;                                                                          \
+                    T wz0 = w[0] * iz[0], wz1 = w[1] * iz[1], wz2 = w[2] * iz[2];                          \
+                    T den = wz0 + wz1;                                                                     \
+                    den = den + wz2;                                                                       \
+                    float depth = (float)(tot / den);                                                      \
+                    if (depth < 0)                                                                         \
+                        depth = 0;                                                                         \
+                    int64_t key = pack(depth, s);                                                          \
+                    int64_t *pk = img + i * S + j;                                                         \
+                    if (key < *pk)                                                                         \
+                        *pk = key;                                                                         \
+                }                                                                                          \
+            }                                                                                              \
+        }                                                                                                  \
+        /* contour segments (passes._contour_segments), slot-major then k, and their buffer */             \
+        int64_t Q = 0;                                                                                     \
+        for (int64_t s = 0; s < K; ++s) {                                                                  \
+            int64_t g = kept[s], b = g / m, f = g % m;                                                     \
+            const int64_t *c = F + 3 * f, *e = et + 15 * f;                                                \
+            const T *u = U + b * n, *v = Vv + b * n;                                                       \
+            for (int k = 0; k < 3; ++k) {                                                                  \
+                int64_t tf = e[9 + k];                                                                     \
+                int tkeep = tf >= 0 && keep[b * m + tf];                                                   \
+                int contour = 1;                                                                           \
+                if (tkeep) {                                                                               \
+                    T Lu = u[e[k]], Lv = v[e[k]], Hu = u[e[3 + k]], Hv = v[e[3 + k]];                      \
+                    T Ou = u[e[6 + k]], Ov = v[e[6 + k]], Ku = u[c[k]], Kv = v[c[k]];                      \
+                    T side_f = (Hu - Lu) * (Kv - Lv) - (Hv - Lv) * (Ku - Lu);                              \
+                    T side_g = (Hu - Lu) * (Ov - Lv) - (Hv - Lv) * (Ou - Lu);                              \
+                    contour = !(side_f * side_g < 0);                                                      \
+                }                                                                                          \
+                if (!contour)                                                                              \
+                    continue;                                                                              \
+                int fr = front[g], gfr = tf >= 0 ? front[b * m + tf] : 0;                                  \
+                int owner = !tkeep || (fr && !gfr) || (fr == gfr && f < tf);                               \
+                if (!owner)                                                                                \
+                    continue;                                                                              \
+                seg[3 * Q] = s;                                                                            \
+                seg[3 * Q + 1] = k;                                                                        \
+                seg[3 * Q + 2] = b;                                                                        \
+                ++Q;                                                                                       \
+            }                                                                                              \
+        }                                                                                                  \
+        for (int64_t q = 0; q < Q; ++q) {                                                                  \
+            int64_t s = seg[3 * q], k = seg[3 * q + 1], b = seg[3 * q + 2], f = kept[s] % m;               \
+            const int64_t *c = F + 3 * f;                                                                  \
+            const T *u = U + b * n, *v = Vv + b * n;                                                       \
+            const T ax = u[c[(k + 1) % 3]], ay = v[c[(k + 1) % 3]];                                        \
+            const T bx = u[c[(k + 2) % 3]], by = v[c[(k + 2) % 3]];                                        \
+            int64_t lo[2], hi[2];                                                                          \
+            pix_range((double)((ax < bx ? ax : bx) - margin), (double)((ax > bx ? ax : bx) + margin), S,   \
+                      &lo[0], &hi[0], IS_F32);                                                             \
+            pix_range((double)((ay < by ? ay : by) - margin), (double)((ay > by ? ay : by) + margin), S,   \
+                      &lo[1], &hi[1], IS_F32);                                                             \
+            const T dx = bx - ax, dy = by - ay;                                                            \
+            T L2 = dx * dx;                                                                                \
+            L2 = L2 + dy * dy;                                                                             \
+            const T L2c = L2 < eps ? eps : L2;                                                             \
+            int64_t *img = skey + b * P;                                                                   \
+            for (int64_t i = lo[1]; i <= hi[1]; ++i) {                                                     \
+                T py = (T)i + (T)0.5;                                                                      \
+                for (int64_t j = lo[0]; j <= hi[0]; ++j) {                                                 \
+                    T px = (T)j + (T)0.5;                                                                  \
+                    T num = (px - ax) * dx;                                                                \
+                    num = num + (py - ay) * dy;                                                            \
+                    T t = num / L2c;                                                                       \
+                    t = t < 0 ? 0 : (t > 1 ? 1 : t);                                                       \
+                    T ex = ax + t * dx;                                                                    \
+                    ex = ex - px;                                                                          \
+                    T ey = ay + t * dy;                                                                    \
+                    ey = ey - py;                                                                          \
+                    T d2 = ex * ex;                                                                        \
+                    d2 = d2 + ey * ey;                                                                     \
+                    T d = SQRT(d2);                                                                        \
+                    if (!(d <= margin))                                                                    \
+                        continue;                                                                          \
+                    int64_t key = pack((float)d, q);                                                       \
+                    int64_t *pk = img + i * S + j;                                                         \
+                    if (key < *pk)                                                                         \
+                        *pk = key;                                                                         \
+                }                                                                                          \
+            }                                                                                              \
+        }                                                                                                  \
+        /* face ids, covered samples (pixel order) */                                                      \
+        int64_t Ni = 0;                                                                                    \
+        for (int64_t p = 0; p < B * P; ++p) {                                                              \
+            if (zkey[p] == NONE) {                                                                         \
+                face_id[p] = -1;                                                                           \
+                continue;                                                                                  \
+            }                                                                                              \
+            int64_t g = kept[zkey[p] & 0xFFFFFFFF];                                                        \
+            face_id[p] = g % m;                                                                            \
+            in_pix[Ni] = p;                                                                                \
+            in_b[Ni] = p / P;                                                                              \
+            in_f[Ni] = g % m;                                                                              \
+            ++Ni;                                                                                          \
+            slot_of[g] = 0;                                                                                \
+        }                                                                                                  \
+        /* soft pixels (passes._soft_pixels): near a segment, and if covered, within reach of the          \
+         * background (an integral image of uncovered pixels, the box clipped to the image) */             \
+        const int64_t reach = (int64_t)ceil((double)margin_ + 1.5), W = S + 1;                             \
+        for (int64_t b = 0; b < B; ++b) {                                                                  \
+            int32_t *tab = integral + b * W * W;                                                           \
+            for (int64_t j = 0; j < W; ++j)                                                                \
+                tab[j] = 0;                                                                                \
+            for (int64_t i = 0; i < S; ++i) {                                                              \
+                int32_t run = 0;                                                                           \
+                tab[(i + 1) * W] = 0;                                                                      \
+                for (int64_t j = 0; j < S; ++j) {                                                          \
+                    run += zkey[b * P + i * S + j] == NONE;                                                \
+                    tab[(i + 1) * W + j + 1] = tab[i * W + j + 1] + run;                                   \
+                }                                                                                          \
+            }                                                                                              \
+        }                                                                                                  \
+        int64_t Nf = 0;                                                                                    \
+        for (int64_t p = 0; p < B * P; ++p) {                                                              \
+            if (skey[p] == NONE)                                                                           \
+                continue;                                                                                  \
+            if (zkey[p] != NONE) {                                                                         \
+                int64_t b = p / P, i = (p / S) % S, j = p % S;                                             \
+                int64_t i0 = i - reach < 0 ? 0 : i - reach, i1 = i + reach + 1 > S ? S : i + reach + 1;    \
+                int64_t j0 = j - reach < 0 ? 0 : j - reach, j1 = j + reach + 1 > S ? S : j + reach + 1;    \
+                const int32_t *tab = integral + b * W * W;                                                 \
+                int32_t cnt = tab[i1 * W + j1] - tab[i0 * W + j1] - tab[i1 * W + j0] + tab[i0 * W + j0];   \
+                if (cnt <= 0)                                                                              \
+                    continue;                                                                              \
+            }                                                                                              \
+            int64_t q = skey[p] & 0xFFFFFFFF, s = seg[3 * q], g = kept[s];                                 \
+            fr_pix[Nf] = p;                                                                                \
+            fr_b[Nf] = g / m;                                                                              \
+            fr_f[Nf] = g % m;                                                                              \
+            fr_k[Nf] = seg[3 * q + 1];                                                                     \
+            ++Nf;                                                                                          \
+            slot_of[g] = 0;                                                                                \
+        }                                                                                                  \
+        /* used faces (samples.used_faces): marked (b, f) in increasing b * m + f, with their corners */   \
+        int64_t Uc = 0;                                                                                    \
+        for (int64_t g = 0; g < BM; ++g)                                                                   \
+            if (slot_of[g] == 0) {                                                                         \
+                slot_of[g] = Uc;                                                                           \
+                used[Uc++] = g;                                                                            \
+            }                                                                                              \
+        for (int64_t t = 0; t < Uc; ++t) {                                                                 \
+            int64_t g = used[t], b = g / m, f = g % m;                                                     \
+            for (int j = 0; j < 3; ++j)                                                                    \
+                corner_index[j * BM + t] = b * n + F[3 * f + j];                                           \
+        }                                                                                                  \
+        for (int64_t i = 0; i < Ni; ++i)                                                                   \
+            in_slot[i] = slot_of[in_b[i] * m + in_f[i]];                                                   \
+        for (int64_t i = 0; i < Nf; ++i)                                                                   \
+            fr_slot[i] = slot_of[fr_b[i] * m + fr_f[i]];                                                   \
+        counts[1] = Ni;                                                                                    \
+        counts[2] = Nf;                                                                                    \
+        counts[3] = Uc;                                                                                    \
+    }
+
+FRONT(front_f32, float, 1, sqrtf)
+FRONT(front_f64, double, 0, sqrt)
+
+int meshmei_raster_abi(void) { return 3; }

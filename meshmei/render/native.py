@@ -36,12 +36,12 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["native_status", "zbuffer", "segment_buffer", "sample_forward", "sample_backward", "shade_forward",
+__all__ = ["native_status", "front", "sample_forward", "sample_backward", "shade_forward",
            "shade_backward", "available", "torch_reference"]
 
 _SOURCE = Path(__file__).with_name("_raster.c")
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
-_ABI = 2
+_ABI = 3
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}
@@ -89,11 +89,8 @@ def _build() -> ctypes.CDLL:
     if lib.meshmei_raster_abi() != _ABI:
         raise RuntimeError(f"{out} is a build of another version of {_SOURCE.name}")
     i64, p, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
-    for name in ("zbuffer_f32", "zbuffer_f64"):
-        getattr(lib, name).argtypes = [i64, p, p, p, p, i64, p]
-        getattr(lib, name).restype = None
-    for name in ("segbuffer_f32", "segbuffer_f64"):
-        getattr(lib, name).argtypes = [i64, p, p, p, p, i64, dbl, dbl, p]
+    for name in ("front_f32", "front_f64"):
+        getattr(lib, name).argtypes = [i64, i64, i64, p, p, p, p, p, p, i64, dbl, dbl] + [p] * 22
         getattr(lib, name).restype = None
     for t in ("f32", "f64"):
         getattr(lib, f"sample_fwd_{t}").argtypes = [i64, p, p, p, p, i64, p, p, i64, p, p, p, p, i64, p, i64, dbl,
@@ -155,26 +152,38 @@ def _ptr(t: torch.Tensor, dtype) -> int:
     return t.data_ptr()
 
 
-def zbuffer(table, lo, hi, pix0, S: int, zkey) -> None:
-    """Pass 1 into ``zkey`` (in place): ``table`` ``(15, K)``, ``lo``/``hi`` ``(K, 2)``, ``pix0`` ``(K,)``."""
-    lib = _lib()
-    K = table.shape[1]
-    table, lo, hi, pix0 = table.contiguous(), lo.contiguous(), hi.contiguous(), pix0.contiguous()
-    assert table.shape == (15, K) and lo.shape == hi.shape == (K, 2) and pix0.shape == (K,)
-    fn = lib.zbuffer_f32 if table.dtype == torch.float32 else lib.zbuffer_f64
-    fn(K, _ptr(table, table.dtype), _ptr(lo, torch.int64), _ptr(hi, torch.int64), _ptr(pix0, torch.int64), S,
-       _ptr(zkey, torch.int64))
-
-
-def segment_buffer(table, lo, hi, pix0, S: int, margin: float, eps: float, skey) -> None:
-    """Pass 2 into ``skey`` (in place): ``table`` ``(Q, 4)`` segment ends, ``lo``/``hi`` ``(Q, 2)``, ``pix0`` ``(Q,)``."""
-    lib = _lib()
-    Q = table.shape[0]
-    table, lo, hi, pix0 = table.contiguous(), lo.contiguous(), hi.contiguous(), pix0.contiguous()
-    assert table.shape == (Q, 4) and lo.shape == hi.shape == (Q, 2) and pix0.shape == (Q,)
-    fn = lib.segbuffer_f32 if table.dtype == torch.float32 else lib.segbuffer_f64
-    fn(Q, _ptr(table, table.dtype), _ptr(lo, torch.int64), _ptr(hi, torch.int64), _ptr(pix0, torch.int64), S,
-       float(margin), float(eps), _ptr(skey, torch.int64))
+def front(U, Vv, Z, ok, F, edge_table, S: int, margin: float, eps: float) -> dict:
+    """The no-grad front of :func:`~meshmei.render.passes.run_passes` in one call: ``U, Vv, Z`` ``(B, n)``
+    pixel coordinates and depth (no grad), ``ok`` ``(B, n)`` in depth range, ``F`` ``(m, 3)``, ``edge_table``
+    ``(m, 15)`` (:attr:`~meshmei.topology.MeshTopology.edge_table`). Returns the passes' decisions: ``front``
+    ``(B, m)``, ``face_id`` ``(B * S * S,)``, the covered samples ``in_pix, in_b, in_f, in_slot``, the fringe
+    samples ``fr_pix, fr_b, fr_f, fr_k, fr_slot``, the used faces ``used`` and ``corner_index`` ``(3, U)``."""
+    lib, dt = _lib(), U.dtype
+    U, Vv, Z, F, et = _c(U, Vv, Z, F, edge_table)
+    ok = ok.contiguous().to(torch.uint8)
+    B, n = U.shape
+    m, P = F.shape[0], S * S
+    BM, BP = B * m, B * P
+    i64 = torch.int64
+    keep, front_ = torch.empty(BM, dtype=torch.uint8), torch.empty(BM, dtype=torch.uint8)
+    slot_of, kept, seg = torch.empty(BM, dtype=i64), torch.empty(BM, dtype=i64), torch.empty(9 * BM, dtype=i64)
+    zkey, skey = torch.empty(BP, dtype=i64), torch.empty(BP, dtype=i64)
+    table = torch.empty(BM * 15, dtype=dt)
+    integral = torch.empty(B * (S + 1) ** 2, dtype=torch.int32)
+    face_id = torch.empty(BP, dtype=i64)
+    pix = torch.empty(9, BP, dtype=i64)  # in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_k, fr_slot
+    used, corner_index = torch.empty(BM, dtype=i64), torch.empty(3, BM, dtype=i64)
+    counts = torch.zeros(4, dtype=i64)
+    getattr(lib, f"front_{_suffix(dt)}")(
+        B, n, m, _ptr(U, dt), _ptr(Vv, dt), _ptr(Z, dt), ok.data_ptr(), _ptr(F, i64), _ptr(et, i64), int(S),
+        float(margin), float(eps), keep.data_ptr(), front_.data_ptr(), _ptr(slot_of, i64), _ptr(kept, i64),
+        _ptr(seg, i64), _ptr(zkey, i64), _ptr(skey, i64), _ptr(table, dt), integral.data_ptr(), _ptr(face_id, i64),
+        *(_ptr(pix[i], i64) for i in range(9)), _ptr(used, i64), _ptr(corner_index, i64), _ptr(counts, i64))
+    _, Ni, Nf, Uc = counts.tolist()
+    cov, fr = pix[:4, :Ni], pix[4:, :Nf]
+    return {"front": front_.view(B, m).bool(), "face_id": face_id, "in_pix": cov[0], "in_b": cov[1],
+            "in_f": cov[2], "in_slot": cov[3], "fr_pix": fr[0], "fr_b": fr[1], "fr_f": fr[2], "fr_k": fr[3],
+            "fr_slot": fr[4], "used": used[:Uc], "corner_index": corner_index[:, :Uc]}
 
 
 # --------------------------------------------------------------------------------------------------

@@ -202,9 +202,6 @@ def _zbuffer(sc: _Screen, Z, F, B, S, chunk, flip) -> torch.Tensor:
     lo, hi = _ranges(sc.box[:, 0::2], sc.box[:, 1::2], S)  # (K, 2): columns, rows
     table = torch.cat([ax, ay, dx, dy, kiz], 1).t().contiguous()  # (15, K): one gather per chunk
     pix0 = kb * (S * S)
-    if native.available(table):
-        native.zbuffer(table, lo, hi, pix0, S, zkey)
-        return zkey
     for it, ii, jj in _pairs(lo, hi, chunk):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         t_ax, t_ay, t_dx, t_dy, t_iz = table.index_select(1, it).view(5, 3, -1).unbind(0)  # (3, P) each
@@ -265,9 +262,6 @@ def _segment_buffer(sc: _Screen, seg, ends, B, S, st: RenderSettings) -> torch.T
     lo, hi = _ranges(torch.minimum(a, b) - margin, torch.maximum(a, b) + margin, S)  # (Q, 2): columns, rows
     table = torch.cat([a, b], 1)  # (Q, 4): one gather per chunk
     pix0 = sc.kb.index_select(0, s_) * (S * S)
-    if native.available(table):
-        native.segment_buffer(table, lo, hi, pix0, S, margin, eps, skey)
-        return skey
     for it, ii, jj in _pairs(lo, hi, st.chunk_size):
         px, py = jj.to(dt) + 0.5, ii.to(dt) + 0.5
         ax, ay, bx, by = table.index_select(0, it).unbind(1)
@@ -320,6 +314,17 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
     S, B = st.image_size, Vw.shape[0]
     dt = Vw.dtype
     Vc, z, u, v, ok = _project(Vw, eye, R, cam, S)
+    if native.available(u):  # the same decisions from one compiled call (meshmei.render.native)
+        d = native.front(u.detach(), v.detach(), z.detach(), ok, F, mesh_topology(F, n_vertices).edge_table, S,
+                         st.soft_margin, st.eps)
+        hit = d["face_id"] >= 0
+        fr_pix, corner_index = d["fr_pix"], d["corner_index"]
+        shaded, cov_s = sample_geometry(d["in_pix"], d["in_b"], d["in_f"], d["in_slot"], fr_pix, d["fr_b"], d["fr_f"],
+                                        d["fr_slot"], d["fr_k"], hit, u, v, z, corner_index, S, st)
+        cov = hit.to(dt).index_put((fr_pix,), cov_s)
+        return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=d["front"], face_id=d["face_id"].view(B, S, S), hit=hit,
+                            shaded=shaded, n_inside=d["in_pix"].shape[0], fringe_pix=fr_pix, coverage=cov,
+                            used=d["used"], corner_index=corner_index)
     with torch.no_grad():
         U, Vv = u.detach(), v.detach()
         sc = _cull(U, Vv, ok, F, S, st.soft_margin)
