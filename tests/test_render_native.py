@@ -180,3 +180,30 @@ def test_a_build_is_cached_and_reused(tmp_path):
         assert r.returncode == 0 and "'compiled': True" in r.stdout, r.stderr[-2000:]
     builds = list(tmp_path.glob("raster-*.so"))
     assert len(builds) == 1 and sorted(tmp_path.iterdir()) == builds  # no temporary left behind
+
+
+@needs_cc
+def test_compiled_vertex_normals_match_the_operator_and_gradcheck():
+    """The renderer's compiled normals against :func:`meshmei.operators.vertex_normals_from_corners` (values
+    and gradients), on a sphere and on degenerate faces (zero area; a vertex whose face normals cancel,
+    where the floor eps * area holds), and against gradcheck."""
+    from meshmei.operators import corners, vertex_normals_from_corners
+
+    V, F = degenerate_mesh()
+    # two faces of opposite orientation on one triangle: their normals cancel at its vertices
+    n = V.shape[0]
+    V = torch.cat([V, torch.tensor([[0.0, 0.0, 0.9], [0.1, 0.0, 0.9], [0.0, 0.1, 0.9]], dtype=V.dtype)])
+    F = torch.cat([F, torch.tensor([[n, n + 1, n + 2], [n, n + 2, n + 1]])])
+    for Vb in (V.unsqueeze(0), torch.stack([V, 1.3 * V.roll(1, 1)])):
+        Vb = Vb.clone().requires_grad_(True)
+        mine = native.vertex_normals(Vb, F, 1e-12)
+        ref = vertex_normals_from_corners(corners(Vb, F), F, Vb.shape[1], eps=1e-12)
+        torch.testing.assert_close(mine, ref, rtol=1e-12, atol=1e-12)
+        W = torch.randn(mine.shape, generator=torch.Generator().manual_seed(3), dtype=mine.dtype)
+        ga, = torch.autograd.grad((mine * W).sum(), Vb)
+        gb, = torch.autograd.grad((ref * W).sum(), Vb)
+        torch.testing.assert_close(ga, gb, rtol=1e-9, atol=1e-9 * float(gb.abs().max()))
+    Vs, Fs = initial_mesh("sphere", n_vertices=60, dtype=torch.float64)
+    Vs = (Vs + 0.05 * torch.randn(Vs.shape, generator=torch.Generator().manual_seed(4), dtype=Vs.dtype))
+    assert torch.autograd.gradcheck(lambda X: native.vertex_normals(X, Fs, 1e-12), (Vs.unsqueeze(0).requires_grad_(),),
+                                    eps=1e-7, atol=1e-6, rtol=1e-5)

@@ -166,9 +166,9 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
             "readout": model.readout_name, "shape": model.shape}
 
 
-def run(steps: int):
+def run(steps: int, rounds: int = 5):
     load = os.getloadavg()[0]
-    r = measure(steps)
+    r = measure(steps, n_rounds=rounds)
     shares = r["shares"]
     share = median(shares)
     rows = [[name, f"{1000 * t:.1f}"] for name, t in r["parts"].items()]
@@ -207,9 +207,10 @@ def run(steps: int):
 def main(argv=None):
     ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--rounds", type=int, default=5, help="alternated rounds (the share is their median)")
     args = ap.parse_args(argv)
     t = time.perf_counter()
-    print(f"wrote {run(args.steps)} in {time.perf_counter() - t:.0f} s")
+    print(f"wrote {run(args.steps, args.rounds)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":

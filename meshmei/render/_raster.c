@@ -598,4 +598,126 @@ static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int
 FRONT(front_f32, float, 1, sqrtf)
 FRONT(front_f64, double, 0, sqrt)
 
-int meshmei_raster_abi(void) { return 3; }
+/* ------------------------------------------------------------------------------------------------------
+ * Area-weighted vertex normals (operators.vertex_normals_from_corners): per face the cross product
+ * c = (b - a) x (c - a) and its length, summed at the face's corners into acc (B, n, 4); the normal is
+ * acc[:3] / max(|acc[:3]|, eps * acc[3]), zero where both vanish. Lengths as operators.safe_norm: the plain
+ * sqrt where the square is in range, else taken on the vector over its largest component. Backward takes
+ * the normals' gradient (B, n, 3) and the forward's acc and accumulates into gV (B, n, 3, zeroed); work:
+ * (B, n, 4). */
+#define NORMALS(NAME_F, NAME_B, T, SQRT, FABS, TINY, MAXV)                                                  \
+    static inline T snorm_##T(T x0, T x1, T x2)                                                            \
+    {                                                                                                      \
+        T sq = x0 * x0 + x1 * x1;                                                                          \
+        sq = sq + x2 * x2;                                                                                 \
+        if ((sq < TINY || sq > MAXV) && (x0 != 0 || x1 != 0 || x2 != 0)) {                                 \
+            T mx = FABS(x0);                                                                               \
+            if (FABS(x1) > mx)                                                                             \
+                mx = FABS(x1);                                                                             \
+            if (FABS(x2) > mx)                                                                             \
+                mx = FABS(x2);                                                                             \
+            T a = x0 / mx, b = x1 / mx, c = x2 / mx;                                                       \
+            T len = SQRT(a * a + b * b + c * c) * mx;                                                      \
+            return len > MAXV ? MAXV : len;                                                                \
+        }                                                                                                  \
+        return sq > 0 ? SQRT(sq < TINY ? TINY : sq) : (T)0;                                                \
+    }                                                                                                      \
+    static inline void face_cross_##T(const T *V, const int64_t *f, T *e1, T *e2, T *cr)                   \
+    {                                                                                                      \
+        const T *a = V + 3 * f[0], *b = V + 3 * f[1], *c = V + 3 * f[2];                                   \
+        for (int k = 0; k < 3; ++k) {                                                                      \
+            e1[k] = b[k] - a[k];                                                                           \
+            e2[k] = c[k] - a[k];                                                                           \
+        }                                                                                                  \
+        cr[0] = e1[1] * e2[2] - e1[2] * e2[1];                                                             \
+        cr[1] = e1[2] * e2[0] - e1[0] * e2[2];                                                             \
+        cr[2] = e1[0] * e2[1] - e1[1] * e2[0];                                                             \
+    }                                                                                                      \
+    void NAME_F(int64_t B, int64_t n, int64_t m, const T *V, const int64_t *F, double eps_, T *acc, T *out) \
+    {                                                                                                      \
+        const T eps = (T)eps_;                                                                             \
+        for (int64_t i = 0; i < B * n * 4; ++i)                                                            \
+            acc[i] = 0;                                                                                    \
+        for (int64_t b = 0; b < B; ++b) {                                                                  \
+            const T *Vb = V + b * n * 3;                                                                   \
+            T *ab = acc + b * n * 4;                                                                       \
+            for (int64_t f = 0; f < m; ++f) {                                                              \
+                T e1[3], e2[3], cr[3];                                                                     \
+                face_cross_##T(Vb, F + 3 * f, e1, e2, cr);                                                 \
+                T w = snorm_##T(cr[0], cr[1], cr[2]);                                                      \
+                for (int k = 0; k < 3; ++k) {                                                              \
+                    T *r = ab + 4 * F[3 * f + k];                                                          \
+                    r[0] += cr[0];                                                                         \
+                    r[1] += cr[1];                                                                         \
+                    r[2] += cr[2];                                                                         \
+                    r[3] += w;                                                                             \
+                }                                                                                          \
+            }                                                                                              \
+        }                                                                                                  \
+        for (int64_t v = 0; v < B * n; ++v) {                                                              \
+            const T *r = acc + 4 * v;                                                                      \
+            T L = snorm_##T(r[0], r[1], r[2]), fl = eps * r[3];                                            \
+            T den = L > fl ? L : fl;                                                                       \
+            for (int k = 0; k < 3; ++k)                                                                    \
+                out[3 * v + k] = den > 0 ? r[k] / den : (T)0;                                              \
+        }                                                                                                  \
+    }                                                                                                      \
+    void NAME_B(int64_t B, int64_t n, int64_t m, const T *V, const int64_t *F, double eps_, const T *acc,  \
+                const T *g, T *work, T *gV)                                                                \
+    {                                                                                                      \
+        const T eps = (T)eps_;                                                                             \
+        for (int64_t v = 0; v < B * n; ++v) {                                                              \
+            const T *r = acc + 4 * v, *gv = g + 3 * v;                                                     \
+            T *wk = work + 4 * v;                                                                          \
+            T L = snorm_##T(r[0], r[1], r[2]), fl = eps * r[3];                                            \
+            wk[0] = wk[1] = wk[2] = wk[3] = 0;                                                             \
+            if (L >= fl && L > 0) { /* x / |x| */                                                          \
+                T inv = (T)1 / L, d = (r[0] * gv[0] + r[1] * gv[1] + r[2] * gv[2]) * inv * inv;            \
+                for (int k = 0; k < 3; ++k)                                                                \
+                    wk[k] = (gv[k] - d * r[k]) * inv;                                                      \
+            } else if (fl > L) { /* x / (eps w): the floor of a vertex whose normals cancel */             \
+                T inv = (T)1 / fl;                                                                         \
+                for (int k = 0; k < 3; ++k)                                                                \
+                    wk[k] = gv[k] * inv;                                                                   \
+                wk[3] = -eps * (r[0] * gv[0] + r[1] * gv[1] + r[2] * gv[2]) * inv * inv;                   \
+            }                                                                                              \
+        }                                                                                                  \
+        for (int64_t b = 0; b < B; ++b) {                                                                  \
+            const T *Vb = V + b * n * 3;                                                                   \
+            const T *wb = work + b * n * 4;                                                                \
+            T *gb = gV + b * n * 3;                                                                        \
+            for (int64_t f = 0; f < m; ++f) {                                                              \
+                const int64_t *c = F + 3 * f;                                                              \
+                T e1[3], e2[3], cr[3], gc[3] = {0, 0, 0}, gw = 0;                                          \
+                for (int k = 0; k < 3; ++k) {                                                              \
+                    const T *wk = wb + 4 * c[k];                                                           \
+                    gc[0] += wk[0];                                                                        \
+                    gc[1] += wk[1];                                                                        \
+                    gc[2] += wk[2];                                                                        \
+                    gw += wk[3];                                                                           \
+                }                                                                                          \
+                if (gc[0] == 0 && gc[1] == 0 && gc[2] == 0 && gw == 0)                                     \
+                    continue;                                                                              \
+                face_cross_##T(Vb, c, e1, e2, cr);                                                         \
+                T len = snorm_##T(cr[0], cr[1], cr[2]);                                                    \
+                if (len > 0 && gw != 0)                                                                    \
+                    for (int k = 0; k < 3; ++k)                                                            \
+                        gc[k] += gw * (cr[k] / len);                                                       \
+                /* c = e1 x e2: g_e1 = e2 x gc, g_e2 = gc x e1 */                                          \
+                T g1[3] = {e2[1] * gc[2] - e2[2] * gc[1], e2[2] * gc[0] - e2[0] * gc[2],                   \
+                           e2[0] * gc[1] - e2[1] * gc[0]};                                                 \
+                T g2[3] = {gc[1] * e1[2] - gc[2] * e1[1], gc[2] * e1[0] - gc[0] * e1[2],                   \
+                           gc[0] * e1[1] - gc[1] * e1[0]};                                                 \
+                for (int k = 0; k < 3; ++k) {                                                              \
+                    gb[3 * c[0] + k] -= g1[k] + g2[k];                                                     \
+                    gb[3 * c[1] + k] += g1[k];                                                             \
+                    gb[3 * c[2] + k] += g2[k];                                                             \
+                }                                                                                          \
+            }                                                                                              \
+        }                                                                                                  \
+    }
+
+NORMALS(normals_fwd_f32, normals_bwd_f32, float, sqrtf, fabsf, 1.17549435082228751e-38f, 3.4028234663852886e38f)
+NORMALS(normals_fwd_f64, normals_bwd_f64, double, sqrt, fabs, 2.2250738585072014e-308, 1.7976931348623157e308)
+
+int meshmei_raster_abi(void) { return 4; }

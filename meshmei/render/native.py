@@ -35,13 +35,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
+from torch.autograd.function import once_differentiable
 
 __all__ = ["native_status", "front", "sample_forward", "sample_backward", "shade_forward",
-           "shade_backward", "available", "torch_reference"]
+           "shade_backward", "vertex_normals", "available", "torch_reference"]
 
 _SOURCE = Path(__file__).with_name("_raster.c")
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
-_ABI = 3
+_ABI = 4
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}
@@ -99,7 +100,9 @@ def _build() -> ctypes.CDLL:
                                                     dbl, p, p, p, p, p, p, p, p]
         getattr(lib, f"shade_fwd_{t}").argtypes = [i64, i64, p, p, p, p, dbl, dbl, dbl, dbl, p]
         getattr(lib, f"shade_bwd_{t}").argtypes = [i64, i64, p, p, p, p, dbl, dbl, dbl, dbl, p, p, p, p, p]
-        for kind in ("sample_fwd", "sample_bwd", "shade_fwd", "shade_bwd"):
+        getattr(lib, f"normals_fwd_{t}").argtypes = [i64, i64, i64, p, p, dbl, p, p]
+        getattr(lib, f"normals_bwd_{t}").argtypes = [i64, i64, i64, p, p, dbl, p, p, p, p]
+        for kind in ("sample_fwd", "sample_bwd", "shade_fwd", "shade_bwd", "normals_fwd", "normals_bwd"):
             getattr(lib, f"{kind}_{t}").restype = None
     return lib
 
@@ -258,3 +261,39 @@ def shade_backward(l, iz, corners, light, ambient, intensity, albedo, eps, g):
                                               _ptr(g, dt), _ptr(g_l, dt), _ptr(g_iz, dt), _ptr(g_corners, dt),
                                               _ptr(g_light, dt))
     return g_l, g_iz, g_corners, g_light
+
+
+class _VertexNormals(torch.autograd.Function):
+    """Area-weighted unit vertex normals, compiled forward and backward (the arithmetic of
+    :func:`~meshmei.operators.vertex_normals_from_corners`)."""
+
+    @staticmethod
+    def forward(ctx, V, F, eps):
+        lib, dt = _lib(), V.dtype
+        Vc, Fc = V.detach().contiguous(), F.contiguous()
+        B, n, m = Vc.shape[0], Vc.shape[1], Fc.shape[0]
+        acc, out = torch.empty(B, n, 4, dtype=dt), torch.empty(B, n, 3, dtype=dt)
+        getattr(lib, f"normals_fwd_{_suffix(dt)}")(B, n, m, _ptr(Vc, dt), _ptr(Fc, torch.int64), float(eps),
+                                                    _ptr(acc, dt), _ptr(out, dt))
+        ctx.save_for_backward(Vc, Fc, acc)
+        ctx.eps = eps
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        lib = _lib()
+        Vc, Fc, acc = ctx.saved_tensors
+        dt = Vc.dtype
+        B, n, m = Vc.shape[0], Vc.shape[1], Fc.shape[0]
+        g = g.contiguous()
+        work, gV = torch.empty(B, n, 4, dtype=dt), torch.zeros(B, n, 3, dtype=dt)
+        getattr(lib, f"normals_bwd_{_suffix(dt)}")(B, n, m, _ptr(Vc, dt), _ptr(Fc, torch.int64), float(ctx.eps),
+                                                    _ptr(acc, dt), _ptr(g, dt), _ptr(work, dt), _ptr(gV, dt))
+        return gV, None, None
+
+
+def vertex_normals(V, F, eps: float):
+    """Unit area-weighted vertex normals of ``V`` ``(B, n, 3)`` over ``F`` ``(m, 3)``, ``(B, n, 3)``;
+    differentiable in ``V``. CPU float32/float64 only (see :func:`available`)."""
+    return _VertexNormals.apply(V, F, eps)

@@ -85,6 +85,9 @@ class RenderInputs:
         return self.posed.expand(B, *self.posed.shape[1:]), self.eye.expand(B, 3), self.R.expand(B, 3, 3)
 
 
+_DEFAULT_CAMERA = Camera()  # frozen, with tuple fields: its frame is cached on it
+
+
 def prepare_inputs(V, F, camera, rotation, translation, settings) -> RenderInputs:
     """Check the mesh, settings and camera (defaults for None), pose the vertices and place the cameras.
 
@@ -100,7 +103,7 @@ def prepare_inputs(V, F, camera, rotation, translation, settings) -> RenderInput
     if not isinstance(settings, RenderSettings):
         raise RenderError(f"settings must be a RenderSettings, got {type(settings).__name__}")
     if camera is None:
-        camera = Camera()
+        camera = _DEFAULT_CAMERA  # one instance, so that its view frame is computed once (a loop of renders)
     if not isinstance(camera, Camera):
         raise RenderError(f"camera must be a Camera, got {type(camera).__name__}")
     V, F = check_mesh(V, F, batched=None)

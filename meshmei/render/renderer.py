@@ -8,6 +8,7 @@ import torch
 
 from ..mesh import as_faces
 from ..operators import corners, face_normals, vertex_normals_from_corners
+from . import native
 from .camera import Camera
 from .passes import run_passes
 from .raster import Fragments, prepare_inputs
@@ -54,7 +55,10 @@ def _corner_normals(posed, F, r, st: RenderSettings, B: int) -> torch.Tensor:
     posed = _in_normal_range(posed)
     n, m = posed.shape[-2], F.shape[0]
     if st.shading == "smooth":  # on the un-expanded batch, then the used faces' corners
-        normals = vertex_normals_from_corners(corners(posed, F), F, n, eps=1e-12).expand(B, n, 3)
+        if native.available(posed):  # the same arithmetic, compiled (meshmei.render.native)
+            normals = native.vertex_normals(posed, F, 1e-12).expand(B, n, 3)
+        else:
+            normals = vertex_normals_from_corners(corners(posed, F), F, n, eps=1e-12).expand(B, n, 3)
         normals = normals.reshape(B * n, 3).index_select(0, r.corner_index.reshape(-1)).view(3, -1, 3)
     else:
         normals = face_normals(posed, F).expand(B, m, 3).reshape(B * m, 3).index_select(0, r.used)
