@@ -99,10 +99,24 @@ VARIANTS = {"guard, no barriers": dict(barrier_weight=0.0, contact_weight=0.0),
             "renderer's torch code": None}
 
 
+class NullModel(torch.nn.Module):
+    """A model that costs next to nothing (a linear readout of each channel's mean): a step with it is
+    meshmei's own part of a step, measured directly rather than as the difference of two noisy times."""
+
+    def __init__(self, n_neurons=100):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.randn(3, n_neurons))
+
+    def forward(self, x):
+        return torch.nn.functional.elu(x.mean((2, 3)) @ self.w) + 1
+
+
 def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
     torch.manual_seed(0)
     model = V4Model().eval()
     enc = encoder_from_model(model, mean=124.5, std=70.3, channels=3, image_size=100, pixel_range=(0, 255))
+    null = encoder_from_model(NullModel().eval(), mean=124.5, std=70.3, channels=3, image_size=100,
+                              pixel_range=(0, 255))
     settings = MEISettings(steps=steps, seeds=(0,), image_size=100)
     V0, F, _ = initial("sheet", settings)
     rbf = make_deformer(V0, settings)
@@ -142,16 +156,17 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
                          ("render 100 px", draw), ("render 100 px, torch code", draw_torch),
                          ("regularizers", regularize), ("preprocessing", preprocess)):
             parts[name] = timings(fn, repeat=repeats)[0]
-    def step_times(s):
-        d = step_intervals(optimize_mei(enc, 7, "sheet", s).time_history, 3)
+    def step_times(s, e=enc):
+        d = step_intervals(optimize_mei(e, 7, "sheet", s).time_history, 3)
         return median(d), min(d)
 
-    rounds, variants = [], {name: [] for name in VARIANTS}
+    rounds, variants, direct = [], {name: [] for name in VARIANTS}, []
     for _ in range(n_rounds):  # alternate, so that all see the same machine state
         with frozen_encoder(enc):
             m_med, m_best = timings(model_only, repeat=repeats)
         s_med, s_best = step_times(settings)
         rounds.append((s_med, m_med, s_best, m_best))
+        direct.append(step_times(settings, null)[0] / m_med)
         for name, kw in VARIANTS.items():
             if kw is None:
                 with torch_reference():
@@ -162,6 +177,7 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
     best_shares = sorted((s - m) / m for _, _, s, m in rounds)
     step, m = median([r[0] for r in rounds]), median([r[1] for r in rounds])
     return {"parts": parts, "step": step, "model": m, "shares": shares, "best_shares": best_shares,
+            "direct": sorted(direct),
             "variants": {k: median(v) for k, v in variants.items()},
             "readout": model.readout_name, "shape": model.shape}
 
@@ -198,8 +214,15 @@ def run(steps: int, rounds: int = 5):
         f"best times (the least disturbed by other jobs on this shared machine): "
         f"{', '.join(f'{100 * x:.0f} %' for x in r['best_shares'])}; median {100 * median(r['best_shares']):.0f} %.",
         "",
+        "Measured directly, as the time of the same step with a model that costs next to nothing (a linear "
+        "readout of the channel means, the same adapter and statistics; its mesh follows another path) over "
+        "the model's own time in the same round: "
+        f"{', '.join(f'{100 * x:.0f} %' for x in r['direct'])}; median {100 * median(r['direct']):.0f} %.",
+        "",
         f"Target (issue 17): meshmei's share at most 20 % of the model's forward and backward: "
-        f"{'met' if share <= 0.20 else 'not met'} (median of {len(shares)} rounds: {100 * share:.0f} %).",
+        f"{'met' if share <= 0.20 else 'not met'} by step - model (median of {len(shares)} rounds: "
+        f"{100 * share:.0f} %); measured directly, {100 * median(r['direct']):.0f} % "
+        f"({'within' if median(r['direct']) <= 0.20 else 'above'} the target).",
     ])
     return write_section("byom", body)
 
