@@ -146,13 +146,17 @@ torch.save({"img": img, "st": st, "warnings": [str(x.message) for x in w]}, OUT)
 """
 
 
-@pytest.mark.parametrize("how", ["no compiler", "disabled"])
+@pytest.mark.parametrize("how", ["no compiler", "compiler fails", "disabled"])
 def test_without_a_compiler_the_torch_code_renders_the_image(tmp_path, how):
     out = tmp_path / "probe.pt"
     env = {k: v for k, v in os.environ.items() if k != "CC"}
     env["MESHMEI_CACHE_DIR"] = str(tmp_path / "cache")  # nothing cached: a compiler would be needed
     if how == "no compiler":
         env["PATH"] = str(tmp_path)  # finds no cc, gcc or clang
+    elif how == "compiler fails":
+        if not shutil.which("false"):
+            pytest.skip("no 'false' program to stand in for a failing compiler")
+        env["CC"] = "false"  # found, exits 1
     else:
         env["MESHMEI_NATIVE"] = "0"
     r = subprocess.run([sys.executable, "-c", _PROBE.replace("OUT", repr(str(out)))], env=env, capture_output=True,
@@ -160,8 +164,8 @@ def test_without_a_compiler_the_torch_code_renders_the_image(tmp_path, how):
     assert r.returncode == 0, r.stderr[-2000:]
     got = torch.load(out)
     assert not got["st"]["compiled"]
-    if how == "no compiler":
-        assert "no C compiler" in got["st"]["reason"]
+    if how != "disabled":
+        assert ("no C compiler" if how == "no compiler" else "failed") in got["st"]["reason"]
         assert any("compiled kernels are not available" in m for m in got["warnings"])
     else:
         assert got["st"]["reason"] == "disabled by MESHMEI_NATIVE" and not got["warnings"]

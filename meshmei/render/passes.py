@@ -13,6 +13,10 @@ Then the winning (pixel, face) and (pixel, segment) pairs alone are recomputed w
 correct barycentrics and depth for covered pixels, and the signed distance to the silhouette, which gives
 the soft coverage ``sigmoid(s / sigma)``. Nothing of size pixels x faces is ever formed and the autograd
 graph holds O(pixels) values, so backward needs no re-enumeration. See ``docs/rendering.md``.
+
+On CPU, where a C compiler is found, :func:`run_passes` takes the no-grad front (cull, both passes, the soft
+pixels, the samples and the used faces) from one compiled call, :func:`meshmei.render.native.front`, whose
+decisions are those of the torch code below bit for bit; the torch code is the reference and the fallback.
 """
 
 from __future__ import annotations
