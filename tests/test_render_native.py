@@ -1,5 +1,5 @@
 """The renderer's compiled kernels (``meshmei.render.native``) against the torch reference: the no-grad
-passes decide the same faces, segments and fringe pixels bit for bit, and fragments, images and gradients
+passes decide the same faces, segments and fringe pixels, and fragments, images and gradients
 agree to rounding, on easy and hard scenes; and the fallback where no compiler works."""
 
 from __future__ import annotations

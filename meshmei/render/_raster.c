@@ -2,8 +2,9 @@
  *
  * front_*: the no-grad front of passes.run_passes (cull, z-buffer, contour segments, nearest-segment
  * buffer, soft pixels, samples and used faces), with the same operations in the same order on the same
- * dtype as the torch code, so that every decision comes out bit for bit the same (compiled with
- * -ffp-contract=off: no fused multiply-add; no -ffast-math).
+ * dtype as the torch code (compiled with -ffp-contract=off: no fused multiply-add; no -ffast-math), so
+ * that its decisions are the torch code's: bit for bit up to the square root of a segment distance, which
+ * torch's CPU kernel does not round correctly and sqrt/sqrtf here do (see native.py).
  *
  * Keys are int64: (float32 bits of the depth or distance) << 32 | the face's or segment's slot, and each
  * pixel keeps the smallest (the packed-key "amin" of the torch code; the order of the pairs does not
@@ -324,7 +325,7 @@ SHADE(shade_fwd_f64, shade_bwd_f64, double, sqrt)
  * The whole no-grad front of passes.run_passes in one call: cull (passes._cull), z-buffer, contour
  * segments (passes._contour_segments), nearest-segment buffer, soft pixels (passes._soft_pixels), the
  * covered and fringe samples and the used faces (samples.used_faces), with the same arithmetic as the
- * torch code, so every decision is the same bit for bit.
+ * torch code, so every decision is the same (up to the square root's last bit: see the top).
  *
  * Inputs: U, Vv, Z (B, n) pixel coordinates and depth (1 where outside [znear, zfar]), ok (B, n) in depth
  * range; F (m, 3); et (m, 15) the topology's edge table. Work arrays (caller-allocated): keep, front

@@ -16,7 +16,8 @@ graph holds O(pixels) values, so backward needs no re-enumeration. See ``docs/re
 
 On CPU, where a C compiler is found, :func:`run_passes` takes the no-grad front (cull, both passes, the soft
 pixels, the samples and the used faces) from one compiled call, :func:`meshmei.render.native.front`, whose
-decisions are those of the torch code below bit for bit; the torch code is the reference and the fallback.
+decisions are those of the torch code below (up to the last bit of a square root, see there); the torch code
+is the reference and the fallback.
 """
 
 from __future__ import annotations
