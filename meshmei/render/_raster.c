@@ -39,11 +39,40 @@ static inline int64_t pack(float x, int64_t slot)
  * (21 values per used face: u0, v0, du[3], dv[3], the affine barycentrics a[3], bu[3], bv[3], iz[3],
  * tot), l and iz (3, Ni + No) and cov (Q). */
 #define FT 21
+/* A fringe sample's foot on its contour edge k (corners k + 1 and k + 2 of the face whose table row is
+ * `row`), in coordinates relative to corner 0: the pixel centre Q, the edge's start a and direction d, its
+ * squared length (and that floored at eps), the foot's parameter before and after clamping to [0, 1]. */
+#define FOOT(T)                                                                                            \
+    typedef struct {                                                                                       \
+        int e0, e1;                                                                                        \
+        T Qu, Qv, au, av, dx, dy, L2, L2c, t_raw, t;                                                       \
+    } foot_##T;                                                                                            \
+    static inline foot_##T foot_of_##T(const T *row, int64_t k, int64_t pix, int64_t S, T eps)             \
+    {                                                                                                      \
+        foot_##T f;                                                                                        \
+        f.e0 = (int)((k + 1) % 3);                                                                         \
+        f.e1 = (int)((k + 2) % 3);                                                                         \
+        f.Qu = ((T)(pix % S) + (T)0.5) - row[0];                                                           \
+        f.Qv = ((T)((pix / S) % S) + (T)0.5) - row[1];                                                     \
+        f.au = row[2 + f.e0];                                                                              \
+        f.av = row[5 + f.e0];                                                                              \
+        f.dx = row[2 + f.e1] - f.au;                                                                       \
+        f.dy = row[5 + f.e1] - f.av;                                                                       \
+        f.L2 = f.dx * f.dx + f.dy * f.dy;                                                                  \
+        f.L2c = f.L2 < eps ? eps : f.L2;                                                                   \
+        f.t_raw = ((f.Qu - f.au) * f.dx + (f.Qv - f.av) * f.dy) / f.L2c;                                   \
+        f.t = f.t_raw < 0 ? 0 : (f.t_raw > 1 ? 1 : f.t_raw);                                               \
+        return f;                                                                                          \
+    }
+
+FOOT(float)
+FOOT(double)
+
 #define SAMPLE(NAME_F, NAME_B, T, SQRT, EXP)                                                               \
     void NAME_F(int64_t U, const T *u, const T *v, const T *z, const int64_t *ci, int64_t Ni,               \
                 const int64_t *in_pix, const int64_t *in_slot, int64_t Q, const int64_t *fr_pix,             \
                 const int64_t *fr_slot, const int64_t *fr_k, const T *fr_sign, int64_t No,                   \
-                const int64_t *out, int64_t S, double sigma_, double eps_, T *ft, T *l, T *iz, T *cov)      \
+                const int64_t *pos, int64_t S, double sigma_, double eps_, T *ft, T *l, T *iz, T *cov)      \
     {                                                                                                      \
         const T eps = (T)eps_, sigma = (T)sigma_;                                                          \
         for (int64_t s = 0; s < U; ++s) {                                                                  \
@@ -91,35 +120,18 @@ static inline int64_t pack(float x, int64_t slot)
                 iz[j * N + i] = row[17 + j];                                                               \
             }                                                                                              \
         }                                                                                                  \
-        for (int64_t q = 0; q < Q; ++q) {                                                                  \
+        for (int64_t q = 0; q < Q; ++q) { /* pos[q]: the shaded sample's column - Ni (outside), or -1 */   \
             const T *row = ft + FT * fr_slot[q];                                                           \
-            int e0 = (int)((fr_k[q] + 1) % 3), e1 = (int)((fr_k[q] + 2) % 3);                              \
-            T Qu = ((T)(fr_pix[q] % S) + (T)0.5) - row[0];                                                 \
-            T Qv = ((T)((fr_pix[q] / S) % S) + (T)0.5) - row[1];                                           \
-            T au = row[2 + e0], bu = row[2 + e1], av = row[5 + e0], bv = row[5 + e1];                      \
-            T dx = bu - au, dy = bv - av;                                                                  \
-            T L2 = dx * dx + dy * dy;                                                                      \
-            T t = ((Qu - au) * dx + (Qv - av) * dy) / (L2 < eps ? eps : L2);                               \
-            t = t < 0 ? 0 : (t > 1 ? 1 : t);                                                               \
-            T ex = au + t * dx - Qu, ey = av + t * dy - Qv;                                                \
+            foot_##T f = foot_of_##T(row, fr_k[q], fr_pix[q], S, eps);                                     \
+            T ex = f.au + f.t * f.dx - f.Qu, ey = f.av + f.t * f.dy - f.Qv;                                \
             T d2 = ex * ex + ey * ey;                                                                      \
             T d = SQRT(d2 < eps * eps ? eps * eps : d2);                                                   \
             cov[q] = (T)1 / ((T)1 + EXP(-(fr_sign[q] * d / sigma)));                                       \
-        }                                                                                                  \
-        for (int64_t o = 0; o < No; ++o) {                                                                 \
-            int64_t q = out[o], i = Ni + o;                                                                \
-            const T *row = ft + FT * fr_slot[q];                                                           \
-            int e0 = (int)((fr_k[q] + 1) % 3), e1 = (int)((fr_k[q] + 2) % 3);                              \
-            T Qu = ((T)(fr_pix[q] % S) + (T)0.5) - row[0];                                                 \
-            T Qv = ((T)((fr_pix[q] / S) % S) + (T)0.5) - row[1];                                           \
-            T au = row[2 + e0], bu = row[2 + e1], av = row[5 + e0], bv = row[5 + e1];                      \
-            T dx = bu - au, dy = bv - av;                                                                  \
-            T L2 = dx * dx + dy * dy;                                                                      \
-            T t = ((Qu - au) * dx + (Qv - av) * dy) / (L2 < eps ? eps : L2);                               \
-            t = t < 0 ? 0 : (t > 1 ? 1 : t);                                                               \
+            if (pos[q] < 0)                                                                                \
+                continue;                                                                                  \
             for (int j = 0; j < 3; ++j) {                                                                  \
-                l[j * N + i] = j == e0 ? (T)1 - t : (j == e1 ? t : (T)0);                                  \
-                iz[j * N + i] = row[17 + j];                                                               \
+                l[j * N + Ni + pos[q]] = j == f.e0 ? (T)1 - f.t : (j == f.e1 ? f.t : (T)0);                \
+                iz[j * N + Ni + pos[q]] = row[17 + j];                                                     \
             }                                                                                              \
         }                                                                                                  \
     }                                                                                                      \
@@ -161,15 +173,10 @@ static inline int64_t pack(float x, int64_t slot)
         for (int64_t q = 0; q < Q; ++q) {                                                                  \
             int64_t s = fr_slot[q], o = pos[q]; /* o: the shaded sample's column - Ni, or -1 */            \
             const T *row = ft + FT * s;                                                                    \
-            int e0 = (int)((fr_k[q] + 1) % 3), e1 = (int)((fr_k[q] + 2) % 3);                              \
-            T Qu = ((T)(fr_pix[q] % S) + (T)0.5) - row[0];                                                 \
-            T Qv = ((T)((fr_pix[q] / S) % S) + (T)0.5) - row[1];                                           \
-            T au = row[2 + e0], bu = row[2 + e1], av = row[5 + e0], bv = row[5 + e1];                      \
-            T dx = bu - au, dy = bv - av;                                                                  \
-            T L2 = dx * dx + dy * dy;                                                                      \
-            T L2c = L2 < eps ? eps : L2;                                                                   \
-            T t_raw = ((Qu - au) * dx + (Qv - av) * dy) / L2c;                                             \
-            T t = t_raw < 0 ? 0 : (t_raw > 1 ? 1 : t_raw);                                                 \
+            foot_##T f = foot_of_##T(row, fr_k[q], fr_pix[q], S, eps);                                     \
+            const int e0 = f.e0, e1 = f.e1;                                                                \
+            const T Qu = f.Qu, Qv = f.Qv, au = f.au, av = f.av, dx = f.dx, dy = f.dy;                      \
+            const T L2 = f.L2, L2c = f.L2c, t_raw = f.t_raw, t = f.t;                                      \
             T ex = au + t * dx - Qu, ey = av + t * dy - Qv;                                                \
             T d2 = ex * ex + ey * ey;                                                                      \
             T d = SQRT(d2 < eps * eps ? eps * eps : d2);                                                   \
@@ -335,6 +342,12 @@ SHADE(shade_fwd_f64, shade_bwd_f64, double, sqrt)
  * fr_pix, fr_b, fr_f, fr_k, fr_slot (B*S*S); used (B * m); corner_index (3, B * m) read as (3, U) with the
  * row stride B * m; counts[4] = {K kept faces, Ni covered, Nf fringe, U used}.
  */
+static inline void keep_min(int64_t *pixel_key, int64_t key)
+{
+    if (key < *pixel_key)
+        *pixel_key = key;
+}
+
 static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int64_t *hi, int is_f32)
 {
     /* passes._ranges: ceil(clamp(lo, -2, S + 2) - 0.5) clamped to [0, S], floor(clamp(hi, ...) - 0.5)
@@ -447,10 +460,7 @@ static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int
                     float depth = (float)(tot / den);                                                      \
                     if (depth < 0)                                                                         \
                         depth = 0;                                                                         \
-                    int64_t key = pack(depth, s);                                                          \
-                    int64_t *pk = img + i * S + j;                                                         \
-                    if (key < *pk)                                                                         \
-                        *pk = key;                                                                         \
+                    keep_min(img + i * S + j, pack(depth, s));                                             \
                 }                                                                                          \
             }                                                                                              \
         }                                                                                                  \
@@ -516,10 +526,7 @@ static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int
                     T d = SQRT(d2);                                                                        \
                     if (!(d <= margin))                                                                    \
                         continue;                                                                          \
-                    int64_t key = pack((float)d, q);                                                       \
-                    int64_t *pk = img + i * S + j;                                                         \
-                    if (key < *pk)                                                                         \
-                        *pk = key;                                                                         \
+                    keep_min(img + i * S + j, pack((float)d, q));                                          \
                 }                                                                                          \
             }                                                                                              \
         }                                                                                                  \
@@ -721,4 +728,4 @@ FRONT(front_f64, double, 0, sqrt)
 NORMALS(normals_fwd_f32, normals_bwd_f32, float, sqrtf, fabsf, 1.17549435082228751e-38f, 3.4028234663852886e38f)
 NORMALS(normals_fwd_f64, normals_bwd_f64, double, sqrt, fabs, 2.2250738585072014e-308, 1.7976931348623157e308)
 
-int meshmei_raster_abi(void) { return 4; }
+int meshmei_raster_abi(void) { return 5; }

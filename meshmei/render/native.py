@@ -47,7 +47,7 @@ __all__ = ["native_status", "front", "sample_forward", "sample_backward", "shade
 
 _SOURCE = Path(__file__).with_name("_raster.c")
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
-_ABI = 4
+_ABI = 5
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}
@@ -205,6 +205,12 @@ def _c(*ts):
     return [t.contiguous() for t in ts]
 
 
+def _shaded_columns(out, Q: int):
+    """``(Q,)``: each fringe sample's column among the shaded samples after the covered ones, -1 for a fringe
+    pixel inside the surface (not shaded)."""
+    return torch.full((Q,), -1, dtype=torch.int64).index_put_((out,), torch.arange(out.shape[0]))
+
+
 def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, S, sigma, eps):
     """:class:`~meshmei.render.samples._SampleGeometry`'s forward: ``(l, iz, cov, table)``; ``table``
     ``(U, 21)`` is kept for :func:`sample_backward`."""
@@ -212,13 +218,14 @@ def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k
     u, v, z, ci, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out = _c(u, v, z, corner_index, in_pix, in_slot,
                                                                            fr_pix, fr_slot, fr_k, fr_sign, out)
     U, Ni, Q, No = ci.shape[1], in_pix.shape[0], fr_pix.shape[0], out.shape[0]
+    pos = _shaded_columns(out, Q)
     table = torch.empty(U, 21, dtype=dt)
     l, iz = torch.empty(3, Ni + No, dtype=dt), torch.empty(3, Ni + No, dtype=dt)
     cov = torch.empty(Q, dtype=dt)
     i64 = torch.int64
     getattr(lib, f"sample_fwd_{_suffix(dt)}")(
         U, _ptr(u, dt), _ptr(v, dt), _ptr(z, dt), _ptr(ci, i64), Ni, _ptr(in_pix, i64), _ptr(in_slot, i64), Q,
-        _ptr(fr_pix, i64), _ptr(fr_slot, i64), _ptr(fr_k, i64), _ptr(fr_sign, dt), No, _ptr(out, i64), int(S),
+        _ptr(fr_pix, i64), _ptr(fr_slot, i64), _ptr(fr_k, i64), _ptr(fr_sign, dt), No, _ptr(pos, i64), int(S),
         float(sigma), float(eps), _ptr(table, dt), _ptr(l, dt), _ptr(iz, dt), _ptr(cov, dt))
     return l, iz, cov, table
 
@@ -231,7 +238,7 @@ def sample_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_
     z, ci, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov = _c(
         z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov)
     U, Ni, Q, No = ci.shape[1], in_pix.shape[0], fr_pix.shape[0], out.shape[0]
-    pos = torch.full((Q,), -1, dtype=torch.int64).index_put_((out,), torch.arange(No))  # shaded column - Ni
+    pos = _shaded_columns(out, Q)
     g = torch.zeros(3, z.numel(), dtype=dt)
     i64 = torch.int64
     getattr(lib, f"sample_bwd_{_suffix(dt)}")(
