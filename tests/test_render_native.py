@@ -211,3 +211,12 @@ def test_compiled_vertex_normals_match_the_operator_and_gradcheck():
     Vs = (Vs + 0.05 * torch.randn(Vs.shape, generator=torch.Generator().manual_seed(4), dtype=Vs.dtype))
     assert torch.autograd.gradcheck(lambda X: native.vertex_normals(X, Fs, 1e-12), (Vs.unsqueeze(0).requires_grad_(),),
                                     eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+@needs_cc
+def test_a_cache_directory_that_cannot_be_made_builds_in_the_temporary_directory(tmp_path):
+    env = {**os.environ, "MESHMEI_CACHE_DIR": "/dev/null/meshmei", "TMPDIR": str(tmp_path)}
+    code = "from meshmei.render.native import native_status; print(native_status())"
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "'compiled': True" in r.stdout, r.stderr[-2000:]
+    assert len(list(tmp_path.glob("meshmei-*/raster-*.so"))) == 1

@@ -30,6 +30,7 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -75,10 +76,21 @@ def _build() -> ctypes.CDLL:
     if cc is None:
         raise RuntimeError("no C compiler found (set $CC, or install cc, gcc or clang)")
     src = _SOURCE.read_bytes()
-    tag = hashlib.sha256(src + " ".join([cc] + _FLAGS).encode() + sys.platform.encode()).hexdigest()[:16]
+    # keyed by the source, the compiler and its flags, and the platform: a home directory shared by the nodes
+    # of a cluster may hold builds for several architectures
+    key = " ".join([cc, *_FLAGS, sys.platform, platform.machine()]).encode()
+    tag = hashlib.sha256(src + key).hexdigest()[:16]
     out = _cache_dir() / f"raster-{tag}.so"
     if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            writable = os.access(out.parent, os.W_OK)
+        except OSError:
+            writable = False
+        if not writable:  # a read-only home: the temporary directory, one folder per user
+            out = Path(tempfile.gettempdir()) / f"meshmei-{os.getuid() if hasattr(os, 'getuid') else 0}" / out.name
+            out.parent.mkdir(parents=True, exist_ok=True)
+    if not out.exists():
         # a private temporary name, then an atomic rename: parallel processes (test workers) may build at once
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
         os.close(fd)
