@@ -214,7 +214,7 @@ SAMPLE(sample_fwd_f64, sample_bwd_f64, double, sqrt, exp)
 /* Shading (shading._ShadeSamples). l, iz: (3, N); corners: (3, C, N), C = 6 (position, normal) or 7 (and
  * albedo); light: (3, N). Forward writes the shade (N); backward takes its gradient g (N) and writes g_l,
  * g_iz (3, N), g_corners (3, C, N) and g_light (3, N). */
-#define SHADE_COMMON(T, SQRT)                                                                              \
+#define SHADE_COMMON(T)                                                                                    \
     T q[3], bary[3], PN[7];                                                                                \
     for (int j = 0; j < 3; ++j)                                                                            \
         q[j] = l[j * N + i] * iz[j * N + i];                                                               \
@@ -247,37 +247,41 @@ SAMPLE(sample_fwd_f64, sample_bwd_f64, double, sqrt, exp)
     T lit = ambient + intensity * (cth < 0 ? (T)0 : cth);                                                  \
     T reflect = C == 7 ? PN[6] * albedo : albedo;
 
-#define UNIT_LEN(T, SQRT, FABS, MAXV)                                                                      \
+/* |x| taken on x over its largest component, held at the dtype's largest value: the rare branch of both
+ * the shading's unit vectors (shading._unit, where a square overflowed: a light 1e20 away) and the normals'
+ * lengths (operators.safe_norm, where a square left the normal range), as operators.scaled_norm. */
+#define SCALED_LEN(T, SQRT, FABS, MAXV)                                                                    \
+    static inline T scaled_len_##T(T x0, T x1, T x2)                                                       \
+    {                                                                                                      \
+        T mx = FABS(x0);                                                                                   \
+        if (FABS(x1) > mx)                                                                                 \
+            mx = FABS(x1);                                                                                 \
+        if (FABS(x2) > mx)                                                                                 \
+            mx = FABS(x2);                                                                                 \
+        if (!(mx > 0))                                                                                     \
+            return mx; /* NaN stays NaN, as in torch */                                                    \
+        T a = x0 / mx, b = x1 / mx, c = x2 / mx;                                                           \
+        T len = SQRT(a * a + b * b + c * c) * mx;                                                          \
+        return len > MAXV ? MAXV : len;                                                                    \
+    }                                                                                                      \
     static inline T unit_len_##T(const T *x)                                                               \
     {                                                                                                      \
         T d = x[0] * x[0] + x[1] * x[1];                                                                   \
         d = d + x[2] * x[2];                                                                               \
         T len = SQRT(d);                                                                                   \
-        if (len < (T)INFINITY)                                                                             \
-            return len;                                                                                    \
-        /* a square overflowed (a light 1e20 away): the norm of x over its largest component */           \
-        T m = FABS(x[0]);                                                                                  \
-        if (FABS(x[1]) > m)                                                                                \
-            m = FABS(x[1]);                                                                                \
-        if (FABS(x[2]) > m)                                                                                \
-            m = FABS(x[2]);                                                                                \
-        if (!(m > 0))                                                                                      \
-            return len;                                                                                    \
-        T a = x[0] / m, b = x[1] / m, c = x[2] / m;                                                        \
-        len = SQRT(a * a + b * b + c * c) * m;                                                             \
-        return len > MAXV ? MAXV : len;                                                                    \
+        return len < (T)INFINITY ? len : scaled_len_##T(x[0], x[1], x[2]);                                 \
     }
 
-UNIT_LEN(float, sqrtf, fabsf, 3.4028234663852886e38f)
-UNIT_LEN(double, sqrt, fabs, 1.7976931348623157e308)
+SCALED_LEN(float, sqrtf, fabsf, 3.4028234663852886e38f)
+SCALED_LEN(double, sqrt, fabs, 1.7976931348623157e308)
 
-#define SHADE(NAME_F, NAME_B, T, SQRT)                                                                     \
+#define SHADE(NAME_F, NAME_B, T)                                                                           \
     void NAME_F(int64_t N, int64_t C, const T *l, const T *iz, const T *corners, const T *light,           \
                 double ambient_, double intensity_, double albedo_, double eps_, T *shade)                 \
     {                                                                                                      \
         const T ambient = (T)ambient_, intensity = (T)intensity_, albedo = (T)albedo_, eps = (T)eps_;      \
         for (int64_t i = 0; i < N; ++i) {                                                                  \
-            SHADE_COMMON(T, SQRT)                                                                          \
+            SHADE_COMMON(T)                                                                                \
             shade[i] = reflect * lit;                                                                      \
         }                                                                                                  \
     }                                                                                                      \
@@ -287,7 +291,7 @@ UNIT_LEN(double, sqrt, fabs, 1.7976931348623157e308)
     {                                                                                                      \
         const T ambient = (T)ambient_, intensity = (T)intensity_, albedo = (T)albedo_, eps = (T)eps_;      \
         for (int64_t i = 0; i < N; ++i) {                                                                  \
-            SHADE_COMMON(T, SQRT)                                                                          \
+            SHADE_COMMON(T)                                                                                \
             T gc = cth >= 0 ? g[i] * reflect * intensity : (T)0;                                           \
             T gx[3], gy[3], gN[3], gD[3];                                                                  \
             for (int k = 0; k < 3; ++k) {                                                                  \
@@ -325,8 +329,8 @@ UNIT_LEN(double, sqrt, fabs, 1.7976931348623157e308)
         }                                                                                                  \
     }
 
-SHADE(shade_fwd_f32, shade_bwd_f32, float, sqrtf)
-SHADE(shade_fwd_f64, shade_bwd_f64, double, sqrt)
+SHADE(shade_fwd_f32, shade_bwd_f32, float)
+SHADE(shade_fwd_f64, shade_bwd_f64, double)
 
 /* ------------------------------------------------------------------------------------------------------
  * The whole no-grad front of passes.run_passes in one call: cull (passes._cull), z-buffer, contour
@@ -337,7 +341,8 @@ SHADE(shade_fwd_f64, shade_bwd_f64, double, sqrt)
  * Inputs: U, Vv, Z (B, n) pixel coordinates and depth (1 where outside [znear, zfar]), ok (B, n) in depth
  * range; F (m, 3); et (m, 15) the topology's edge table. Work arrays (caller-allocated): keep, front
  * (B * m) uint8; slot_of, kept (B * m) int64; seg (9 * B * m) int64, (slot, k, b) per contour segment;
- * zkey, skey (B * S * S) int64; table (15 * B * m) T; integral (B * (S + 1)^2) int32.
+ * zkey, skey (B * S * S) int64; box (4 * B * m) T, the kept faces' screen boxes; integral (B * (S + 1)^2)
+ * int32.
  * Outputs (caller-allocated at their largest): face_id (B*S*S); in_pix, in_b, in_f, in_slot (B*S*S);
  * fr_pix, fr_b, fr_f, fr_k, fr_slot (B*S*S); used (B * m); corner_index (3, B * m) read as (3, U) with the
  * row stride B * m; counts[4] = {K kept faces, Ni covered, Nf fringe, U used}.
@@ -371,7 +376,7 @@ static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int
     void NAME(int64_t B, int64_t n, int64_t m, const T *U, const T *Vv, const T *Z, const uint8_t *ok,     \
               const int64_t *F, const int64_t *et, int64_t S, double margin_, double eps_, uint8_t *keep,    \
               uint8_t *front, int64_t *slot_of, int64_t *kept, int64_t *seg, int64_t *zkey, int64_t *skey,   \
-              T *table, int32_t *integral, int64_t *face_id, int64_t *in_pix, int64_t *in_b, int64_t *in_f,  \
+              T *box, int32_t *integral, int64_t *face_id, int64_t *in_pix, int64_t *in_b, int64_t *in_f,    \
               int64_t *in_slot, int64_t *fr_pix, int64_t *fr_b, int64_t *fr_f, int64_t *fr_k,                \
               int64_t *fr_slot, int64_t *used, int64_t *corner_index, int64_t *counts)                       \
     {                                                                                                      \
@@ -400,7 +405,7 @@ static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int
                 front[g] = area2 < 0;                                                                      \
                 slot_of[g] = -1;                                                                           \
                 if (k_) {                                                                                  \
-                    T *row = table + 15 * K;                                                               \
+                    T *row = box + 4 * K;                                                               \
                     row[0] = umin;                                                                         \
                     row[1] = umax;                                                                         \
                     row[2] = vmin;                                                                         \
@@ -416,7 +421,7 @@ static inline void pix_range(double lo_, double hi_, int64_t S, int64_t *lo, int
             int64_t g = kept[s], b = g / m, f = g % m;                                                     \
             const int64_t *c = F + 3 * f;                                                                  \
             const T *u = U + b * n, *v = Vv + b * n, *zz = Z + b * n;                                      \
-            const T *row = table + 15 * s;                                                                 \
+            const T *row = box + 4 * s;                                                                 \
             T ax[3], ay[3], dx[3], dy[3], iz[3];                                                           \
             for (int k = 0; k < 3; ++k) {                                                                  \
                 int64_t p1 = c[(k + 1) % 3], p2 = c[(k + 2) % 3];                                          \
@@ -613,21 +618,13 @@ FRONT(front_f64, double, 0, sqrt)
  * sqrt where the square is in range, else taken on the vector over its largest component. Backward takes
  * the normals' gradient (B, n, 3) and the forward's acc and accumulates into gV (B, n, 3, zeroed); work:
  * (B, n, 4). */
-#define NORMALS(NAME_F, NAME_B, T, SQRT, FABS, TINY, MAXV)                                                  \
+#define NORMALS(NAME_F, NAME_B, T, SQRT, TINY, MAXV)                                                  \
     static inline T snorm_##T(T x0, T x1, T x2)                                                            \
     {                                                                                                      \
         T sq = x0 * x0 + x1 * x1;                                                                          \
         sq = sq + x2 * x2;                                                                                 \
-        if ((sq < TINY || sq > MAXV) && (x0 != 0 || x1 != 0 || x2 != 0)) {                                 \
-            T mx = FABS(x0);                                                                               \
-            if (FABS(x1) > mx)                                                                             \
-                mx = FABS(x1);                                                                             \
-            if (FABS(x2) > mx)                                                                             \
-                mx = FABS(x2);                                                                             \
-            T a = x0 / mx, b = x1 / mx, c = x2 / mx;                                                       \
-            T len = SQRT(a * a + b * b + c * c) * mx;                                                      \
-            return len > MAXV ? MAXV : len;                                                                \
-        }                                                                                                  \
+        if ((sq < TINY || sq > MAXV) && (x0 != 0 || x1 != 0 || x2 != 0))                                  \
+            return scaled_len_##T(x0, x1, x2);                                                             \
         return sq > 0 ? SQRT(sq < TINY ? TINY : sq) : (T)0;                                                \
     }                                                                                                      \
     static inline void face_cross_##T(const T *V, const int64_t *f, T *e1, T *e2, T *cr)                   \
@@ -725,7 +722,7 @@ FRONT(front_f64, double, 0, sqrt)
         }                                                                                                  \
     }
 
-NORMALS(normals_fwd_f32, normals_bwd_f32, float, sqrtf, fabsf, 1.17549435082228751e-38f, 3.4028234663852886e38f)
-NORMALS(normals_fwd_f64, normals_bwd_f64, double, sqrt, fabs, 2.2250738585072014e-308, 1.7976931348623157e308)
+NORMALS(normals_fwd_f32, normals_bwd_f32, float, sqrtf, 1.17549435082228751e-38f, 3.4028234663852886e38f)
+NORMALS(normals_fwd_f64, normals_bwd_f64, double, sqrt, 2.2250738585072014e-308, 1.7976931348623157e308)
 
 int meshmei_raster_abi(void) { return 5; }

@@ -188,7 +188,7 @@ def front(U, Vv, Z, ok, F, edge_table, S: int, margin: float, eps: float) -> dic
     keep, front_ = torch.empty(BM, dtype=torch.uint8), torch.empty(BM, dtype=torch.uint8)
     slot_of, kept, seg = torch.empty(BM, dtype=i64), torch.empty(BM, dtype=i64), torch.empty(9 * BM, dtype=i64)
     zkey, skey = torch.empty(BP, dtype=i64), torch.empty(BP, dtype=i64)
-    table = torch.empty(BM * 15, dtype=dt)
+    box = torch.empty(BM * 4, dtype=dt)
     integral = torch.empty(B * (S + 1) ** 2, dtype=torch.int32)
     face_id = torch.empty(BP, dtype=i64)
     pix = torch.empty(9, BP, dtype=i64)  # in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_k, fr_slot
@@ -197,7 +197,7 @@ def front(U, Vv, Z, ok, F, edge_table, S: int, margin: float, eps: float) -> dic
     getattr(lib, f"front_{_suffix(dt)}")(
         B, n, m, _ptr(U, dt), _ptr(Vv, dt), _ptr(Z, dt), ok.data_ptr(), _ptr(F, i64), _ptr(et, i64), int(S),
         float(margin), float(eps), keep.data_ptr(), front_.data_ptr(), _ptr(slot_of, i64), _ptr(kept, i64),
-        _ptr(seg, i64), _ptr(zkey, i64), _ptr(skey, i64), _ptr(table, dt), integral.data_ptr(), _ptr(face_id, i64),
+        _ptr(seg, i64), _ptr(zkey, i64), _ptr(skey, i64), _ptr(box, dt), integral.data_ptr(), _ptr(face_id, i64),
         *(_ptr(pix[i], i64) for i in range(9)), _ptr(used, i64), _ptr(corner_index, i64), _ptr(counts, i64))
     _, Ni, Nf, Uc = counts.tolist()
     cov, fr = pix[:4, :Ni], pix[4:, :Nf]
@@ -224,8 +224,9 @@ def _shaded_columns(out, Q: int):
 
 
 def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, S, sigma, eps):
-    """:class:`~meshmei.render.samples._SampleGeometry`'s forward: ``(l, iz, cov, table)``; ``table``
-    ``(U, 21)`` is kept for :func:`sample_backward`."""
+    """:class:`~meshmei.render.samples._SampleGeometry`'s forward: ``(l, iz, cov, table, pos)``; the face
+    ``table`` ``(U, 21)`` and the fringe samples' shaded columns ``pos`` ``(Q,)`` are kept for
+    :func:`sample_backward`."""
     lib, dt = _lib(), u.dtype
     u, v, z, ci, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out = _c(u, v, z, corner_index, in_pix, in_slot,
                                                                            fr_pix, fr_slot, fr_k, fr_sign, out)
@@ -239,18 +240,18 @@ def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k
         U, _ptr(u, dt), _ptr(v, dt), _ptr(z, dt), _ptr(ci, i64), Ni, _ptr(in_pix, i64), _ptr(in_slot, i64), Q,
         _ptr(fr_pix, i64), _ptr(fr_slot, i64), _ptr(fr_k, i64), _ptr(fr_sign, dt), No, _ptr(pos, i64), int(S),
         float(sigma), float(eps), _ptr(table, dt), _ptr(l, dt), _ptr(iz, dt), _ptr(cov, dt))
-    return l, iz, cov, table
+    return l, iz, cov, table, pos
 
 
-def sample_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, table, cov, S, sigma, eps,
+def sample_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, pos, table, cov, S, sigma, eps,
                     g_l, g_iz, g_cov):
     """:class:`~meshmei.render.samples._SampleGeometry`'s backward: gradients of ``u, v, z`` (shaped as ``z``)."""
     lib, dt = _lib(), z.dtype
     shape = z.shape
     z, ci, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov = _c(
         z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov)
-    U, Ni, Q, No = ci.shape[1], in_pix.shape[0], fr_pix.shape[0], out.shape[0]
-    pos = _shaded_columns(out, Q)
+    U, Ni, Q = ci.shape[1], in_pix.shape[0], fr_pix.shape[0]
+    No = g_l.shape[1] - Ni
     g = torch.zeros(3, z.numel(), dtype=dt)
     i64 = torch.int64
     getattr(lib, f"sample_bwd_{_suffix(dt)}")(

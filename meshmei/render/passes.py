@@ -317,47 +317,51 @@ def run_passes(Vw, F, eye, R, cam: Camera, st: RenderSettings, n_vertices: int) 
     RasterPasses
     """
     S, B = st.image_size, Vw.shape[0]
-    dt = Vw.dtype
     Vc, z, u, v, ok = _project(Vw, eye, R, cam, S)
     if native.available(u):  # the same decisions from one compiled call (meshmei.render.native)
         d = native.front(u.detach(), v.detach(), z.detach(), ok, F, mesh_topology(F, n_vertices).edge_table, S,
                          st.soft_margin, st.eps)
-        hit = d["face_id"] >= 0
-        fr_pix, corner_index = d["fr_pix"], d["corner_index"]
-        shaded, cov_s = sample_geometry(d["in_pix"], d["in_b"], d["in_f"], d["in_slot"], fr_pix, d["fr_b"], d["fr_f"],
-                                        d["fr_slot"], d["fr_k"], hit, u, v, z, corner_index, S, st)
-        cov = hit.to(dt).index_put((fr_pix,), cov_s)
-        return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=d["front"], face_id=d["face_id"].view(B, S, S), hit=hit,
-                            shaded=shaded, n_inside=d["in_pix"].shape[0], fringe_pix=fr_pix, coverage=cov,
-                            used=d["used"], corner_index=corner_index)
-    with torch.no_grad():
-        U, Vv = u.detach(), v.detach()
-        sc = _cull(U, Vv, ok, F, S, st.soft_margin)
-        edges = mesh_topology(F, n_vertices).edge_table.index_select(0, sc.kf)  # (K, 15)
-        zkey = _zbuffer(sc, z.detach(), F, B, S, st.chunk_size, edges[:, 12:].bool())
-        hit = zkey != _NONE
-        slot = (zkey & 0xFFFFFFFF).masked_fill(~hit, 0)
-        face_id = torch.full((B * S * S,), -1, dtype=torch.int64, device=Vw.device)
-        if sc.kb.shape[0]:
-            face_id[hit] = sc.kf[slot[hit]]
-            seg, ends = _contour_segments(sc, U, Vv, F, edges)
-            skey = _segment_buffer(sc, seg, ends, B, S, st)
-        else:
-            seg, skey = None, torch.full((B * S * S,), _NONE, dtype=torch.int64, device=Vw.device)
-        soft = _soft_pixels(skey, hit, B, S, st.soft_margin)
-        in_pix = hit.nonzero().squeeze(1)
-        in_b, in_f = in_pix // (S * S), face_id[in_pix]
-        fr_pix = soft.nonzero().squeeze(1)
-        if fr_pix.numel():
-            s_, k_ = seg[skey[fr_pix] & 0xFFFFFFFF].unbind(1)
-            fr_b, fr_f = sc.kb[s_], sc.kf[s_]
-        else:
-            fr_b = fr_f = k_ = fr_pix
-        used, corner_index, in_slot, fr_slot = used_faces(in_b, in_f, fr_b, fr_f, F, B, Vw.shape[1])
-    shaded, cov_s = sample_geometry(in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_slot, k_, hit, u, v, z,
-                                    corner_index, S, st)
-    cov = hit.to(dt).index_put((fr_pix,), cov_s)
-    return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=sc.front, face_id=face_id.view(B, S, S), hit=hit, shaded=shaded,
-                        n_inside=in_pix.shape[0], fringe_pix=fr_pix, coverage=cov, used=used, corner_index=corner_index)
+    else:
+        d = _torch_front(u, v, z, ok, F, S, st, n_vertices)
+    hit, fr_pix, corner_index = d["face_id"] >= 0, d["fr_pix"], d["corner_index"]
+    shaded, cov_s = sample_geometry(d["in_pix"], d["in_b"], d["in_f"], d["in_slot"], fr_pix, d["fr_b"], d["fr_f"],
+                                    d["fr_slot"], d["fr_k"], hit, u, v, z, corner_index, S, st)
+    cov = hit.to(Vw.dtype).index_put((fr_pix,), cov_s)
+    return RasterPasses(B=B, S=S, Vc=Vc, z=z, front=d["front"], face_id=d["face_id"].view(B, S, S), hit=hit,
+                        shaded=shaded, n_inside=d["in_pix"].shape[0], fringe_pix=fr_pix, coverage=cov, used=d["used"],
+                        corner_index=corner_index)
+
+
+@torch.no_grad()
+def _torch_front(u, v, z, ok, F, S: int, st: RenderSettings, n_vertices: int) -> dict:
+    """The passes' decisions in torch operations, as :func:`meshmei.render.native.front` returns them (the
+    compiled kernel's reference, and what CUDA tensors run)."""
+    B = u.shape[0]
+    U, Vv = u.detach(), v.detach()
+    sc = _cull(U, Vv, ok, F, S, st.soft_margin)
+    edges = mesh_topology(F, n_vertices).edge_table.index_select(0, sc.kf)  # (K, 15)
+    zkey = _zbuffer(sc, z.detach(), F, B, S, st.chunk_size, edges[:, 12:].bool())
+    hit = zkey != _NONE
+    slot = (zkey & 0xFFFFFFFF).masked_fill(~hit, 0)
+    face_id = torch.full((B * S * S,), -1, dtype=torch.int64, device=u.device)
+    if sc.kb.shape[0]:
+        face_id[hit] = sc.kf[slot[hit]]
+        seg, ends = _contour_segments(sc, U, Vv, F, edges)
+        skey = _segment_buffer(sc, seg, ends, B, S, st)
+    else:
+        seg, skey = None, torch.full((B * S * S,), _NONE, dtype=torch.int64, device=u.device)
+    soft = _soft_pixels(skey, hit, B, S, st.soft_margin)
+    in_pix = hit.nonzero().squeeze(1)
+    in_b, in_f = in_pix // (S * S), face_id[in_pix]
+    fr_pix = soft.nonzero().squeeze(1)
+    if fr_pix.numel():
+        s_, k_ = seg[skey[fr_pix] & 0xFFFFFFFF].unbind(1)
+        fr_b, fr_f = sc.kb[s_], sc.kf[s_]
+    else:
+        fr_b = fr_f = k_ = fr_pix
+    used, corner_index, in_slot, fr_slot = used_faces(in_b, in_f, fr_b, fr_f, F, B, u.shape[1])
+    return {"front": sc.front, "face_id": face_id, "in_pix": in_pix, "in_b": in_b, "in_f": in_f, "in_slot": in_slot,
+            "fr_pix": fr_pix, "fr_b": fr_b, "fr_f": fr_f, "fr_k": k_, "fr_slot": fr_slot, "used": used,
+            "corner_index": corner_index}
 
 

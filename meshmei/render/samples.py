@@ -119,9 +119,9 @@ class _SampleGeometry(torch.autograd.Function):
     def forward(ctx, u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, S, sigma, eps):
         ctx.native = native.available(u)
         if ctx.native:  # the same formulas, compiled (meshmei.render.native)
-            l, iz, cov, table = native.sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k,
-                                                      fr_sign, out, S, sigma, eps)
-            ctx.save_for_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, table, cov)
+            l, iz, cov, table, pos = native.sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot,
+                                                           fr_k, fr_sign, out, S, sigma, eps)
+            ctx.save_for_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, pos, table, cov)
             ctx.S, ctx.sigma, ctx.eps = S, sigma, eps
             return l, iz, cov
         dt = u.dtype
