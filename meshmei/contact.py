@@ -16,18 +16,29 @@ With ``edges=True`` every two edges that share no vertex are paired too (the seg
 incremental potential contact does: two edges crossing like an X come close while every vertex stays far
 from the other's faces.
 
-Cost. The candidate pairs come from KD-trees over the vertices and the face centroids, searched again only
-when some vertex has moved more than ``margin`` since the last search (candidates are kept out to
-``distance + 2 margin``, so no pair can come within ``distance`` unseen, with ``min_interval=1``, as
-reconstruction uses it). With a larger ``min_interval`` (the 3D-MEI's 4) a search waits that many calls even when a vertex moved
-more than ``margin``, so a pair can come within ``distance`` unseen between two searches (at ten times the
-3D-MEI's learning rate a review found 115-121 such pairs over a run, the nearest at 0.2-0.3 ``distance``; none
-at the default rate): the barrier is then a preference, and the step guard holds the guarantee. A search is
-O(n log n): the trees' pairs, most of them a vertex and the faces of its own ring or the next, are cut by a
-cheap lower bound (the distance to the half-plane beyond the face's farthest edge) before the exact distances,
-about 50 ms at 10k vertices. Between searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's distance
-shrinks at most by how far its vertices moved since the search) and costs their point-triangle distances,
-O(n) with a small constant. A larger ``margin`` would search less often, but beyond ``distance / 2`` (with
+Cost. The candidate pairs are searched again only when some vertex has moved more than ``margin`` since the
+last search (candidates are kept out to ``distance + 2 margin``, so no pair can come within ``distance``
+unseen, with ``min_interval=1``, as reconstruction uses it). With a larger ``min_interval`` (the 3D-MEI's 4)
+a search waits that many calls even when a vertex moved more than ``margin``, so a pair can come within
+``distance`` unseen between two searches (at ten times the 3D-MEI's learning rate a review found 115-121 such
+pairs over a run, the nearest at 0.2-0.3 ``distance``; none at the default rate): the barrier is then a
+preference, and the step guard holds the guarantee. A search is a broad phase, then the exact distances in
+torch on what it keeps. The broad phase is compiled (``_contact.c``, :mod:`meshmei.native`): a uniform grid
+of cells over the vertices and the edges' midpoints, sized to the primitives and ``reach``, each face and
+edge tested against the points of the cells its widened box overlaps with the same distance formulas in
+C, which keep every pair within ``reach`` with a relative slack of 1e-6 (:data:`_SLACK`); O(n + pairs
+tested). Where the kernels are not built, or within :func:`~meshmei.native.torch_reference`, the NumPy and
+SciPy broad phase runs: KD-trees over the vertices and the face centroids (and the edges' midpoints),
+whose pairs, most of them a vertex and the faces of its own ring or the next, are cut by a cheap lower
+bound (the distance to the half-plane beyond the face's farthest edge), O(n log n). Either way the torch
+distances decide, so the two hand out the same pairs in the same order with the same distances, bit for
+bit (tested on hard meshes; a 3D-MEI and the default reconstruction end bit for bit as before). A 3D-MEI
+search of a 400-vertex sphere with edge pairs took 19-20 ms with the NumPy broad phase and 3.7 ms with the
+compiled one, 1.3 ms of it in C (the rest the torch distances and sorting).
+
+Between searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's
+distance shrinks at most by how far its vertices moved since the search) and costs their point-triangle
+distances, O(n) with a small constant. A larger ``margin`` would search less often, but beyond ``distance / 2`` (with
 ``distance`` a third of an edge) the candidates reach the faces one ring away: at ``margin = distance``
 a search of the 10k bunny keeps 103,000 pairs instead of 3,600 and costs 2.4 times as much, for 40 % fewer
 searches. Reconstruction starts each step's search in a worker thread (:meth:`ContactBarrier.prefetch`)
@@ -50,6 +61,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch.autograd.function import once_differentiable
 
+from . import native
 from ._checks import check_positive
 from .errors import MeshError
 from .mesh import as_faces, check_mesh
@@ -273,6 +285,30 @@ def _nearby(P: np.ndarray, C: np.ndarray, r: float):
     return found["i"].astype(np.int64), found["j"].astype(np.int64)
 
 
+_SLACK = 1e-6
+"""Relative slack on ``reach^2`` of the compiled broad phase (``_contact.c``): its own distances keep every
+pair that the torch code measures within ``reach`` (the two differ by rounding, far below this)."""
+
+
+def _compiled_pairs(kernel: str, Vn: np.ndarray, idx: np.ndarray, reach: float, *extra):
+    """Run a broad-phase kernel of ``_contact.c`` (``contact_vertex_face`` or ``contact_edge_edge``) on the
+    vertices ``Vn`` and faces or edges ``idx``; the pairs ``(a, b)`` as two int64 arrays, or None where it
+    cannot tell (a non-finite coordinate, no memory: the NumPy search runs instead)."""
+    fn = getattr(native.library(), kernel)
+    Vn, idx = np.ascontiguousarray(Vn, dtype=np.float64), np.ascontiguousarray(idx, dtype=np.int64)
+    lim = reach * reach * (1.0 + _SLACK)
+    cap = 16 * len(idx) + 64
+    for _ in range(2):
+        a, b = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+        found = fn(len(Vn), Vn.ctypes.data, len(idx), idx.ctypes.data, *extra, lim, cap, a.ctypes.data, b.ctypes.data)
+        if found < 0:
+            return None
+        if found <= cap:
+            return a[:found], b[:found]
+        cap = found  # too little room: once more with room for all
+    raise AssertionError("the contact search found more pairs on a second look at the same vertices")
+
+
 class ContactBarrier:
     """The contact energy of one face list, with cached candidate pairs.
 
@@ -343,11 +379,12 @@ class ContactBarrier:
         intersection is refused). Returns how many pairs are left out (0 for a clean, well-shaped mesh,
         whose nearest non-incident faces lie most of an edge away)."""
         Vn = V.detach().cpu().double().numpy()
-        vt, ft, _, _, dvf, _ = self._candidates(Vn)
+        compiled = native.enabled()
+        vt, ft, _, _, dvf, _ = self._candidates(Vn, compiled)
         close = (dvf < IN_CONTACT * self.distance).numpy()
         out_vf = np.unique(vt.numpy()[close] * len(self.Fn) + ft.numpy()[close])
         En = self.En if self.En is not None else mesh_edges(self.F).cpu().numpy()  # use_edges' list, same order
-        ea, eb, dee = self._edge_candidates(Vn, self.distance + 2.0 * self.margin, En)
+        ea, eb, dee = self._edge_candidates(Vn, self.distance + 2.0 * self.margin, En, compiled)
         close = (dee < IN_CONTACT * self.distance).numpy()
         out_ee = np.unique(_pair_keys(ea.numpy()[close], eb.numpy()[close], len(En)))
         self._out_vf, self._out_ee = out_vf, out_ee
@@ -371,14 +408,34 @@ class ContactBarrier:
         V, F = check_mesh(V, F)
         return cls(F, factor * mean_edge_length(V, F), **kwargs)
 
-    def _candidates(self, Vn: np.ndarray):
+    def _candidates(self, Vn: np.ndarray, compiled: bool = False):
         """(vertex, face) pairs, the vertex not in the face, within ``distance + 2 margin`` (by face, then
-        vertex), then the edge pairs of :meth:`_edge_candidates`, then the two kinds' distances."""
+        vertex), then the edge pairs of :meth:`_edge_candidates`, then the two kinds' distances. ``compiled``:
+        the broad phase by ``_contact.c`` (the same pairs: both keep every pair the torch distance puts
+        within reach, and that distance decides)."""
+        reach = self.distance + 2.0 * self.margin
+        found = _compiled_pairs("contact_vertex_face", Vn, self.Fn, reach) if compiled else None
+        vi, fi = found if found is not None else self._vertex_face_near(Vn, reach)
+        # keep the pairs whose exact distance is within reach now
+        Vd = torch.from_numpy(Vn)
+        vt, ft = torch.from_numpy(vi), torch.from_numpy(fi)
+        Fd = torch.from_numpy(self.Fn)
+        d2 = point_triangle_sqdist(Vd[vt], Vd[Fd[ft, 0]], Vd[Fd[ft, 1]], Vd[Fd[ft, 2]])
+        near = d2 < reach * reach
+        if self._out_vf is not None and len(self._out_vf):
+            near &= torch.from_numpy(~np.isin(vt.numpy() * len(self.Fn) + ft.numpy(), self._out_vf))
+        vt, ft, d2 = vt[near], ft[near], d2[near]
+        order = np.lexsort((vt.numpy(), ft.numpy()))  # by face, then vertex: not the search's order
+        ea, eb, de = self._edge_candidates(Vn, reach, compiled=compiled)
+        return vt[order], ft[order], ea, eb, d2[order].sqrt(), de
+
+    def _vertex_face_near(self, Vn: np.ndarray, reach: float):
+        """The NumPy and SciPy broad phase of :meth:`_candidates`: (vertex, face) index arrays holding every
+        pair within ``reach``, the vertex not in the face."""
         T = Vn[self.Fn]
         A, B, C = T[:, 0], T[:, 1], T[:, 2]
         cen = (A + B + C) / 3.0
         rad = np.sqrt(np.maximum.reduce([_sqlen(X - cen) for X in (A, B, C)]))  # each face lies in this ball
-        reach = self.distance + 2.0 * self.margin
         # most faces: a KD-tree over centroids, searched to reach + the 98th-percentile radius; the few
         # faces larger than that (stretched while the shape moves) are searched with their own radius
         typical = float(np.quantile(rad, 0.98))
@@ -403,24 +460,12 @@ class ContactBarrier:
         # most pairs left lie an edge's height beside the face, in its plane (a smooth patch): drop those
         # whose distance to the half-plane beyond one of the face's edges is already beyond reach
         keep = _halfplane_sqdist(Vn[vi], _halfplanes(A, B, C)[fi]) < reach * reach
-        vi, fi = vi[keep], fi[keep]
-        # keep the pairs whose exact distance is within reach now
-        Vd = torch.from_numpy(Vn)
-        vt, ft = torch.from_numpy(vi), torch.from_numpy(fi)
-        Fd = torch.from_numpy(self.Fn)
-        d2 = point_triangle_sqdist(Vd[vt], Vd[Fd[ft, 0]], Vd[Fd[ft, 1]], Vd[Fd[ft, 2]])
-        near = d2 < reach * reach
-        if self._out_vf is not None and len(self._out_vf):
-            near &= torch.from_numpy(~np.isin(vt.numpy() * len(self.Fn) + ft.numpy(), self._out_vf))
-        vt, ft, d2 = vt[near], ft[near], d2[near]
-        order = np.lexsort((vt.numpy(), ft.numpy()))  # by face, then vertex: not the KD-trees' order
-        ea, eb, de = self._edge_candidates(Vn, reach)
-        return vt[order], ft[order], ea, eb, d2[order].sqrt(), de
+        return vi[keep], fi[keep]
 
-    def _edge_candidates(self, Vn: np.ndarray, reach: float, En: np.ndarray | None = None):
+    def _edge_candidates(self, Vn: np.ndarray, reach: float, En: np.ndarray | None = None, compiled: bool = False):
         """(edge, edge) pairs, sharing no vertex, within ``reach`` now (indices into :attr:`E`, by first
         edge, then second), and their distances; empty without ``edges``. ``En``: the edges to pair instead
-        (with :attr:`E` unset)."""
+        (with :attr:`E` unset). ``compiled``: the broad phase by ``_contact.c``, as in :meth:`_candidates`."""
         none = torch.zeros(0, dtype=torch.int64)
         En = self.En if En is None else En
         if En is None:
@@ -428,8 +473,27 @@ class ContactBarrier:
         A, B = Vn[En[:, 0]], Vn[En[:, 1]]
         mid, half = 0.5 * (A + B), 0.5 * np.sqrt(((B - A) ** 2).sum(1))
         typical = float(np.quantile(half, 0.98))
-        tree = cKDTree(mid)
         big = half > typical
+        # a pair is written (i, j), i < j, except that an edge longer than typical comes first when the other is
+        # not: the NumPy search's order, which the compiled one keeps (its results are then the same bit for bit)
+        first = np.ascontiguousarray(big, dtype=np.uint8)
+        found = _compiled_pairs("contact_edge_edge", Vn, En, reach, first.ctypes.data) if compiled else None
+        i, j = found if found is not None else self._edge_edge_near(mid, half, typical, big, En, reach)
+        i, j = torch.from_numpy(i), torch.from_numpy(j)
+        Vd, Et = torch.from_numpy(Vn), torch.from_numpy(En)
+        d2 = segment_sqdist(Vd[Et[i, 0]], Vd[Et[i, 1]], Vd[Et[j, 0]], Vd[Et[j, 1]])
+        near = d2 < reach * reach
+        if self._out_ee is not None and len(self._out_ee):
+            near &= torch.from_numpy(~np.isin(_pair_keys(i.numpy(), j.numpy(), len(En)), self._out_ee))
+        i, j, d2 = i[near], j[near], d2[near]
+        order = np.lexsort((j.numpy(), i.numpy()))
+        return i[order], j[order], d2[order].sqrt()
+
+    @staticmethod
+    def _edge_edge_near(mid, half, typical, big, En, reach):
+        """The NumPy and SciPy broad phase of :meth:`_edge_candidates`: (edge, edge) index arrays holding every
+        pair within ``reach`` that shares no vertex."""
+        tree = cKDTree(mid)
         ij = tree.query_pairs(reach + 2 * typical, output_type="ndarray")
         ij = ij[~(big[ij[:, 0]] | big[ij[:, 1]])]  # long edges: searched below with their own radius
         if big.any():
@@ -443,15 +507,7 @@ class ContactBarrier:
         keep = (a0 != b0) & (a0 != b1) & (a1 != b0) & (a1 != b1)  # no shared vertex
         i, j = i[keep], j[keep]
         keep = ((mid[i] - mid[j]) ** 2).sum(1) <= (reach + half[i] + half[j]) ** 2
-        i, j = torch.from_numpy(i[keep]), torch.from_numpy(j[keep])
-        Vd, Et = torch.from_numpy(Vn), torch.from_numpy(En)
-        d2 = segment_sqdist(Vd[Et[i, 0]], Vd[Et[i, 1]], Vd[Et[j, 0]], Vd[Et[j, 1]])
-        near = d2 < reach * reach
-        if self._out_ee is not None and len(self._out_ee):
-            near &= torch.from_numpy(~np.isin(_pair_keys(i.numpy(), j.numpy(), len(En)), self._out_ee))
-        i, j, d2 = i[near], j[near], d2[near]
-        order = np.lexsort((j.numpy(), i.numpy()))
-        return i[order], j[order], d2[order].sqrt()
+        return i[keep], j[keep]
 
     def prefetch(self, V: torch.Tensor) -> None:
         """Start :meth:`candidates` for ``V`` in a worker thread; the next call of :meth:`candidates` (or of
@@ -463,7 +519,7 @@ class ContactBarrier:
         taken."""
         self._take_pending()
         Vd = V.detach()
-        self._pending = (Vd, _worker().submit(self._search, Vd))
+        self._pending = (Vd, _worker().submit(self._search, Vd, native.enabled()))
 
     def _take_pending(self, V: torch.Tensor | None = None):
         """The prefetched result if it was for ``V`` (None otherwise, or without a prefetch); a prefetch for
@@ -490,11 +546,12 @@ class ContactBarrier:
             found = self._take_pending(V)
             if found is not None:
                 return tuple(x.to(V.device) for x in found)
-        return self._search(V)
+        return self._search(V, native.enabled())
 
     @torch.no_grad()
-    def _search(self, V: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """:meth:`candidates` without a prefetch (what a prefetch runs)."""
+    def _search(self, V: torch.Tensor, compiled: bool) -> tuple[torch.Tensor, ...]:
+        """:meth:`candidates` without a prefetch (what a prefetch runs); ``compiled``: the broad phase by
+        ``_contact.c`` (decided in the calling thread, where :func:`~meshmei.native.torch_reference` holds)."""
         t0 = time.perf_counter()
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices:
             raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= "
@@ -503,7 +560,7 @@ class ContactBarrier:
         self._since += 1
         moved = None if self._built_at is None else np.sqrt(_sqlen(Vn - self._built_at))
         if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
-            self._pairs = self._candidates(Vn)
+            self._pairs = self._candidates(Vn, compiled)
             self._built_at = Vn.copy()
             self.rebuilds += 1
             self._since = 0

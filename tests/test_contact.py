@@ -12,7 +12,10 @@ import torch
 from meshmei.contact import (ContactBarrier, _closest_weights, _point_triangle, _segment_segment, contact_energies,
                              mean_edge_length, point_triangle_sqdist, segment_sqdist)
 from meshmei.errors import MeshError
+from meshmei.native import native_status, torch_reference
 from meshmei.shapes import initial_mesh
+
+needs_cc = pytest.mark.skipif(not native_status()["compiled"], reason="no compiled kernels on this machine")
 
 
 def _brute_sqdist(P, A, B, C, n=400):
@@ -258,10 +261,12 @@ def test_the_half_plane_bound_is_a_lower_bound_exact_over_the_face():
     assert np.median(bound[100:] / exact[100:]) > 0.5
 
 
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_cc)])
 @pytest.mark.parametrize("kind", ["sphere", "sheet"])
-def test_candidates_are_exactly_the_pairs_within_reach(kind):
+def test_candidates_are_exactly_the_pairs_within_reach(kind, compiled):
     """Against every (vertex, face) pair of a crumpled mesh, with a few faces stretched long (searched with
-    their own radius): the cached search finds exactly the pairs, the vertex not in the face, within reach."""
+    their own radius): the cached search finds exactly the pairs, the vertex not in the face, within reach;
+    with the NumPy and SciPy broad phase and the compiled one."""
     V, F = initial_mesh(kind, n_vertices=500, dtype=torch.float64)
     h = mean_edge_length(V, F)
     g = torch.Generator().manual_seed(3)
@@ -273,7 +278,7 @@ def test_candidates_are_exactly_the_pairs_within_reach(kind):
     d2 = point_triangle_sqdist(V[vi], V[F[fi, 0]], V[F[fi, 1]], V[F[fi, 2]])
     apart = (F[fi] != vi[:, None]).all(1)
     reach = barrier.distance + 2 * barrier.margin
-    vt, ft, _, _, d, _ = barrier._candidates(V.numpy())  # the search: every pair within reach
+    vt, ft, _, _, d, _ = barrier._candidates(V.numpy(), compiled)  # the search: every pair within reach
     want = (d2 < reach * reach) & apart
     expected = set(zip(vi[want].tolist(), fi[want].tolist()))
     assert len(expected) > 50  # crumpled enough that the test means something
@@ -283,6 +288,118 @@ def test_candidates_are_exactly_the_pairs_within_reach(kind):
     vt, ft, _, _ = barrier.candidates(V)
     want = (d2 < barrier.distance ** 2) & apart
     assert set(zip(vt.tolist(), ft.tolist())) == set(zip(vi[want].tolist(), fi[want].tolist()))
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_cc)])
+def test_edge_candidates_are_exactly_the_edge_pairs_within_reach(compiled):
+    """Against every pair of edges of a crumpled sphere with a few edges stretched long (the compiled search
+    tests those against every edge): exactly the pairs sharing no vertex within reach, each once, a long
+    edge first where the other is not."""
+    V, F = initial_mesh("sphere", n_vertices=300, dtype=torch.float64)
+    h = mean_edge_length(V, F)
+    V = V + 0.35 * h * torch.randn(V.shape, generator=torch.Generator().manual_seed(5), dtype=V.dtype)
+    V[:6] *= 1.6
+    barrier = ContactBarrier(F, distance=h / 3, edges=True)
+    E, k = barrier.E, barrier.E.shape[0]
+    i, j = torch.triu_indices(k, k, 1)
+    apart = (E[i][:, :, None] != E[j][:, None, :]).all(2).all(1)
+    d2 = segment_sqdist(V[E[i, 0]], V[E[i, 1]], V[E[j, 0]], V[E[j, 1]])
+    reach = barrier.distance + 2 * barrier.margin
+    want = (d2 < reach * reach) & apart
+    _, _, ea, eb, _, de = barrier._candidates(V.numpy(), compiled)
+    found = sorted(zip(torch.minimum(ea, eb).tolist(), torch.maximum(ea, eb).tolist()))
+    assert len(found) > 100 and found == sorted(zip(i[want].tolist(), j[want].tolist()))
+    half = (V[E[:, 1]] - V[E[:, 0]]).norm(dim=1)
+    long = half > torch.quantile(half, 0.98)
+    assert bool((long[ea] | ~long[eb]).all()) and bool(((long[ea] != long[eb]) | (ea < eb)).all())
+    assert int((long[ea] & ~long[eb]).sum()) > 0  # the case arose
+    torch.testing.assert_close(de, segment_sqdist(V[E[ea, 0]], V[E[ea, 1]], V[E[eb, 0]], V[E[eb, 1]]).sqrt(),
+                               rtol=1e-15, atol=0)
+
+
+def _hard_meshes():
+    """Meshes for the two broad phases: crumpled closed and open surfaces, long stretched faces and edges, a
+    vertex far out, coincident vertices (zero-length edges, zero-area faces), 200 vertices packed into a small
+    box (more pairs than the compiled search's first guess of room), one face."""
+    g = torch.Generator().manual_seed(11)
+    out = []
+    for kind in ("sphere", "sheet", "torus"):
+        V, F = initial_mesh(kind, n_vertices=400, dtype=torch.float64)
+        h = mean_edge_length(V, F)
+        out.append((f"crumpled {kind}", V + 0.4 * h * torch.randn(V.shape, generator=g, dtype=V.dtype), F, h / 3))
+    V, F = initial_mesh("sphere", n_vertices=400, dtype=torch.float64)
+    h = mean_edge_length(V, F)
+    W = V.clone()
+    W[:20] *= 2.0
+    W[21] *= 40.0
+    out.append(("stretched", W, F, h / 3))
+    W = V.clone()
+    a, b, c = F[0].tolist()
+    W[b] = W[a]
+    W[c] = W[a]
+    out.append(("coincident", W, F, h / 3))
+    V, F = initial_mesh("sphere", n_vertices=200, dtype=torch.float64)
+    out.append(("packed", 1e-3 * V + 1e-4 * torch.randn(V.shape, generator=g, dtype=V.dtype), F, 2e-3))
+    out.append(("one face", torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 0.1]], dtype=torch.float64),
+                torch.tensor([[0, 1, 2]]), 0.3))
+    return out
+
+
+@needs_cc
+@pytest.mark.parametrize("name", [x[0] for x in _hard_meshes()])
+def test_the_compiled_search_hands_out_the_numpy_searchs_pairs_bit_for_bit(name):
+    """The compiled broad phase changes no result: the same pairs, in the same order, with the same distances
+    (the torch code measures both), vertex-face and edge-edge, with pairs left out, on hard meshes."""
+    _, V, F, d = next(x for x in _hard_meshes() if x[0] == name)
+    Vn = V.numpy()
+    a, b = ContactBarrier(F, d, edges=True), ContactBarrier(F, d, edges=True)
+    if name == "coincident":
+        assert a.leave_out(V) > 0 and b.leave_out(V) == len(a._out_vf) + len(a._out_ee)
+    numpy_, compiled = a._candidates(Vn, False), b._candidates(Vn, True)
+    assert len(compiled[0]) + len(compiled[2]) > 0
+    assert all(x.dtype == y.dtype and torch.equal(x, y) for x, y in zip(numpy_, compiled))
+
+
+@needs_cc
+def test_a_non_finite_vertex_gives_what_the_numpy_search_gives(monkeypatch):
+    """The compiled search does not take NaN or infinite coordinates: the NumPy search runs (the same
+    outcome as within torch_reference)."""
+    import meshmei.contact as contact
+
+    V, F = initial_mesh("sphere", n_vertices=200, dtype=torch.float64)
+    V[3] = float("nan")
+    assert contact._compiled_pairs("contact_vertex_face", V.numpy(), F.numpy(), 0.1) is None
+    outcomes = []
+    for compiled in (False, True):
+        try:
+            outcomes.append(ContactBarrier(F, 0.05, edges=True)._candidates(V.numpy(), compiled))
+        except Exception as e:  # noqa: BLE001 - whatever the NumPy search does, both do
+            outcomes.append(type(e))
+    if isinstance(outcomes[0], tuple):
+        assert all(torch.equal(x, y) for x, y in zip(*outcomes))
+    else:
+        assert outcomes[0] is outcomes[1]
+
+
+@needs_cc
+def test_torch_reference_runs_the_numpy_search_in_the_prefetch_thread_too(monkeypatch):
+    import meshmei.contact as contact
+
+    calls = []
+    real = contact._compiled_pairs
+    monkeypatch.setattr(contact, "_compiled_pairs", lambda *a: calls.append(a[0]) or real(*a))
+    V, F = _two_sheets(0.05)
+    with torch_reference():
+        cb = ContactBarrier(F, 0.05, edges=True)
+        cb.prefetch(V)
+        ref = cb.candidates(V)
+        cb2 = ContactBarrier(F, 0.05, edges=True)
+        cb2.candidates(V)
+    assert calls == []
+    cb = ContactBarrier(F, 0.05, edges=True)
+    cb.prefetch(V)
+    assert all(torch.equal(x, y) for x, y in zip(cb.candidates(V), ref))
+    assert calls == ["contact_vertex_face", "contact_edge_edge"]
 
 
 def _t_junction(n=200):

@@ -1,13 +1,11 @@
 """The renderer's compiled kernels (``meshmei.render.native``) against the torch reference: the no-grad
 passes decide the same faces, segments and fringe pixels, and fragments, images and gradients
-agree to rounding, on easy and hard scenes; and the fallback where no compiler works."""
+agree to rounding, on easy and hard scenes. (The build, its cache and the fallback where no compiler
+works: tests/test_native.py.)"""
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 from contextlib import nullcontext
 
 import pytest
@@ -15,7 +13,7 @@ import torch
 
 from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_from_angles, rasterize, render
 from meshmei.render import native
-from meshmei.render.native import native_status, torch_reference
+from meshmei.render.native import torch_reference
 from meshmei.render.passes import run_passes
 from meshmei.render.raster import prepare_inputs
 from meshmei.shapes import initial_mesh, target_mesh
@@ -57,17 +55,6 @@ def assert_same(a, b):
     # themselves are held to gradcheck in test_render.py, for both the compiled and the torch code
     tol_g = 1e5 * torch.finfo(ia.dtype).eps
     torch.testing.assert_close(ga, gb, rtol=tol_g, atol=tol_g * float(gb.abs().max()))
-
-
-@needs_cc
-def test_this_machine_compiles_the_kernels():
-    st = native_status()
-    assert st["compiled"], st["reason"]
-    assert native.available(torch.zeros(1)) and native.available(torch.zeros(1, dtype=torch.float64))
-    assert not native.available(torch.zeros(1, dtype=torch.float16))
-    with torch_reference():
-        assert not native.available(torch.zeros(1))
-    assert native.available(torch.zeros(1))
 
 
 @needs_cc
@@ -132,60 +119,6 @@ def test_compiled_shading_with_an_albedo_and_a_texture(dtype):
     assert_same(a, b)
 
 
-_PROBE = """
-import warnings, torch
-warnings.simplefilter("always")
-from meshmei.render import render, RenderSettings
-from meshmei.render.native import native_status
-from meshmei.shapes import initial_mesh
-V, F = initial_mesh("sphere", n_vertices=300)
-with warnings.catch_warnings(record=True) as w:
-    img = render(V, F, settings=RenderSettings(image_size=24))
-    st = native_status()
-torch.save({"img": img, "st": st, "warnings": [str(x.message) for x in w]}, OUT)
-"""
-
-
-@pytest.mark.parametrize("how", ["no compiler", "compiler fails", "disabled"])
-def test_without_a_compiler_the_torch_code_renders_the_image(tmp_path, how):
-    out = tmp_path / "probe.pt"
-    env = {k: v for k, v in os.environ.items() if k != "CC"}
-    env["MESHMEI_CACHE_DIR"] = str(tmp_path / "cache")  # nothing cached: a compiler would be needed
-    if how == "no compiler":
-        env["PATH"] = str(tmp_path)  # finds no cc, gcc or clang
-    elif how == "compiler fails":
-        if not shutil.which("false"):
-            pytest.skip("no 'false' program to stand in for a failing compiler")
-        env["CC"] = "false"  # found, exits 1
-    else:
-        env["MESHMEI_NATIVE"] = "0"
-    r = subprocess.run([sys.executable, "-c", _PROBE.replace("OUT", repr(str(out)))], env=env, capture_output=True,
-                       text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    got = torch.load(out)
-    assert not got["st"]["compiled"]
-    if how != "disabled":
-        assert ("no C compiler" if how == "no compiler" else "failed") in got["st"]["reason"]
-        assert any("compiled kernels are not available" in m for m in got["warnings"])
-    else:
-        assert got["st"]["reason"] == "disabled by MESHMEI_NATIVE" and not got["warnings"]
-    V, F = initial_mesh("sphere", n_vertices=300)
-    with torch_reference():
-        torch.testing.assert_close(got["img"], render(V, F, settings=RenderSettings(image_size=24)), rtol=0, atol=0)
-
-
-@needs_cc
-def test_a_build_is_cached_and_reused(tmp_path):
-    """A second process finds the first one's build and compiles nothing."""
-    env = {**os.environ, "MESHMEI_CACHE_DIR": str(tmp_path)}
-    code = "from meshmei.render.native import native_status; print(native_status())"
-    for _ in range(2):
-        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
-        assert r.returncode == 0 and "'compiled': True" in r.stdout, r.stderr[-2000:]
-    builds = list(tmp_path.glob("raster-*.so"))
-    assert len(builds) == 1 and sorted(tmp_path.iterdir()) == builds  # no temporary left behind
-
-
 @needs_cc
 def test_compiled_vertex_normals_match_the_operator_and_gradcheck():
     """The renderer's compiled normals against :func:`meshmei.operators.vertex_normals_from_corners` (values
@@ -211,12 +144,3 @@ def test_compiled_vertex_normals_match_the_operator_and_gradcheck():
     Vs = (Vs + 0.05 * torch.randn(Vs.shape, generator=torch.Generator().manual_seed(4), dtype=Vs.dtype))
     assert torch.autograd.gradcheck(lambda X: native.vertex_normals(X, Fs, 1e-12), (Vs.unsqueeze(0).requires_grad_(),),
                                     eps=1e-7, atol=1e-6, rtol=1e-5)
-
-
-@needs_cc
-def test_a_cache_directory_that_cannot_be_made_builds_in_the_temporary_directory(tmp_path):
-    env = {**os.environ, "MESHMEI_CACHE_DIR": "/dev/null/meshmei", "TMPDIR": str(tmp_path)}
-    code = "from meshmei.render.native import native_status; print(native_status())"
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "'compiled': True" in r.stdout, r.stderr[-2000:]
-    assert len(list(tmp_path.glob("meshmei-*/raster-*.so"))) == 1

@@ -18,153 +18,21 @@ are compiled (``_raster.c``), CPU tensors only:
   torch code to rounding (sums may associate differently);
 - the smooth-shading vertex normals (:func:`vertex_normals`), forward and backward, to rounding.
 
-The C file is compiled once per source version with the system's C compiler (``$CC``, else ``cc``, ``gcc``
-or ``clang``) into the cache directory (``$MESHMEI_CACHE_DIR``, else ``$XDG_CACHE_HOME/meshmei`` or
-``~/.cache/meshmei``), in about a second, and loaded with :mod:`ctypes` (which releases the GIL for the
-call). Where no compiler works, or with ``MESHMEI_NATIVE=0``, the torch code runs instead, unchanged, with
-one warning; :func:`native_status` says which is in use and why. CUDA tensors always run the torch code.
+The C file is built on first use with meshmei's other compiled kernels (:mod:`meshmei.native`: the
+system's C compiler, a cache directory, ctypes). Where no compiler works, or with ``MESHMEI_NATIVE=0``, the
+torch code runs instead, unchanged, with one warning; :func:`native_status` says which is in use and why.
+CUDA tensors always run the torch code.
 """
 
 from __future__ import annotations
 
-import ctypes
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import sys
-import tempfile
-import threading
-import warnings
-from contextlib import contextmanager
-from pathlib import Path
-
 import torch
 from torch.autograd.function import once_differentiable
 
+from ..native import available, library as _lib, native_status, torch_reference
+
 __all__ = ["native_status", "front", "sample_forward", "sample_backward", "shade_forward",
            "shade_backward", "vertex_normals", "available", "torch_reference"]
-
-_SOURCE = Path(__file__).with_name("_raster.c")
-_FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
-_ABI = 5
-
-_lock = threading.Lock()
-_state: dict = {"lib": None, "reason": None, "tried": False}
-_local = threading.local()  # torch_reference() in this thread
-
-
-def _compiler() -> str | None:
-    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if name and shutil.which(name):
-            return shutil.which(name)
-    return None
-
-
-def _cache_dir() -> Path:
-    if os.environ.get("MESHMEI_CACHE_DIR"):
-        return Path(os.environ["MESHMEI_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "meshmei"
-
-
-def _build() -> ctypes.CDLL:
-    """Compile (unless a build of this source and these flags is cached) and load; raises OSError or
-    RuntimeError with the reason."""
-    cc = _compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (set $CC, or install cc, gcc or clang)")
-    src = _SOURCE.read_bytes()
-    # keyed by the source, the compiler and its flags, and the platform: a home directory shared by the nodes
-    # of a cluster may hold builds for several architectures
-    key = " ".join([cc, *_FLAGS, sys.platform, platform.machine()]).encode()
-    tag = hashlib.sha256(src + key).hexdigest()[:16]
-    out = _cache_dir() / f"raster-{tag}.so"
-    if not out.exists():
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            writable = os.access(out.parent, os.W_OK)
-        except OSError:
-            writable = False
-        if not writable:  # a read-only home: the temporary directory, one folder per user
-            out = Path(tempfile.gettempdir()) / f"meshmei-{os.getuid() if hasattr(os, 'getuid') else 0}" / out.name
-            out.parent.mkdir(parents=True, exist_ok=True)
-    if not out.exists():
-        # a private temporary name, then an atomic rename: parallel processes (test workers) may build at once
-        fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
-        os.close(fd)
-        try:
-            r = subprocess.run([cc, *_FLAGS, "-o", tmp, str(_SOURCE), "-lm"], capture_output=True, text=True,
-                               timeout=120)
-            if r.returncode != 0:
-                raise RuntimeError(f"{cc} failed: {(r.stderr or r.stdout).strip()[:500]}")
-            os.replace(tmp, out)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-    lib = ctypes.CDLL(str(out))
-    if lib.meshmei_raster_abi() != _ABI:
-        raise RuntimeError(f"{out} is a build of another version of {_SOURCE.name}")
-    i64, p, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
-    for name in ("front_f32", "front_f64"):
-        getattr(lib, name).argtypes = [i64, i64, i64, p, p, p, p, p, p, i64, dbl, dbl] + [p] * 22
-        getattr(lib, name).restype = None
-    for t in ("f32", "f64"):
-        getattr(lib, f"sample_fwd_{t}").argtypes = [i64, p, p, p, p, i64, p, p, i64, p, p, p, p, i64, p, i64, dbl,
-                                                    dbl, p, p, p, p]
-        getattr(lib, f"sample_bwd_{t}").argtypes = [i64, p, p, i64, i64, p, p, i64, p, p, p, p, i64, p, i64, dbl,
-                                                    dbl, p, p, p, p, p, p, p, p]
-        getattr(lib, f"shade_fwd_{t}").argtypes = [i64, i64, p, p, p, p, dbl, dbl, dbl, dbl, p]
-        getattr(lib, f"shade_bwd_{t}").argtypes = [i64, i64, p, p, p, p, dbl, dbl, dbl, dbl, p, p, p, p, p]
-        getattr(lib, f"normals_fwd_{t}").argtypes = [i64, i64, i64, p, p, dbl, p, p]
-        getattr(lib, f"normals_bwd_{t}").argtypes = [i64, i64, i64, p, p, dbl, p, p, p, p]
-        for kind in ("sample_fwd", "sample_bwd", "shade_fwd", "shade_bwd", "normals_fwd", "normals_bwd"):
-            getattr(lib, f"{kind}_{t}").restype = None
-    return lib
-
-
-def _lib():
-    if _state["tried"]:
-        return _state["lib"]
-    with _lock:
-        if not _state["tried"]:
-            if os.environ.get("MESHMEI_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
-                _state["reason"] = "disabled by MESHMEI_NATIVE"
-            else:
-                try:
-                    _state["lib"] = _build()
-                except (OSError, RuntimeError, subprocess.SubprocessError) as e:
-                    _state["reason"] = f"{type(e).__name__}: {e}"
-                    warnings.warn(f"meshmei: the renderer's compiled kernels are not available ({_state['reason']}); "
-                                  "the torch code runs instead (the same images, slower on CPU)", RuntimeWarning,
-                                  stacklevel=3)
-            _state["tried"] = True
-    return _state["lib"]
-
-
-def native_status() -> dict:
-    """``{"compiled": bool, "reason": str | None}``: whether CPU renders use the compiled kernels, and why not."""
-    lib = _lib()
-    return {"compiled": lib is not None, "reason": _state["reason"]}
-
-
-@contextmanager
-def torch_reference():
-    """Within this block (in this thread) renders run the torch code throughout: the reference the compiled
-    kernels are tested against, and what CUDA tensors always run. A render's backward follows its forward."""
-    before = getattr(_local, "off", False)
-    _local.off = True
-    try:
-        yield
-    finally:
-        _local.off = before
-
-
-def available(t: torch.Tensor) -> bool:
-    """Whether the compiled kernels take this tensor's device and dtype here and now."""
-    return (t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and not getattr(_local, "off", False)
-            and _lib() is not None)
 
 
 def _ptr(t: torch.Tensor, dtype) -> int:

@@ -1,0 +1,340 @@
+/* The contact barrier's broad phase (meshmei.contact.ContactBarrier), compiled: every (vertex, face) pair,
+ * the vertex not in the face, and every (edge, edge) pair, sharing no vertex, that may lie within `reach`.
+ *
+ * A uniform grid over the vertices' bounding box (counting sort, no hashing): the vertices go into one cell
+ * each, the edges into every cell their box overlaps; a face or an edge looks in the cells its box,
+ * widened by `reach`, overlaps. A pair found there is kept when this file's own distance (the formulas of
+ * meshmei.contact._point_triangle and _segment_segment, in double) is below `lim` (the caller's reach^2 with
+ * a relative slack of 1e-6), so the kept pairs hold every pair whose distance, as the torch code measures
+ * it, is below reach: the caller measures those again in torch and keeps them as before.
+ *
+ * Cost: O(n + pairs found in the cells); the grid's cells are sized to the primitives and to `reach`, at
+ * most 8 per primitive, and an edge whose box covers more than 64 cells (one stretched far beyond the
+ * others) is kept in a list that every edge's query checks instead.
+ *
+ * Each search returns how many pairs it found (-1 for a non-finite coordinate, -2 for no memory) and
+ * writes the first `cap` of them; the caller calls again with room for all where that was too few. */
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <float.h>
+
+int meshmei_contact_abi(void) { return 1; }
+
+static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+static void cross3(const double *a, const double *b, double *out) {
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static double clamp01(double x) { return x < 0.0 ? 0.0 : (x > 1.0 ? 1.0 : x); }
+
+/* squared distance from P to the triangle ABC: the projection onto the plane where it falls inside, else the
+ * nearest edge's closest point (a degenerate triangle: its edges) */
+static double point_triangle(const double *P, const double *A, const double *B, const double *C) {
+    const double tiny = DBL_MIN;
+    double ab[3], ac[3], ap[3], n[3], w[3];
+    for (int k = 0; k < 3; k++) {
+        ab[k] = B[k] - A[k];
+        ac[k] = C[k] - A[k];
+        ap[k] = P[k] - A[k];
+    }
+    cross3(ab, ac, n);
+    double nn = dot3(n, n);
+    cross3(ap, ac, w);
+    double u = dot3(w, n);
+    cross3(ab, ap, w);
+    double v = dot3(w, n);
+    if (u >= 0.0 && v >= 0.0 && u + v <= nn && nn > tiny) {
+        double s = dot3(ap, n);
+        return s * s / nn;
+    }
+    const double *X[3] = {A, B, C}, *Y[3] = {B, C, A};
+    double best = INFINITY;
+    for (int e = 0; e < 3; e++) {
+        double D[3], PX[3];
+        for (int k = 0; k < 3; k++) {
+            D[k] = Y[e][k] - X[e][k];
+            PX[k] = P[k] - X[e][k];
+        }
+        double dd = dot3(D, D);
+        double t = clamp01(dot3(PX, D) / (dd > tiny ? dd : tiny));
+        for (int k = 0; k < 3; k++) w[k] = PX[k] - D[k] * t;
+        double d = dot3(w, w);
+        if (d < best) best = d;
+    }
+    return best;
+}
+
+/* squared distance between the segments P1 Q1 and P2 Q2 (Ericson, 5.1.9, as the torch code clamps it) */
+static double segment_segment(const double *P1, const double *Q1, const double *P2, const double *Q2) {
+    const double tiny = DBL_MIN;
+    double d1[3], d2[3], r[3], w[3];
+    for (int k = 0; k < 3; k++) {
+        d1[k] = Q1[k] - P1[k];
+        d2[k] = Q2[k] - P2[k];
+        r[k] = P1[k] - P2[k];
+    }
+    double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2), c = dot3(d1, r), f = dot3(d2, r);
+    double den = a * e - b * b;
+    double s = den > 1e-12 * a * e ? clamp01((b * f - c * e) / den) : 0.0;
+    double t = (b * s + f) / (e > tiny ? e : tiny);
+    double ac = a > tiny ? a : tiny;
+    if (t < 0.0) s = clamp01(-c / ac);
+    else if (t > 1.0) s = clamp01((b - c) / ac);
+    t = clamp01(t);
+    if (e <= tiny) {
+        s = clamp01(-c / ac);
+        t = 0.0;
+    }
+    for (int k = 0; k < 3; k++) w[k] = r[k] + d1[k] * s - d2[k] * t;
+    return dot3(w, w);
+}
+
+typedef struct {
+    double lo[3], inv;
+    int64_t dim[3];
+    int64_t *start; /* (cells + 1): the points of cell c are items[start[c] .. start[c + 1]) */
+    int64_t *items;
+} grid_t;
+
+static int all_finite(int64_t n, const double *V) {
+    for (int64_t i = 0; i < 3 * n; i++)
+        if (!isfinite(V[i])) return 0;
+    return 1;
+}
+
+static int64_t cell_of(const grid_t *g, int k, double x) {
+    double c = floor((x - g->lo[k]) * g->inv);
+    if (c < 0.0) return 0;
+    if (c > (double)(g->dim[k] - 1)) return g->dim[k] - 1;
+    return (int64_t)c;
+}
+
+static int64_t cell_index(const grid_t *g, int64_t x, int64_t y, int64_t z) {
+    return (x * g->dim[1] + y) * g->dim[2] + z;
+}
+
+/* the points P (n, 3) sorted into cells of side h (or larger: at most 2 n + 64 cells) over their box;
+ * returns 0, or -2 for no memory */
+static int grid_build(grid_t *g, int64_t n, const double *P, double h) {
+    double hi[3], cap = 2.0 * (double)n + 64.0;
+    g->start = g->items = NULL;
+    for (int k = 0; k < 3; k++) g->lo[k] = hi[k] = n ? P[k] : 0.0;
+    for (int64_t i = 1; i < n; i++)
+        for (int k = 0; k < 3; k++) {
+            double x = P[3 * i + k];
+            if (x < g->lo[k]) g->lo[k] = x;
+            if (x > hi[k]) hi[k] = x;
+        }
+    double ext = 0.0;
+    for (int k = 0; k < 3; k++)
+        if (hi[k] - g->lo[k] > ext) ext = hi[k] - g->lo[k];
+    if (!(h > 0.0)) h = ext > 0.0 ? ext : 1.0;
+    for (;;) {
+        double cells = 1.0;
+        for (int k = 0; k < 3; k++) cells *= floor((hi[k] - g->lo[k]) / h) + 1.0;
+        if (cells <= cap) break;
+        h *= 1.25 * cbrt(cells / cap);
+    }
+    g->inv = 1.0 / h;
+    for (int k = 0; k < 3; k++) g->dim[k] = (int64_t)floor((hi[k] - g->lo[k]) / h) + 1;
+    int64_t cells = g->dim[0] * g->dim[1] * g->dim[2];
+    g->start = calloc((size_t)cells + 1, sizeof(int64_t));
+    g->items = malloc((size_t)(n > 0 ? n : 1) * sizeof(int64_t));
+    int64_t *cell = malloc((size_t)(n > 0 ? n : 1) * sizeof(int64_t));
+    if (!g->start || !g->items || !cell) {
+        free(g->start), free(g->items), free(cell);
+        g->start = g->items = NULL;
+        return -2;
+    }
+    for (int64_t i = 0; i < n; i++) {
+        const double *x = P + 3 * i;
+        cell[i] = cell_index(g, cell_of(g, 0, x[0]), cell_of(g, 1, x[1]), cell_of(g, 2, x[2]));
+        g->start[cell[i] + 1]++;
+    }
+    for (int64_t c = 0; c < cells; c++) g->start[c + 1] += g->start[c];
+    for (int64_t i = 0; i < n; i++) g->items[g->start[cell[i]]++] = i; /* start[c] now ends cell c */
+    for (int64_t c = cells; c > 0; c--) g->start[c] = g->start[c - 1];
+    g->start[0] = 0;
+    free(cell);
+    return 0;
+}
+
+static void grid_free(grid_t *g) { free(g->start), free(g->items); }
+
+/* the cells a box [lo, hi] overlaps: for each (x, y), the cells z0..z1 follow each other, so their points are
+ * items[from .. to) of one range (cell_rows gives its bounds for row r of nx * ny) */
+typedef struct {
+    int64_t x0, y0, z0, z1, nx, ny;
+} boxcells_t;
+
+static boxcells_t box_cells(const grid_t *g, const double *lo, const double *hi) {
+    boxcells_t b;
+    b.x0 = cell_of(g, 0, lo[0]), b.y0 = cell_of(g, 1, lo[1]), b.z0 = cell_of(g, 2, lo[2]);
+    b.z1 = cell_of(g, 2, hi[2]);
+    b.nx = cell_of(g, 0, hi[0]) - b.x0 + 1, b.ny = cell_of(g, 1, hi[1]) - b.y0 + 1;
+    return b;
+}
+
+static void cell_row(const grid_t *g, const boxcells_t *b, int64_t r, int64_t *from, int64_t *to) {
+    int64_t x = b->x0 + r / b->ny, y = b->y0 + r % b->ny;
+    *from = g->start[cell_index(g, x, y, b->z0)];
+    *to = g->start[cell_index(g, x, y, b->z1) + 1];
+}
+
+static void box_of(const double *V, const int64_t *idx, int k, double widen, double *lo, double *hi) {
+    for (int a = 0; a < 3; a++) {
+        lo[a] = hi[a] = V[3 * idx[0] + a];
+        for (int j = 1; j < k; j++) {
+            double x = V[3 * idx[j] + a];
+            if (x < lo[a]) lo[a] = x;
+            if (x > hi[a]) hi[a] = x;
+        }
+        lo[a] -= widen;
+        hi[a] += widen;
+    }
+}
+
+static void emit(int64_t *found, int64_t cap, int64_t *out_a, int64_t *out_b, int64_t a, int64_t b) {
+    if (*found < cap) {
+        out_a[*found] = a;
+        out_b[*found] = b;
+    }
+    (*found)++;
+}
+
+/* (vertex, face) pairs: out_v, out_f (room for `cap`). The vertices in a grid of cells about the size of a
+ * face's box widened by reach; each face looks in the cells that box overlaps (mostly 8). */
+int64_t contact_vertex_face(int64_t n, const double *V, int64_t m, const int64_t *F, double lim, int64_t cap,
+                            int64_t *out_v, int64_t *out_f) {
+    if (!all_finite(n, V)) return -1;
+    double widen = sqrt(lim), mean = 0.0, lo[3], hi[3];
+    for (int64_t f = 0; f < m; f++) {
+        box_of(V, F + 3 * f, 3, 0.0, lo, hi);
+        for (int a = 0; a < 3; a++) mean += hi[a] - lo[a];
+    }
+    mean = m ? mean / (3.0 * (double)m) : 0.0;
+    grid_t g;
+    if (grid_build(&g, n, V, mean + 2.0 * widen)) return -2;
+    int64_t found = 0;
+    for (int64_t f = 0; f < m; f++) {
+        const int64_t *tri = F + 3 * f;
+        const double *A = V + 3 * tri[0], *B = V + 3 * tri[1], *C = V + 3 * tri[2];
+        box_of(V, tri, 3, widen, lo, hi);
+        boxcells_t bc = box_cells(&g, lo, hi);
+        for (int64_t r = 0, from, to; r < bc.nx * bc.ny; r++) {
+            cell_row(&g, &bc, r, &from, &to);
+            for (int64_t q = from; q < to; q++) {
+                int64_t v = g.items[q];
+                const double *P = V + 3 * v;
+                if (v == tri[0] || v == tri[1] || v == tri[2] || P[0] < lo[0] || P[0] > hi[0] || P[1] < lo[1] ||
+                    P[1] > hi[1] || P[2] < lo[2] || P[2] > hi[2])
+                    continue;
+                if (point_triangle(P, A, B, C) < lim) emit(&found, cap, out_v, out_f, v, f);
+            }
+        }
+    }
+    grid_free(&g);
+    return found;
+}
+
+/* test the edges i and j (no shared vertex; j's box against i's widened box [lo, hi]) and write the pair
+ * where they lie within lim: (a, b) with a < b, except where `first` marks one edge and not the other */
+static void edge_pair(const double *V, const int64_t *E, const uint8_t *first, int64_t i, int64_t j,
+                      const double *lo, const double *hi, double lim, int64_t *found, int64_t cap, int64_t *out_a,
+                      int64_t *out_b) {
+    const int64_t *ei = E + 2 * i, *ej = E + 2 * j;
+    if (ei[0] == ej[0] || ei[0] == ej[1] || ei[1] == ej[0] || ei[1] == ej[1]) return;
+    const double *P2 = V + 3 * ej[0], *Q2 = V + 3 * ej[1];
+    for (int a = 0; a < 3; a++)
+        if ((P2[a] < Q2[a] ? Q2[a] : P2[a]) < lo[a] || (P2[a] < Q2[a] ? P2[a] : Q2[a]) > hi[a]) return;
+    if (!(segment_segment(V + 3 * ei[0], V + 3 * ei[1], P2, Q2) < lim)) return;
+    int64_t a = i < j ? i : j, b = i < j ? j : i;
+    if (first && first[b] && !first[a]) {
+        int64_t t = a;
+        a = b, b = t;
+    }
+    emit(found, cap, out_a, out_b, a, b);
+}
+
+/* (edge, edge) pairs: out_a, out_b (room for `cap`; the order within a pair as edge_pair writes it). The
+ * short edges' midpoints in a grid; a short edge looks for the short edges after it whose midpoints lie
+ * within its half-extent, the largest short half-extent and reach (the cells that box overlaps), and
+ * tests every long edge (half-extent above twice the mean: stretched ones, not in the grid); a long edge
+ * tests the long edges after it. Each pair once. */
+int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *E, const uint8_t *first,
+                          double lim, int64_t cap, int64_t *out_a, int64_t *out_b) {
+    if (!all_finite(n, V)) return -1;
+    size_t room = (size_t)(k > 0 ? k : 1);
+    double widen = sqrt(lim), mean = 0.0, lo[3], hi[3];
+    double *box = malloc(room * 6 * sizeof(double)); /* per edge: midpoint, half-extents */
+    double *P = calloc(room * 3, sizeof(double)), *packed = malloc(room * 6 * sizeof(double));
+    int64_t *longs = malloc(room * sizeof(int64_t)), *slot = malloc(room * sizeof(int64_t));
+    int64_t *ids = malloc(room * sizeof(int64_t));
+    double *size = malloc(room * sizeof(double)); /* the largest half-extent */
+    grid_t g = {0};
+    int64_t found = -2, nlong = 0, nshort = 0;
+    if (!box || !P || !packed || !longs || !slot || !ids || !size) goto done;
+    for (int64_t e = 0; e < k; e++) {
+        box_of(V, E + 2 * e, 2, 0.0, lo, hi);
+        size[e] = 0.0;
+        for (int a = 0; a < 3; a++) {
+            box[6 * e + a] = 0.5 * (lo[a] + hi[a]);
+            box[6 * e + 3 + a] = 0.5 * (hi[a] - lo[a]);
+            if (box[6 * e + 3 + a] > size[e]) size[e] = box[6 * e + 3 + a];
+        }
+        mean += size[e];
+    }
+    mean = k ? mean / (double)k : 0.0;
+    double largest[3] = {0.0, 0.0, 0.0}; /* the largest half-extents of a short edge */
+    for (int64_t e = 0; e < k; e++) {
+        if (size[e] > 2.0 * mean) {
+            longs[nlong++] = e;
+            continue;
+        }
+        for (int a = 0; a < 3; a++) {
+            if (box[6 * e + 3 + a] > largest[a]) largest[a] = box[6 * e + 3 + a];
+            P[3 * nshort + a] = box[6 * e + a];
+        }
+        slot[nshort++] = e; /* the grid's point nshort is this edge */
+    }
+    double cell = mean + widen + 0.5 * (largest[0] + largest[1] + largest[2]); /* about a query's half-size */
+    if (grid_build(&g, nshort, P, cell)) goto done;
+    for (int64_t q = 0; q < nshort; q++) { /* the short edges' boxes in the grid's order: read in sequence */
+        ids[q] = slot[g.items[q]];
+        for (int a = 0; a < 6; a++) packed[6 * q + a] = box[6 * ids[q] + a];
+    }
+    found = 0;
+    for (int64_t i = 0; i < k; i++) {
+        const double *bi = box + 6 * i;
+        box_of(V, E + 2 * i, 2, widen, lo, hi);
+        int long_i = size[i] > 2.0 * mean;
+        if (!long_i) {
+            double qlo[3], qhi[3];
+            for (int a = 0; a < 3; a++) {
+                double r = bi[3 + a] + largest[a] + widen;
+                qlo[a] = bi[a] - r, qhi[a] = bi[a] + r;
+            }
+            boxcells_t bc = box_cells(&g, qlo, qhi);
+            for (int64_t row = 0, from, to; row < bc.nx * bc.ny; row++) {
+                cell_row(&g, &bc, row, &from, &to);
+                for (int64_t q = from; q < to; q++) {
+                    const double *bj = packed + 6 * q;
+                    if (ids[q] <= i || fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
+                        fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen || fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen)
+                        continue;
+                    edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b);
+                }
+            }
+        }
+        for (int64_t t = 0; t < nlong; t++)
+            if (!long_i || longs[t] > i) edge_pair(V, E, first, i, longs[t], lo, hi, lim, &found, cap, out_a, out_b);
+    }
+done:
+    grid_free(&g), free(box), free(P), free(packed), free(longs), free(slot), free(ids), free(size);
+    return found;
+}
