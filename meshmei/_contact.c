@@ -20,7 +20,7 @@
 #include <stdlib.h>
 #include <float.h>
 
-int meshmei_contact_abi(void) { return 1; }
+int meshmei_contact_abi(void) { return 2; }
 
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -337,4 +337,77 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
 done:
     grid_free(&g), free(box), free(P), free(packed), free(longs), free(slot), free(ids), free(size);
     return found;
+}
+
+/* Lower bounds on the distances of given pairs, for meshmei.certify.SeparationCertificate: out[i] is the
+ * distance of vertex vt[i] to face ft[i] (the formula above, whose closest point is the true one up to
+ * rounding). */
+void contact_vertex_face_distances(const double *V, const int64_t *F, int64_t k, const int64_t *vt,
+                                   const int64_t *ft, double *out) {
+    for (int64_t i = 0; i < k; i++) {
+        const int64_t *tri = F + 3 * ft[i];
+        out[i] = sqrt(point_triangle(V + 3 * vt[i], V + 3 * tri[0], V + 3 * tri[1], V + 3 * tri[2]));
+    }
+}
+
+/* ... and of edge ea[i] to edge eb[i]; 0 for two edges within 1e-4 radians of parallel (den <= 1e-8 a e),
+ * where the clamped formula's closest points may miss the true ones by the overlap times the angle: a pair
+ * the caller must treat as touching. */
+void contact_edge_edge_distances(const double *V, const int64_t *E, int64_t k, const int64_t *ea,
+                                 const int64_t *eb, double *out) {
+    for (int64_t i = 0; i < k; i++) {
+        const double *P1 = V + 3 * E[2 * ea[i]], *Q1 = V + 3 * E[2 * ea[i] + 1];
+        const double *P2 = V + 3 * E[2 * eb[i]], *Q2 = V + 3 * E[2 * eb[i] + 1];
+        double d1[3], d2[3];
+        for (int a = 0; a < 3; a++) d1[a] = Q1[a] - P1[a], d2[a] = Q2[a] - P2[a];
+        double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2);
+        out[i] = a * e - b * b <= 1e-8 * a * e ? 0.0 : sqrt(segment_segment(P1, Q1, P2, Q2));
+    }
+}
+
+/* meshmei.certify.SeparationCertificate's rule 2: ok[v] = 1 where the faces around v, projected onto the
+ * plane perpendicular to v's area-weighted normal, all keep their orientation (n . N > 1e-9 |n| |N|) and
+ * their corner angles at v sum to one turn (within 1e-6; less than one turn at a boundary vertex). A vertex
+ * of no face is ok. `work`: room for 4 n doubles. */
+void separation_fans(int64_t n, const double *V, int64_t m, const int64_t *F, const uint8_t *boundary,
+                     double *work, uint8_t *ok) {
+    const double two_pi = 6.283185307179586, tiny = DBL_MIN;
+    double *nrm = work, *turn = work + 3 * n;
+    for (int64_t i = 0; i < 4 * n; i++) work[i] = 0.0;
+    for (int64_t v = 0; v < n; v++) ok[v] = 2; /* 2: no face yet */
+    for (int64_t f = 0; f < m; f++) {
+        const int64_t *t = F + 3 * f;
+        double ab[3], ac[3], N[3];
+        for (int a = 0; a < 3; a++) ab[a] = V[3 * t[1] + a] - V[3 * t[0] + a], ac[a] = V[3 * t[2] + a] - V[3 * t[0] + a];
+        cross3(ab, ac, N);
+        for (int k = 0; k < 3; k++)
+            for (int a = 0; a < 3; a++) nrm[3 * t[k] + a] += N[a];
+    }
+    for (int64_t f = 0; f < m; f++) {
+        const int64_t *t = F + 3 * f;
+        double ab[3], ac[3], N[3];
+        for (int a = 0; a < 3; a++) ab[a] = V[3 * t[1] + a] - V[3 * t[0] + a], ac[a] = V[3 * t[2] + a] - V[3 * t[0] + a];
+        cross3(ab, ac, N);
+        double NN = sqrt(dot3(N, N));
+        for (int k = 0; k < 3; k++) {
+            int64_t v = t[k], nx = t[(k + 1) % 3], pv = t[(k + 2) % 3];
+            const double *nc = nrm + 3 * v;
+            double x1[3], x2[3];
+            for (int a = 0; a < 3; a++) x1[a] = V[3 * nx + a] - V[3 * v + a], x2[a] = V[3 * pv + a] - V[3 * v + a];
+            double n2 = dot3(nc, nc), nn = sqrt(n2), orient = dot3(nc, N);
+            if (ok[v] == 2) ok[v] = 1;
+            if (!(orient > 1e-9 * nn * NN) || !(nn > 0.0)) ok[v] = 0;
+            double sine = orient / (nn > tiny ? nn : tiny);
+            double cosine = dot3(x1, x2) - dot3(nc, x1) * dot3(nc, x2) / (n2 > tiny ? n2 : tiny);
+            turn[v] += atan2(sine, cosine);
+        }
+    }
+    for (int64_t v = 0; v < n; v++) {
+        if (ok[v] == 2) {
+            ok[v] = 1;
+            continue;
+        }
+        if (!ok[v]) continue;
+        ok[v] = boundary[v] ? turn[v] < two_pi - 1e-9 : fabs(turn[v] - two_pi) <= 1e-6;
+    }
 }

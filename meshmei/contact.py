@@ -68,7 +68,7 @@ from .mesh import as_faces, check_mesh
 from .operators import edges as mesh_edges
 
 __all__ = ["ContactBarrier", "contact_energies", "log_barrier", "point_triangle_sqdist", "segment_sqdist",
-           "mean_edge_length"]
+           "mean_edge_length", "pair_distance_bounds"]
 
 
 def _point_triangle(P, A, B, C):
@@ -309,6 +309,35 @@ def _compiled_pairs(kernel: str, Vn: np.ndarray, idx: np.ndarray, reach: float, 
     raise AssertionError("the contact search found more pairs on a second look at the same vertices")
 
 
+def pair_distance_bounds(V: np.ndarray, F: np.ndarray, vt: np.ndarray, ft: np.ndarray, E: np.ndarray,
+                         ea: np.ndarray, eb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower bounds on the distances of (vertex, face) pairs ``(vt, ft)`` and (edge, edge) pairs ``(ea, eb)``
+    of ``V`` (float64 arrays; the faces ``F`` and edges ``E``), as :class:`meshmei.certify.SeparationCertificate`
+    needs them: the exact distances to rounding, and 0 for two edges within 1e-4 radians of parallel, whose
+    clamped closest points may miss the true ones (by the overlap times the angle). Compiled where the
+    kernels are built, else in torch."""
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    vt, ft, ea, eb = (np.ascontiguousarray(x, dtype=np.int64) for x in (vt, ft, ea, eb))
+    if native.enabled():
+        lib = native.library()
+        dvf, dee = np.empty(len(vt)), np.empty(len(ea))
+        F, E = np.ascontiguousarray(F, dtype=np.int64), np.ascontiguousarray(E, dtype=np.int64)
+        lib.contact_vertex_face_distances(V.ctypes.data, F.ctypes.data, len(vt), vt.ctypes.data, ft.ctypes.data,
+                                          dvf.ctypes.data)
+        lib.contact_edge_edge_distances(V.ctypes.data, E.ctypes.data, len(ea), ea.ctypes.data, eb.ctypes.data,
+                                        dee.ctypes.data)
+        return dvf, dee
+    Vt, Ft, Et = torch.from_numpy(V), torch.from_numpy(np.asarray(F)), torch.from_numpy(np.asarray(E))
+    vt, ft, ea, eb = (torch.from_numpy(x) for x in (vt, ft, ea, eb))
+    with torch.no_grad():
+        dvf = point_triangle_sqdist(Vt[vt], Vt[Ft[ft, 0]], Vt[Ft[ft, 1]], Vt[Ft[ft, 2]]).sqrt()
+        P1, Q1, P2, Q2 = Vt[Et[ea, 0]], Vt[Et[ea, 1]], Vt[Et[eb, 0]], Vt[Et[eb, 1]]
+        d1, d2 = Q1 - P1, Q2 - P2
+        a, e, b = (d1 * d1).sum(-1), (d2 * d2).sum(-1), (d1 * d2).sum(-1)
+        dee = torch.where(a * e - b * b <= 1e-8 * a * e, torch.zeros_like(a), segment_sqdist(P1, Q1, P2, Q2).sqrt())
+    return dvf.numpy(), dee.numpy()
+
+
 class ContactBarrier:
     """The contact energy of one face list, with cached candidate pairs.
 
@@ -358,12 +387,14 @@ class ContactBarrier:
             raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
         self.min_interval = min_interval
         self.E = self.En = None
+        self.edge_energy = False  # edge pairs in the energy (use_edges), not only searched (track_edges)
         self.active, self.rebuilds, self._since = 0, 0, 0
         self.seconds = 0.0
         self._built_at = None
         self._pairs = None
         self._out_vf = self._out_ee = None  # pairs left out (leave_out), as sorted keys
         self._pending = None  # (vertices, future) of a prefetch
+        self._handout = None  # (vertices, pairs handed out, bound on the others' distances) of the last call
         if edges:
             self.use_edges()
 
@@ -395,6 +426,14 @@ class ContactBarrier:
         """Pair edges with edges from the next call on (as ``edges=True``; the candidates are searched
         again then). A run that stalls at an edge contact turns them on where it needs them
         (:func:`meshmei.reconstruct.reconstruct`, ``contact_edges="auto"``)."""
+        self.track_edges()
+        if not self.edge_energy:
+            self.edge_energy = True
+            self._built_at = None
+
+    def track_edges(self) -> None:
+        """Search and hand out edge pairs without adding them to the energy (until :meth:`use_edges`): what a
+        :class:`~meshmei.certify.SeparationCertificate` needs of the barrier (:meth:`separation`)."""
         if self.E is None:
             self.E = mesh_edges(self.F)  # (k, 2), i < j: the mesh's cached edge list
             self.En = self.E.cpu().numpy()
@@ -566,6 +605,9 @@ class ContactBarrier:
             self._since = 0
             moved = np.zeros(len(Vn))
         vt, ft, ea, eb, dvf, dee = self._pairs
+        # a pair not handed out is at least `distance` away now (kept, but not within reach of it) or was beyond
+        # reach at the search and has come closer by at most twice the farthest move since (not kept)
+        unseen = min(self.distance, self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0)))
         moved = torch.from_numpy(moved)
         keep_vf = dvf - moved[vt] - moved[self._Ft[ft]].amax(1) < self.distance
         out = [vt[keep_vf], ft[keep_vf]]
@@ -575,8 +617,28 @@ class ContactBarrier:
             out += [ea[keep_ee], eb[keep_ee]]
         else:
             out += [ea, eb]
+        self._handout = (V.detach(), out, unseen)
         self.seconds += time.perf_counter() - t0
         return tuple(x.to(V.device) for x in out)
+
+    def separation(self, V: torch.Tensor):
+        """What the last call handed out, where it was for the vertices ``V`` and tells every close pair:
+        ``(vt, ft, ea, eb, unseen)``, the (vertex, face) and (edge, edge) pairs (int64 arrays; edges index
+        :attr:`E`) and a distance that every other such pair of ``V`` keeps (less a margin over the torch
+        distances' rounding). None without edge pairs, with pairs left out (:meth:`leave_out`: they are never
+        handed out), or when the last call was for other vertices. For
+        :class:`~meshmei.certify.SeparationCertificate`."""
+        if self._handout is None or self.E is None:
+            return None
+        if (self._out_vf is not None and len(self._out_vf)) or (self._out_ee is not None and len(self._out_ee)):
+            return None
+        Vh, (vt, ft, ea, eb), unseen = self._handout
+        if Vh.shape != V.shape or not torch.equal(Vh.to(V.dtype), V):
+            return None
+        # the torch segment distance of two near-parallel edges may exceed the true one by up to 1e-6 of an
+        # edge (see pair_distance_bounds): the bound keeps a margin far above that
+        unseen -= 1e-5 * (self.distance + 2.0 * self.margin)
+        return vt.cpu().numpy(), ft.cpu().numpy(), ea.cpu().numpy(), eb.cpu().numpy(), unseen
 
     def __call__(self, V: torch.Tensor) -> torch.Tensor:
         """The contact energy of ``V`` (a scalar with a graph to ``V`` where some pair is within reach)."""
@@ -590,11 +652,12 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     once more with it (usually far fewer). Sets each barrier's ``active``."""
     B, n = V.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
+    kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
     found = [cb.candidates(V[b]) for b, cb in enumerate(barriers)]
     Vf = V.reshape(-1, 3)
     kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
     for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
-                                         (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist)):
+                                         (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
         parts = [(x[first], x[second]) for x in found]
         item = torch.cat([torch.full((len(a),), b, dtype=torch.long, device=V.device) for b, (a, _) in enumerate(parts)])
         if not len(item):

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from ._checks import check_positive
-from .certify import GraphCertificate, StarCertificate
+from .certify import GraphCertificate, SeparationCertificate, StarCertificate
 from .contact import log_barrier
 from .errors import MeshError
 from .mesh import check_mesh
@@ -145,6 +145,13 @@ class StepGuard:
         it does not prove goes to the exact test.
     certified : int
         Candidates that passed the intersection rule by the certificate alone.
+    separation : SeparationCertificate or None
+        With :meth:`use_contact`: clears candidates of a clean start from the contact barrier's distances at
+        the last accepted mesh and the step's length (:mod:`meshmei.certify`), leaving libigl the faces it
+        cannot clear.
+    separated : int
+        Candidates that passed the intersection rule by the separation certificate (with libigl on at most
+        the faces it could not clear).
     """
 
     def __init__(self, V0: torch.Tensor, F: torch.Tensor, rules: ValidityRules = ValidityRules()):
@@ -169,6 +176,8 @@ class StepGuard:
             self.certificate = (GraphCertificate.for_start(ref, F, self.normals)
                                 or StarCertificate.for_start(ref, F, self.normals))
         self.certified = 0
+        self.separation, self._contact, self.separated = None, None, 0
+        self._clean = ref  # the last accepted vertices (float64): the separation certificate's V0
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
         self.accepted = ref if rules.max_step is not None else None  # the last accepted vertices, for max_step
@@ -217,6 +226,9 @@ class StepGuard:
                 self.certified += 1  # proven a graph over a plane, or star-shaped: no pair can intersect
                 return None, None, frame
             if not self.allowed:  # a clean start (every built-in one): any pair is new
+                if self._separated(Vd):
+                    self.separated += 1  # the contact barrier's distances and the step's length cleared it
+                    return None, None, frame
                 pairs = count_self_intersections(Vd, self.F)
                 if pairs > 0:
                     return "intersection", f"{pairs} self-intersecting face pairs (start: 0)", frame
@@ -229,12 +241,36 @@ class StepGuard:
                 self._candidate_pairs = found
         return None, None, frame
 
+    def use_contact(self, barrier) -> None:
+        """Let the contact ``barrier`` (a :class:`~meshmei.contact.ContactBarrier` with edge pairs, evaluated at
+        each accepted mesh by the objective) clear candidates of the intersection test:
+        :class:`~meshmei.certify.SeparationCertificate` proves most steps of a clean start clean from its
+        distances and the step's length, and hands libigl only the faces it cannot clear. The verdicts are
+        the exact test's (a candidate it cannot prove goes to libigl whole). None turns it off."""
+        self._contact = barrier
+        self.separation = None
+        if barrier is not None and self.rules.self_intersections:
+            self.separation = SeparationCertificate.for_mesh(self.F, self.n_vertices)
+
+    def _separated(self, Vd: torch.Tensor) -> bool:
+        """Whether the separation certificate, with libigl on the faces it could not clear, proves ``Vd`` clean
+        (False: not proven; the whole mesh goes to the exact test)."""
+        if self.separation is None:
+            return False
+        handed_out = self._contact.separation(self._clean)
+        if handed_out is None:
+            return False
+        faces = self.separation.suspects(Vd, self._clean, handed_out)
+        if faces is None:
+            return False
+        return len(faces) == 0 or count_self_intersections(Vd, self.F[torch.from_numpy(faces)]) == 0
+
     def why_not(self, V: torch.Tensor) -> str | None:
         """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first). A question, not a
         check: it counts in neither :attr:`checks` nor :attr:`certified`."""
-        certified = self.certified
+        certified, separated = self.certified, self.separated
         why = self._verdict(V)[1]
-        self.certified = certified
+        self.certified, self.separated = certified, separated
         return why
 
     def accept(self, V: torch.Tensor, frame=None) -> bool:
@@ -251,6 +287,7 @@ class StepGuard:
         else:
             Vd = V.detach().double()
             self._accepted_frame = (Vd, *frame)
+            self._clean = Vd
             if self._candidate_pairs is not None:  # pairs that went away may not come back
                 self.allowed = self._candidate_pairs
             if self.accepted is not None:
@@ -267,7 +304,7 @@ class StepGuard:
         """What the guard did, JSON-able: candidates checked, refused, refusals by rule, seconds, and how
         many passed the intersection rule by their :mod:`~meshmei.certify` certificate alone."""
         return {"checks": self.checks, "refused": self.failures, "reasons": dict(self.reasons),
-                "seconds": round(self.seconds, 4), "certified": self.certified}
+                "seconds": round(self.seconds, 4), "certified": self.certified, "separated": self.separated}
 
     def barrier(self, V: torch.Tensor, *, turn_band_degrees: float = 20.0, quality_band: float = 2.0) -> torch.Tensor:
         """A smooth energy that keeps iterates away from the turn and quality bounds (a scalar with a graph

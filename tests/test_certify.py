@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 
 import pytest
 import torch
@@ -245,3 +246,172 @@ def test_a_patch_tucked_under_its_neighbours_is_not_certified():
         assert not cert.holds(W, n)  # a face seen from behind: refused
         found += 1
     assert found >= 2  # the search does reach such meshes (3 in its first 29 draws)
+
+
+# --- SeparationCertificate: a step proven clean from the last clean mesh and the contact barrier's pairs
+
+def _two_sheets(gap, n=200):
+    """Two parallel sheets ``gap`` apart (the top one a copy of the bottom one), float64."""
+    V, F = initial_mesh("sheet", n_vertices=n, dtype=torch.float64)
+    top = V.clone()
+    top[:, 2] += gap
+    return torch.cat([V, top]), torch.cat([F, F + V.shape[0]])
+
+
+def _cleared(sep, barrier, V0, V1, F):
+    """Whether the separation certificate clears ``V1`` from ``V0`` (the barrier called at ``V0`` first, as
+    the objective does), libigl on the faces it lists; None where it does not apply."""
+    barrier(V0)
+    faces = sep.suspects(V1, V0, barrier.separation(V0))
+    if faces is None:
+        return None
+    return len(faces) == 0 or count_self_intersections(V1, F[torch.from_numpy(faces)]) == 0
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_whenever_the_separation_certificate_clears_a_step_libigl_finds_no_intersection(compiled):
+    """Soundness: two sheets a tenth of an edge apart pushed together by steps of up to an eighth of an edge
+    (about half of them end up intersecting), and crumpled sphere, torus and sheet moved by random steps; a
+    step the certificate clears is clean, and it clears most clean ones."""
+    from meshmei import native
+    from meshmei.certify import SeparationCertificate
+    from meshmei.contact import ContactBarrier, mean_edge_length
+    from meshmei.native import torch_reference
+
+    if compiled and not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    gen = torch.Generator().manual_seed(7)
+    cleared = clean = intersecting = caught = 0
+    cases = []
+    V, F = _two_sheets(0.0)
+    h = mean_edge_length(V, F)
+    half = V.shape[0] // 2
+    for trial in range(40):
+        V0 = V.clone()
+        V0[half:, 2] += 0.1 * h
+        V1 = V0.clone()
+        V1[half:, 2] -= (0.04 + 0.08 * float(torch.rand(1, generator=gen))) * h  # pushed down
+        V1 += 0.01 * h * torch.randn(V1.shape, generator=gen, dtype=V1.dtype)
+        cases.append((V0, V1, F, h))
+    for kind in ("sphere", "torus", "sheet"):
+        Vk, Fk = initial_mesh(kind, n_vertices=300, dtype=torch.float64)
+        hk = mean_edge_length(Vk, Fk)
+        for trial in range(15):
+            V0 = Vk + 0.1 * hk * torch.randn(Vk.shape, generator=gen, dtype=Vk.dtype)
+            V1 = V0 + (0.01 + 0.04 * (trial % 4)) * hk * torch.randn(Vk.shape, generator=gen, dtype=Vk.dtype)
+            cases.append((V0, V1, Fk, hk))
+    with (nullcontext() if compiled else torch_reference()):
+        for V0, V1, Fc, hc in cases:
+            if count_self_intersections(V0, Fc):
+                continue  # the certificate starts from a clean mesh
+            sep = SeparationCertificate.for_mesh(Fc, V0.shape[0])
+            barrier = ContactBarrier(Fc, hc / 3, edges=True)
+            ok = _cleared(sep, barrier, V0, V1, Fc)
+            pairs = count_self_intersections(V1, Fc)
+            intersecting += pairs > 0
+            clean += pairs == 0
+            caught += ok is False and pairs > 0  # applied, and the listed faces held the intersection
+            if ok:
+                cleared += 1
+                assert pairs == 0, f"cleared, but libigl finds {pairs} pairs"
+    assert intersecting >= 10 and clean >= 40  # both sides reached
+    # it applies wherever twice the step is within the barrier's bound (most small steps; a wild one is left
+    # to libigl whole), and then its verdict is libigl's
+    assert cleared >= 20 and caught >= 10
+
+
+def test_a_fan_wrapping_twice_fails_the_separation_certificates_star_rule():
+    """The star rule (faces sharing a vertex): a fan that wraps twice around its centre has two faces that
+    cross, with every face facing up; its centre is not cleared, the same fan unwound is."""
+    from meshmei.certify import SeparationCertificate
+
+    ring = torch.stack([torch.tensor([math.cos(k * math.pi / 2), math.sin(k * math.pi / 2), 0.1 * k]) for k in range(8)])
+    V = torch.cat([torch.zeros(1, 3), ring]).double()
+    V[0, 2] = 0.35
+    F = torch.tensor([[0, 1 + k, 1 + (k + 1) % 8] for k in range(8)])
+    assert count_self_intersections(V, F) > 0
+    sep = SeparationCertificate.for_mesh(F, len(V))
+    for compiled in (False, True):
+        assert not sep.unfolded(V.numpy(), compiled)[0]
+    flat = torch.cat([torch.zeros(1, 3), torch.stack([torch.tensor([math.cos(k * math.pi / 4), math.sin(k * math.pi / 4), 0.0])
+                                                      for k in range(8)]).double()])
+    F8 = torch.tensor([[0, 1 + k, 1 + (k + 1) % 8] for k in range(8)])
+    sep8 = SeparationCertificate.for_mesh(F8, len(flat))
+    for compiled in (False, True):
+        assert sep8.unfolded(flat.numpy(), compiled).all()
+
+
+def test_the_compiled_star_rule_decides_as_the_numpy_one():
+    from meshmei import native
+    from meshmei.certify import SeparationCertificate
+    from meshmei.contact import mean_edge_length
+
+    if not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    gen = torch.Generator().manual_seed(2)
+    failing = 0
+    for kind in ("sphere", "sheet", "torus"):
+        V, F = initial_mesh(kind, n_vertices=400, dtype=torch.float64)
+        h = mean_edge_length(V, F)
+        sep = SeparationCertificate.for_mesh(F, V.shape[0])
+        for scale in (0.0, 0.2, 0.5, 1.0):
+            X = (V + scale * h * torch.randn(V.shape, generator=gen, dtype=V.dtype)).numpy()
+            a, b = sep.unfolded(X, True), sep.unfolded(X, False)
+            assert (a == b).all()
+            failing += int((~a).sum())
+    assert failing > 100
+
+
+def test_the_separation_certificate_applies_only_where_its_proof_holds():
+    from meshmei.certify import SeparationCertificate
+    from meshmei.contact import ContactBarrier, mean_edge_length
+
+    V, F = _two_sheets(0.3)
+    h = mean_edge_length(V, F)
+    assert SeparationCertificate.for_mesh(F, V.shape[0]) is not None
+    # two tetrahedra sharing a vertex: that vertex has two fans
+    T = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    assert SeparationCertificate.for_mesh(torch.cat([T, torch.where(T > 0, T + 3, T)]), 7) is None
+    assert SeparationCertificate.for_mesh(torch.cat([F[:1], F[:1].flip(1), F[1:]]), V.shape[0]) is None  # misoriented
+    plain = ContactBarrier(F, h / 3)
+    plain(V)
+    assert plain.separation(V) is None  # no edge pairs: no proof
+    cb = ContactBarrier(F, h / 3)
+    cb.track_edges()
+    cb(V)
+    assert cb.separation(V) is not None and cb.separation(V + 1e-3) is None  # for those vertices only
+    assert float(cb(V)) == float(plain(V))  # tracked edges are not in the energy
+    touching = V.clone()
+    touching[V.shape[0] // 2:, 2] -= 0.3  # the sheets coincide: pairs in contact, left out
+    left = ContactBarrier(F, h / 3, edges=True)
+    assert left.leave_out(touching) > 0
+    left(touching)
+    assert left.separation(touching) is None
+
+
+def test_the_guard_with_the_separation_certificate_gives_libigls_verdicts():
+    """A guard that uses the contact barrier's distances refuses and accepts exactly what libigl alone does,
+    over steps that push two close sheets through each other and back, and clears most of the clean ones."""
+    from meshmei.contact import ContactBarrier, mean_edge_length
+
+    V, F = _two_sheets(0.0)
+    h = mean_edge_length(V, F)
+    half = V.shape[0] // 2
+    V[half:, 2] += 0.12 * h
+    rules = ValidityRules(max_turn_degrees=180.0)
+    sep_guard, plain = StepGuard(V, F, rules), StepGuard(V, F, rules)
+    barrier = ContactBarrier(F, h / 3, edges=True)
+    sep_guard.use_contact(barrier)
+    assert sep_guard.separation is not None
+    gen = torch.Generator().manual_seed(3)
+    current = V
+    for step in range(60):
+        barrier(current)  # the objective, at the last accepted mesh
+        W = current.clone()
+        W[half:, 2] += (0.05 * h if step % 7 == 6 else -0.03 * h) + 0.005 * h * torch.randn(half, generator=gen, dtype=V.dtype)
+        a, b = sep_guard.accept(W), plain.accept(W)
+        assert a == b, f"step {step}"
+        if a:
+            current = W
+    assert sep_guard.reasons == plain.reasons and plain.reasons["intersection"] > 0
+    assert sep_guard.separated > 0.5 * (sep_guard.checks - sep_guard.failures)

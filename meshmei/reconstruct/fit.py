@@ -280,7 +280,7 @@ def _guard_info(guard, records) -> dict:
     if guard is None:
         return {}
     return {"checks": guard.checks, "refused": guard.failures, "check_seconds": guard.seconds, "certified": guard.certified,
-            "refused_by": dict(guard.reasons), "steps": len(records),
+            "separated": guard.separated, "refused_by": dict(guard.reasons), "steps": len(records),
             "accepted_steps": sum(1 for rec in records if rec["step_scale"] > 0)}
 
 
@@ -419,11 +419,16 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 "an intersection)")
         max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
         guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
+        if guard is not None and contact is not None:
+            # the barrier's distances at each accepted mesh clear most candidates of libigl's test; they need
+            # its edge pairs, searched for that alone (not in the energy) unless the run pairs edges anyway
+            contact.track_edges()
+            guard.use_contact(contact)
         trace.seconds += time.perf_counter() - t0
         latest, edges_from = [None], [trace.step if s.contact_edges is True else None]
 
         def after_step(rec, param=param, F=F, latest=latest, contact=contact, guard=guard):
-            if (s.contact_edges == "auto" and contact is not None and contact.E is None and guard is not None
+            if (s.contact_edges == "auto" and contact is not None and not contact.edge_energy and guard is not None
                     and guard.reasons["intersection"] >= AUTO_EDGE_REFUSALS):
                 contact.use_edges()  # a stall at an edge contact: pair edges from here on
                 edges_from[0] = rec["step"]
