@@ -35,6 +35,11 @@ that met elsewhere than at a shared vertex or edge would lie on one ray. The sph
 ``v`` between its neighbours ``a`` and ``b`` is the angle between ``a - v`` and ``b - v`` projected onto
 the plane perpendicular to ``v - c`` (the directions of the great circles leaving ``v``), so both rules are
 a few vector operations per face and corner.
+
+:class:`SeparationCertificate` needs no particular shape: it proves a *step* clean from the last clean
+mesh, the contact barrier's distances there and the step's length, and hands libigl only the faces it
+cannot clear (see the class). It is what makes the guard affordable at 10k vertices, where libigl's test
+costs 40 ms a check.
 """
 
 from __future__ import annotations
