@@ -429,8 +429,12 @@ def test_torus_to_teapot_with_default_stages():
     src = initial_mesh("torus", n_vertices=1000)
     stages, fr = default_stages(1000)
     res = reconstruct(src, "teapot", "rbf", steps=300, stages=stages, stage_fractions=fr)
+    # guarded (the default) at this small budget: 1.08e-4 and F-score 0.897 with no intersecting pair; without
+    # guard and barriers 1.74e-5 and 0.985 with 1,108 pairs (2026-11-28; the F-score bound of 0.9 predates the
+    # guard and had failed since at least 9673eb4, unnoticed: slow tests do not run in CI)
     assert res.final.chamfer_l2 < 2e-4
-    assert res.final.fscore > 0.9
+    assert res.final.fscore > 0.85
+    assert res.final.self_intersections == 0 and res.final.watertight
 
 
 @pytest.mark.parametrize("module", ["meshmei.deform.rbf", "meshmei.metrics", "meshmei.deform.largesteps", "meshmei.reconstruct.fit"])
