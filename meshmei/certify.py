@@ -49,6 +49,8 @@ import math
 import numpy as np
 import torch
 
+from . import native
+from .contact import pair_distance_bounds
 from .metrics import face_components
 from .quality import edge_use
 from .topology import mesh_topology
@@ -237,8 +239,10 @@ def _segments_closer_than(x: np.ndarray, y: np.ndarray, a0, a1, b0, b1, tol: flo
 
 def _consistently_oriented(F: torch.Tensor) -> bool:
     """Whether no directed edge occurs twice (two faces sharing an edge run it in opposite directions)."""
-    directed = torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    return len(torch.unique(directed, dim=0)) == len(directed)
+    Fn = F.cpu().numpy().astype(np.int64)
+    n = int(Fn.max(initial=-1)) + 1
+    directed = (Fn * n + np.roll(Fn, -1, 1)).reshape(-1)  # one integer key per directed edge (dim=0 unique: slow)
+    return len(np.unique(directed)) == len(directed)
 
 
 def _boundary_segments(F: torch.Tensor, topo) -> torch.Tensor:
@@ -334,13 +338,13 @@ class SeparationCertificate:
         edge of more than two faces, or a vertex whose faces form more than one fan (two cones touching at
         their tips)."""
         F = F.cpu()
-        Fn = F.numpy()
-        directed = (Fn * n_vertices + np.roll(Fn, -1, 1)).reshape(-1)  # each directed edge once: oriented
-        if len(np.unique(directed)) != len(directed):
+        if not _consistently_oriented(F):
             return None
+        # no edge in more than two faces' sides (stricter than edge_use, which counts a degenerate face's
+        # repeated side once: the edge-to-faces table holds two faces per edge)
         fe = mesh_topology(F, n_vertices).face_edges.reshape(-1)
         if bool((torch.bincount(fe[fe >= 0]) > 2).any()) or not _one_fan_per_vertex(F, n_vertices):
-            return None  # an edge of more than two faces, or a vertex of two fans
+            return None
         return cls(F, n_vertices)
 
     def _star(self, vertices: np.ndarray) -> np.ndarray:
@@ -354,8 +358,6 @@ class SeparationCertificate:
     def unfolded(self, V: np.ndarray, compiled: bool | None = None) -> np.ndarray:
         """``(n,)`` bool: the vertices whose star is proven a fan that wraps once (rule 2), float64 ``V``
         (compiled where the kernels are built: the same rule, about 20 times faster at 10k vertices)."""
-        from . import native
-
         if native.enabled() if compiled is None else compiled:
             V = np.ascontiguousarray(V, dtype=np.float64)
             ok = np.empty(self.n_vertices, dtype=np.uint8)
@@ -387,8 +389,6 @@ class SeparationCertificate:
         """The faces of ``V1`` that the exact test must still check (rules 1 and 2), from the last clean mesh
         ``V0`` and what the contact barrier handed out at ``V0`` (:meth:`~meshmei.contact.ContactBarrier.separation`);
         None where the barrier's bound does not cover twice the step (the whole mesh must be tested)."""
-        from .contact import pair_distance_bounds
-
         vt, ft, ea, eb, unseen = handed_out
         X1, X0 = V1.detach().cpu().double().numpy(), V0.detach().cpu().double().numpy()
         step = float(np.sqrt(((X1 - X0) ** 2).sum(1)).max(initial=0.0))
@@ -405,7 +405,8 @@ class SeparationCertificate:
 
 def _one_fan_per_vertex(F: torch.Tensor, n_vertices: int) -> bool:
     """Whether the faces around every vertex are one fan: its corners connected through the edges at it that
-    two faces share (two cones touching at their tips have two)."""
+    two faces share (two cones touching at their tips have two). ``F`` consistently oriented
+    (:func:`_consistently_oriented`)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -419,8 +420,6 @@ def _one_fan_per_vertex(F: torch.Tensor, n_vertices: int) -> bool:
     a = np.concatenate([3 * f + (k + 1) % 3, 3 * f + (k + 2) % 3])
     b = np.concatenate([3 * q + (l + 2) % 3, 3 * q + (l + 1) % 3])
     Fn = F.reshape(-1).numpy()
-    if (Fn[a] != Fn[b]).any():
-        return False  # faces not consistently oriented across an edge
     m3 = 3 * F.shape[0]
     _, label = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(m3, m3)), directed=False)
     lo = np.full(n_vertices, m3, dtype=np.int64)

@@ -177,10 +177,9 @@ class StepGuard:
                                 or StarCertificate.for_start(ref, F, self.normals))
         self.certified = 0
         self.separation, self._contact, self.separated = None, None, 0
-        self._clean = ref  # the last accepted vertices (float64): the separation certificate's V0
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
-        self.accepted = ref if rules.max_step is not None else None  # the last accepted vertices, for max_step
+        self.accepted = ref  # the last accepted vertices (float64): for max_step and the separation certificate
         # the float64 face frame of the last accepted candidate: the next objective's barrier screens its faces
         # with it (the same vertices) instead of computing the frame again
         self._accepted_frame = None
@@ -205,7 +204,7 @@ class StepGuard:
         Vd = V.detach().double()
         if not bool(torch.isfinite(Vd).all()):
             return "non-finite", "non-finite vertices", None
-        if self.accepted is not None and Vd.shape == self.accepted.shape:
+        if self.rules.max_step is not None:
             moved = float((Vd - self.accepted).norm(dim=1).max())
             if moved > self.rules.max_step:
                 return "step", f"a vertex moved {moved:.3g}, more than {self.rules.max_step:.3g}, in one step", None
@@ -257,10 +256,10 @@ class StepGuard:
         (False: not proven; the whole mesh goes to the exact test)."""
         if self.separation is None:
             return False
-        handed_out = self._contact.separation(self._clean)
+        handed_out = self._contact.separation(self.accepted)
         if handed_out is None:
             return False
-        faces = self.separation.suspects(Vd, self._clean, handed_out)
+        faces = self.separation.suspects(Vd, self.accepted, handed_out)
         if faces is None:
             return False
         return len(faces) == 0 or count_self_intersections(Vd, self.F[torch.from_numpy(faces)]) == 0
@@ -287,11 +286,9 @@ class StepGuard:
         else:
             Vd = V.detach().double()
             self._accepted_frame = (Vd, *frame)
-            self._clean = Vd
+            self.accepted = Vd
             if self._candidate_pairs is not None:  # pairs that went away may not come back
                 self.allowed = self._candidate_pairs
-            if self.accepted is not None:
-                self.accepted = Vd
             if self.rules.turn_from == "step":
                 # the reference normals follow the accepted mesh; the faces the rule trusts stay the start's:
                 # a sound face squeezed into the sliver band (allowed where the start's own sliver lowered
