@@ -19,7 +19,8 @@ import torch
 
 from .deform.largesteps import AdamUniform
 
-__all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "make_optimizer", "minimize"]
+__all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "Lookahead", "make_optimizer",
+           "minimize"]
 
 SCHEDULE_SHAPES = ("cosine", "geometric", "constant")
 OPTIMIZERS = ("adam", "uniform")
@@ -178,6 +179,41 @@ class Outcome:
     loss: float | list
     step: int | list
     budget_spent: bool
+
+
+class Lookahead:
+    """``fn()`` (the vertices a parameterisation gives) evaluated once per step where a step guard checks it.
+
+    A guarded step evaluates the parameters' vertices twice at the same point: the guard checks the candidate
+    after ``optimizer.step()``, and the next objective maps the same parameters again, with a graph.
+    :meth:`candidate` (the guard's call) evaluates ``fn`` with a graph, keeps it and hands out a detached
+    copy; the next call of the lookahead itself (the objective's) takes the kept result, once, if none of
+    ``tensors`` changed in between (their version counters, which every in-place update moves: the
+    optimiser's step, a halving, an undone step, a restored best iterate), and evaluates ``fn`` otherwise.
+    The values and the gradients are those of evaluating ``fn`` at the call: the same operations on the
+    same inputs. ``fn`` must depend on nothing that changes without one of ``tensors`` changing (an RBF
+    deformer's pair list is rebuilt inside its own call and restored only with the parameters).
+    """
+
+    def __init__(self, fn: Callable[[], torch.Tensor], tensors):
+        self.fn, self.tensors = fn, tuple(tensors)
+        self._kept = None
+
+    def _key(self) -> tuple:
+        return tuple((t._version, t.data_ptr()) for t in self.tensors)
+
+    def __call__(self) -> torch.Tensor:
+        kept, self._kept = self._kept, None  # handed out once: a second backward through it would fail
+        if kept is not None and kept[0] == self._key():
+            return kept[1]
+        return self.fn()
+
+    def candidate(self) -> torch.Tensor:
+        """``fn()`` now, detached; its graph is kept for the next call."""
+        with torch.enable_grad():
+            out = self.fn()
+        self._kept = (self._key(), out)
+        return out.detach()
 
 
 def make_optimizer(name: str, groups: list) -> torch.optim.Optimizer:

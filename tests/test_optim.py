@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from meshmei.deform import RBFParameterisation, VertexParameterisation
-from meshmei.optim import Budget, Schedule, StepPoint, Trace, make_optimizer, minimize
+from meshmei.optim import Budget, Lookahead, Schedule, StepPoint, Trace, make_optimizer, minimize
 
 
 def quadratic(x, target):
@@ -361,3 +361,72 @@ def test_a_batch_puts_back_the_pair_list_of_the_items_whose_step_is_undone_alone
     with pytest.raises(ValueError, match="one state per item"):
         minimize(lambda p: (-log_sigma.sum(1), {}), make_optimizer("adam", [{"params": [log_sigma], "lr": 0.5}]),
                  Budget(steps=1), states=rbfs[:1])
+
+
+def test_a_lookahead_hands_its_kept_evaluation_out_once_and_only_at_the_same_parameters():
+    x = torch.tensor([1.0, 2.0], requires_grad=True)
+    calls = []
+
+    def fn():
+        calls.append(1)
+        return 3.0 * x
+
+    look = Lookahead(fn, [x])
+    with torch.no_grad():  # where the guard calls it: inside the backtracking's no_grad
+        checked = look.candidate()
+    assert not checked.requires_grad and len(calls) == 1
+    kept = look()
+    assert len(calls) == 1 and torch.equal(kept, 3.0 * x.detach()) and kept.grad_fn is not None  # the kept graph
+    kept.sum().backward()
+    assert torch.equal(x.grad, torch.tensor([3.0, 3.0]))
+    look()  # handed out once: a second call evaluates again (the kept graph was used)
+    assert len(calls) == 2
+    look.candidate()
+    with torch.no_grad():
+        x.add_(1.0)  # the parameters moved (an optimiser's step, a halving): the kept result is stale
+    assert torch.equal(look().detach(), 3.0 * x.detach()) and len(calls) == 4
+
+
+def test_a_guarded_run_with_a_lookahead_is_the_run_without_it_with_one_evaluation_less_per_accepted_step():
+    """The guard's check of the candidate and the next objective share one evaluation of the deformer (the
+    scales widen, so its pair list is rebuilt on the way; three checks in five refuse, so steps are halved
+    and undone): parameters, losses and step scales are bit for bit those of evaluating it at each call."""
+
+    def run(lookahead: bool):
+        torch.manual_seed(0)
+        rbf = _widening_deformer(2)
+        calls = [0]
+
+        def deformed():
+            calls[0] += 1
+            return rbf()
+
+        vertices = Lookahead(deformed, (rbf.offsets, rbf.log_sigma)) if lookahead else deformed
+        target = torch.randn(rbf.V0.shape, generator=torch.Generator().manual_seed(1), dtype=rbf.V0.dtype)
+        checks = [0]
+
+        def accept():
+            checks[0] += 1
+            with torch.no_grad():
+                V = vertices.candidate() if lookahead else vertices()
+            return bool(torch.isfinite(V).all()) and checks[0] % 5 not in (2, 3, 4)
+
+        def objective(p):
+            V = vertices()
+            return ((V - target) ** 2).sum() - rbf.log_sigma.sum(), {}
+
+        trace = Trace()
+        minimize(objective, make_optimizer("adam", [{"params": [rbf.offsets], "lr": 0.05},
+                                                    {"params": [rbf.log_sigma], "lr": 0.2}]),
+                 Budget(steps=12), trace=trace, accept=accept, max_halvings=1, states=(rbf,))
+        return rbf, trace.history, calls[0]
+
+    plain, h_plain, n_plain = run(False)
+    look, h_look, n_look = run(True)
+    assert look.n_rebuilds > 0 and any(r["step_scale"] == 0 for r in h_look) and any(
+        r["step_scale"] == 0.5 for r in h_look)
+    assert torch.equal(look.offsets, plain.offsets) and torch.equal(look.log_sigma, plain.log_sigma)
+    assert [r["loss"] for r in h_look] == [r["loss"] for r in h_plain]
+    assert [r["step_scale"] for r in h_look] == [r["step_scale"] for r in h_plain]
+    # the objective after an accepted step (not the undone ones, nor after the last step) took the kept one
+    assert n_plain - n_look == sum(1 for r in h_look[:-1] if r["step_scale"] > 0)

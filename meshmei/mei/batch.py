@@ -18,7 +18,7 @@ import torch
 
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
-from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
+from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
 from ..regularizers import REGULARIZERS
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
@@ -75,10 +75,13 @@ class BatchScene:
             self.groups.append({"params": [self.rotation, self.translation], "lr": settings.lr_pose})
         self.camera, self.render_settings = first.camera, first.render_settings
         self._dense_key, self._dense = None, None
+        # every item's deformed vertices, (B, n, 3): the guards' check of a candidate and the next objective
+        # share one map (meshmei.optim.Lookahead)
+        self.vertices = Lookahead(self._deformed, (self.offsets, self.log_sigma))
         if self.guards is not None:
             self.contacts = contact_barriers(V0, F, settings, len(self.seeds))
 
-    def vertices(self) -> torch.Tensor:
+    def _deformed(self) -> torch.Tensor:
         """Deformed vertices of every item, ``(B, n, 3)``."""
         for r, ls in zip(self.rbfs, self.log_sigma):
             r.cover(ls)
@@ -130,7 +133,7 @@ class BatchScene:
 
         def accept(pending: torch.Tensor) -> torch.Tensor:
             with torch.no_grad():
-                V = self.vertices().double()
+                V = self.vertices.candidate().double()
                 n, q = face_frame(V, self.guards[0].F)  # every item's frame in one pass
             return torch.tensor([not p or g.accept(V[b], (n[b], q[b]))
                                  for b, (g, p) in enumerate(zip(self.guards, pending.tolist()))])

@@ -149,7 +149,7 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
         guard.use_contact(contacts[0])  # its distances at each accepted mesh clear most steps of libigl's test
 
     def objective(point):
-        V = scene.rbf()
+        V = scene.vertices()
         scene.widen(point.fraction)
         f = scene.expected(encoder(scene.views(V, F), neuron)[:, 0])  # one view, or the robust quadrature
         loss, record = -f, {"response": float(f.detach())}
@@ -187,7 +187,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     if guard is not None:
         valid_start(scene.rbf, guard)
     trace = Trace()
-    accept = None if guard is None else guard.acceptor(scene.rbf)
+    accept = None if guard is None else guard.acceptor(scene.vertices.candidate)
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights, guard), make_optimizer("adam", scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, keep_from=settings.robust_widen if scene.robust is not None else 0.0,

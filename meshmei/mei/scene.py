@@ -7,6 +7,7 @@ import math
 import numpy as np
 import torch
 
+from ..optim import Lookahead
 from ..regularizers import albedo_roughness, texture_roughness
 from ..render import axis_angle_to_matrix, render
 from .settings import MEISettings, make_deformer
@@ -23,6 +24,8 @@ class SeedScene:
         dtype = V0.dtype
         g = torch.Generator().manual_seed(int(seed))
         self.rbf = make_deformer(V0, settings)
+        # the objective's vertices: a guarded step's check of the candidate and the next objective share one map
+        self.vertices = Lookahead(self.rbf, (self.rbf.offsets, self.rbf.log_sigma))
         with torch.no_grad():
             self.rbf.offsets.copy_(settings.init_noise * torch.randn(self.rbf.offsets.shape, generator=g,
                                                                      dtype=torch.float64))

@@ -21,7 +21,7 @@ from ..contact import IN_CONTACT, ContactBarrier
 from ..deform import PARAMETERISATIONS
 from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
-from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
+from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
 from ..mesh import numpy_mesh
 from ..quality import self_intersecting_pairs, topology, triangle_quality
 from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss, scale_weights
@@ -147,11 +147,11 @@ def _parameterisation(sk: ReconstructionSettings, V0, F):
     return kind(V0, lr=sk.lr)
 
 
-def _objective(param, F, sk, weights, chamfer, k, latest, contact):
+def _objective(param, vertices, F, sk, weights, chamfer, k, latest, contact):
     w_lap, w_edge, w_arap = weights
 
     def objective(point):
-        Vc = param.vertices()
+        Vc = vertices()
         latest[0] = Vc
         if contact is not None:  # its candidate search runs beside the Chamfer term's KD-tree queries
             contact.prefetch(Vc)
@@ -439,10 +439,12 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                     evaluation(param.vertices().detach(), F, health=True)
 
         n_before = len(trace.history)
-        outcome = minimize(_objective(param, F, sk, weights, chamfer, k, latest, contact),
+        # a guarded step's check of the candidate and the next objective share one map of the parameters
+        vertices = Lookahead(param.vertices, [p for g in param.groups for p in g["params"]])
+        outcome = minimize(_objective(param, vertices, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
-                           callbacks=[after_step], accept=None if guard is None else guard.acceptor(param.vertices),
+                           callbacks=[after_step], accept=None if guard is None else guard.acceptor(vertices.candidate),
                            max_halvings=0 if guard is None else guard.rules.max_halvings, states=param.states())
         with torch.no_grad():
             V_start, V = V, param.vertices().detach()
