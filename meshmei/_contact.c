@@ -262,10 +262,11 @@ static void edge_pair(const double *V, const int64_t *E, const uint8_t *first, i
 }
 
 /* (edge, edge) pairs: out_a, out_b (room for `cap`; the order within a pair as edge_pair writes it). The
- * short edges' midpoints in a grid; a short edge looks for the short edges after it whose midpoints lie
- * within its half-extent, the largest short half-extent and reach (the cells that box overlaps), and
- * tests every long edge (half-extent above twice the mean: stretched ones, not in the grid); a long edge
- * tests the long edges after it. Each pair once. */
+ * short edges' midpoints in a grid; a short edge looks for the short edges after it in the grid's order
+ * whose midpoints lie within its half-extent, the largest short half-extent and reach (the cells that box
+ * overlaps; two edges within reach of each other each lie in the other's box, so the pair is found from the
+ * one the grid holds first), and tests every long edge (half-extent above twice the mean: stretched ones, not
+ * in the grid); a long edge tests the long edges after it. Each pair once. */
 int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *E, const uint8_t *first,
                           double lim, int64_t cap, int64_t *out_a, int64_t *out_b) {
     if (!all_finite(n, V)) return -1;
@@ -274,11 +275,11 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
     double *box = malloc(room * 6 * sizeof(double)); /* per edge: midpoint, half-extents */
     double *P = calloc(room * 3, sizeof(double)), *packed = malloc(room * 6 * sizeof(double));
     int64_t *longs = malloc(room * sizeof(int64_t)), *slot = malloc(room * sizeof(int64_t));
-    int64_t *ids = malloc(room * sizeof(int64_t));
+    int64_t *ids = malloc(room * sizeof(int64_t)), *pos = malloc(room * sizeof(int64_t)); /* grid order <-> edge */
     double *size = malloc(room * sizeof(double)); /* the largest half-extent */
     grid_t g = {0};
     int64_t found = -2, nlong = 0, nshort = 0;
-    if (!box || !P || !packed || !longs || !slot || !ids || !size) goto done;
+    if (!box || !P || !packed || !longs || !slot || !ids || !pos || !size) goto done;
     for (int64_t e = 0; e < k; e++) {
         box_of(V, E + 2 * e, 2, 0.0, lo, hi);
         size[e] = 0.0;
@@ -306,6 +307,7 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
     if (grid_build(&g, nshort, P, cell)) goto done;
     for (int64_t q = 0; q < nshort; q++) { /* the short edges' boxes in the grid's order: read in sequence */
         ids[q] = slot[g.items[q]];
+        pos[ids[q]] = q;
         for (int a = 0; a < 6; a++) packed[6 * q + a] = box[6 * ids[q] + a];
     }
     found = 0;
@@ -322,9 +324,10 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
             boxcells_t bc = box_cells(&g, qlo, qhi);
             for (int64_t row = 0, from, to; row < bc.nx * bc.ny; row++) {
                 cell_row(&g, &bc, row, &from, &to);
+                if (from <= pos[i]) from = pos[i] + 1; /* the grid's earlier edges found their pairs with i */
                 for (int64_t q = from; q < to; q++) {
                     const double *bj = packed + 6 * q;
-                    if (ids[q] <= i || fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
+                    if (fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
                         fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen || fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen)
                         continue;
                     edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b);
@@ -335,7 +338,7 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
             if (!long_i || longs[t] > i) edge_pair(V, E, first, i, longs[t], lo, hi, lim, &found, cap, out_a, out_b);
     }
 done:
-    grid_free(&g), free(box), free(P), free(packed), free(longs), free(slot), free(ids), free(size);
+    grid_free(&g), free(box), free(P), free(packed), free(longs), free(slot), free(ids), free(pos), free(size);
     return found;
 }
 
