@@ -368,6 +368,22 @@ void contact_edge_edge_distances(const double *V, const int64_t *E, int64_t k, c
     }
 }
 
+/* atan2(y, x) to within 5e-8 radians (a least-squares odd polynomial of atan on [0, 1], degree 15, and the
+ * octant's symmetries; its largest error on [0, 1] is 4.1e-8): several times faster than libm's. Enough where
+ * only a whole number of turns is read from a sum of angles. */
+static double rough_atan2(double y, double x) {
+    static const double c[8] = {0.9999994368431481, -0.333301066776889, 0.19948508985765476, -0.13915802260685678,
+                                0.09656256470433223, -0.05606317672867424, 0.02194661103229993, -0.004073309464382779};
+    double ax = fabs(x), ay = fabs(y), hi = ax > ay ? ax : ay, lo = ax > ay ? ay : ax;
+    if (!(hi > 0.0)) return 0.0;
+    double a = lo / hi, s = a * a, p = c[7];
+    for (int i = 6; i >= 0; i--) p = p * s + c[i];
+    double r = a * p;
+    if (ay > ax) r = 1.5707963267948966 - r;
+    if (x < 0.0) r = 3.141592653589793 - r;
+    return y < 0.0 ? -r : r;
+}
+
 /* meshmei.certify.SeparationCertificate's rule 2: ok[v] = 1 where the faces around v, projected onto the
  * plane perpendicular to v's area-weighted normal, all keep their orientation (n . N > 1e-9 |n| |N|) and
  * their corner angles at v sum to one turn (within 1e-6; less than one turn at a boundary vertex). A vertex
@@ -402,7 +418,11 @@ void separation_fans(int64_t n, const double *V, int64_t m, const int64_t *F, co
             if (!(orient > 1e-9 * nn * NN) || !(nn > 0.0)) ok[v] = 0;
             double sine = orient / (nn > tiny ? nn : tiny);
             double cosine = dot3(x1, x2) - dot3(nc, x1) * dot3(nc, x2) / (n2 > tiny ? n2 : tiny);
-            turn[v] += atan2(sine, cosine);
+            /* an interior star whose corners all keep their orientation is a closed fan: its angles, each in
+             * (0, pi), sum to a whole number of turns up to rounding, so a sum within 1e-6 of one turn is one
+             * below three half turns, and rough angles tell them apart (within 5e-8 each); a boundary fan's
+             * sum is compared with a turn to 1e-9 and takes libm's */
+            turn[v] += boundary[v] ? atan2(sine, cosine) : rough_atan2(sine, cosine);
         }
     }
     for (int64_t v = 0; v < n; v++) {
@@ -411,6 +431,6 @@ void separation_fans(int64_t n, const double *V, int64_t m, const int64_t *F, co
             continue;
         }
         if (!ok[v]) continue;
-        ok[v] = boundary[v] ? turn[v] < two_pi - 1e-9 : fabs(turn[v] - two_pi) <= 1e-6;
+        ok[v] = boundary[v] ? turn[v] < two_pi - 1e-9 : turn[v] < 1.5 * two_pi;
     }
 }
