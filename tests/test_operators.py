@@ -379,3 +379,27 @@ def test_a_bad_eps_is_refused(eps):
     V, F = icosphere(1)
     with pytest.raises(MeshError, match="eps must be a finite non-negative number"):
         ops.massmatrix(V, F, eps=eps)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(1, 3), (750, 3), (4, 2000, 3), (20000, 3)])
+def test_sum_xyz_is_torchs_sum_over_three_bit_for_bit_values_and_gradients(dtype, shape):
+    from meshmei.operators import sum_xyz
+
+    g = torch.Generator().manual_seed(shape[-2])
+    x = torch.randn(shape, generator=g, dtype=torch.float64) * torch.exp(8 * torch.randn(shape, generator=g, dtype=torch.float64))
+    x = x.to(dtype)
+    special = torch.tensor([float("inf"), -float("inf"), float("nan"), 0.0, -0.0, 1.0], dtype=dtype)
+    x.view(-1)[:6] = special[:x.numel()]
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    w = torch.randn(shape[:-1], generator=g, dtype=torch.float64).to(dtype)
+    sa, sb = sum_xyz(a * a), (b * b).sum(-1)
+    assert torch.equal(sa.nan_to_num(), sb.nan_to_num()) and torch.equal(sa.isnan(), sb.isnan())
+    (w * sa.nan_to_num(0.0, 0.0, 0.0)).sum().backward()
+    (w * sb.nan_to_num(0.0, 0.0, 0.0)).sum().backward()
+    assert torch.equal(a.grad.nan_to_num(), b.grad.nan_to_num()) and torch.equal(a.grad.isnan(), b.grad.isnan())
+    y = x.nan_to_num(0.0, 1.0, -1.0)  # signed terms: the order of the additions shows
+    assert torch.equal(sum_xyz(y), y.sum(-1))
+    # three negative zeros: -0 here, +0 from torch's reduction; equal as numbers
+    z = torch.full((2, 3), -0.0, dtype=dtype)
+    assert (sum_xyz(z) == z.sum(-1)).all()
