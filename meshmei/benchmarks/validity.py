@@ -74,15 +74,15 @@ def mei_cost_split(steps: int = 60, rounds: int = 5) -> list:
     return rows
 
 
-def run_mei_cost() -> Path:
+def run_mei_cost(rounds: int = 9) -> Path:
     load = os.getloadavg()[0]
-    rows = mei_cost_split()
+    rows = mei_cost_split(rounds=rounds)
     body = "\n".join([
         "## Cost of valid 3D-MEI steps (`python -m meshmei.benchmarks.validity --parts mei-cost`)",
         "",
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
         "",
-        "Simple cell, 64 px, 400-vertex start, 60 steps, seed 0; median ms per step over five alternated "
+        f"Simple cell, 64 px, 400-vertex start, 60 steps, seed 0; median ms per step over {rounds} alternated "
         "rounds (wall time, including the halvings of refused steps); response = fraction of the bound "
         "after 60 steps (last round), and the health of that result: " + HEALTH_LEGEND + ". "
         "The default is the guard with its barrier, plus the contact barrier "
@@ -303,6 +303,7 @@ def main(argv=None):
     ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=None, help="3D-MEI steps per seed (default: by start, as MEISettings)")
     ap.add_argument("--cells", type=int, default=6)
+    ap.add_argument("--rounds", type=int, default=9, help="alternated rounds of the mei-cost part (its median)")
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), reconstruction (default CLI runs), thin "
                          "(targets with thin parts)")
@@ -315,7 +316,7 @@ def main(argv=None):
     if "mei" in parts:
         print(f"wrote {run(args.steps, args.cells)} in {time.perf_counter() - t:.0f} s")
     if "mei-cost" in parts:
-        print(f"wrote {run_mei_cost()} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run_mei_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "reconstruction" in parts:
         print(f"wrote {run_reconstruction()} in {time.perf_counter() - t:.0f} s")
     if "thin" in parts:
