@@ -386,8 +386,9 @@ static double rough_atan2(double y, double x) {
 
 /* meshmei.certify.SeparationCertificate's rule 2: ok[v] = 1 where the faces around v, projected onto the
  * plane perpendicular to v's area-weighted normal, all keep their orientation (n . N > 1e-9 |n| |N|) and
- * their corner angles at v sum to one turn (within 1e-6; less than one turn at a boundary vertex). A vertex
- * of no face is ok. `work`: room for 4 n doubles. */
+ * their corner angles at v sum to one turn (less than one turn at a boundary vertex, by 1e-9). NumPy's twin
+ * asks an interior sum to lie within 1e-6 of a turn; here it is asked to lie below three half turns, which
+ * for such a fan is the same (see below). A vertex of no face is ok. `work`: room for 4 n doubles. */
 void separation_fans(int64_t n, const double *V, int64_t m, const int64_t *F, const uint8_t *boundary,
                      double *work, uint8_t *ok) {
     const double two_pi = 6.283185307179586, tiny = DBL_MIN;

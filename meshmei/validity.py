@@ -176,7 +176,7 @@ class StepGuard:
             self.certificate = (GraphCertificate.for_start(ref, F, self.normals)
                                 or StarCertificate.for_start(ref, F, self.normals))
         self.certified = 0
-        self.separation, self._contact, self.separated, self._suspects = None, None, 0, 0
+        self.separation, self._contact, self.separated = None, None, 0
         self.checks, self.failures, self.seconds = 0, 0, 0.0
         self.reasons = {"non-finite": 0, "step": 0, "quality": 0, "turn": 0, "intersection": 0}
         self.accepted = ref  # the last accepted vertices (float64): for max_step and the separation certificate
@@ -225,12 +225,14 @@ class StepGuard:
                 self.certified += 1  # proven a graph over a plane, or star-shaped: no pair can intersect
                 return None, None, frame
             if not self.allowed:  # a clean start (every built-in one): any pair is new
-                found = self._separated(Vd)
-                if found == 0:
-                    self.separated += 1  # the contact barrier's distances and the step's length cleared it
-                    return None, None, frame
-                if found is not None:  # libigl found pairs among the faces it could not clear: no need to count all
-                    return ("intersection", f"{found} self-intersecting face pairs among the {self._suspects} faces the "
+                cleared = self._separated(Vd)
+                if cleared is not None:
+                    found, listed = cleared
+                    if not found:
+                        self.separated += 1  # the contact barrier's distances and the step's length cleared it
+                        return None, None, frame
+                    # libigl found pairs among the faces it could not clear: no need to count them all
+                    return ("intersection", f"{found} self-intersecting face pairs among the {listed} faces the "
                             "separation certificate could not clear (start: 0)", frame)
                 pairs = count_self_intersections(Vd, self.F)
                 if pairs > 0:
@@ -255,11 +257,11 @@ class StepGuard:
         if barrier is not None and self.rules.self_intersections:
             self.separation = SeparationCertificate.for_mesh(self.F, self.n_vertices)
 
-    def _separated(self, Vd: torch.Tensor) -> int | None:
-        """What the separation certificate, with libigl on the faces it could not clear, says of ``Vd``: 0 when
-        it proves ``Vd`` clean, the number of intersecting pairs libigl found among those faces (at least one:
-        ``Vd`` is refused without a test of the whole mesh), or None when it proves nothing (the whole mesh goes
-        to the exact test)."""
+    def _separated(self, Vd: torch.Tensor) -> tuple[int, int] | None:
+        """What the separation certificate, with libigl on the faces it could not clear, says of ``Vd``:
+        ``(pairs, listed)``, the intersecting pairs libigl found among the ``listed`` faces it could not clear
+        (0: ``Vd`` is proven clean; more: it is refused without a test of the whole mesh), or None when it
+        proves nothing (the whole mesh goes to the exact test)."""
         if self.separation is None:
             return None
         handed_out = self._contact.separation(self.accepted)
@@ -268,8 +270,7 @@ class StepGuard:
         faces = self.separation.suspects(Vd, self.accepted, handed_out)
         if faces is None:
             return None
-        self._suspects = len(faces)
-        return 0 if not len(faces) else count_self_intersections(Vd, self.F[torch.from_numpy(faces)])
+        return (count_self_intersections(Vd, self.F[torch.from_numpy(faces)]) if len(faces) else 0), len(faces)
 
     def why_not(self, V: torch.Tensor) -> str | None:
         """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first). A question, not a
