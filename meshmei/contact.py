@@ -663,18 +663,46 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
         if not len(item):
             continue
         rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
-        with torch.no_grad():  # most steps of a smooth mesh have no pair within reach
-            close = dist(*(Vf.detach()[rows[:, k]] for k in range(4))) < dh * dh
-        if bool(close.any()):
-            kinds.append((rows[close], item[close], dist))
+        near = _maybe_near(Vf.detach(), rows, dist, dh)  # most steps of a smooth mesh have no pair within reach
+        if bool(near.any()):
+            kinds.append((rows[near], item[near], dist))
     counts = torch.zeros(B, dtype=torch.long)
-    for _, item, _ in kinds:
-        counts += torch.bincount(item.cpu(), minlength=B)
-    for cb, k in zip(barriers, counts.tolist()):
-        cb.active = int(k)
     total = V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient, where no pair is near
     for rows, item, dist in kinds:
         # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
-        d = dist(*(Vf.index_select(0, rows[:, k]) for k in range(4))).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
+        d2 = dist(*(Vf.index_select(0, rows[:, k]) for k in range(4)))
+        close = d2.detach() < dh * dh
+        if not bool(close.any()):
+            continue
+        counts += torch.bincount(item[close].cpu(), minlength=B)
+        # the pairs beyond distance (kept by _maybe_near's slack) add zeros, value and gradient, to the sums
+        d = torch.where(close, d2, torch.inf).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
         total = total.index_add(0, item, log_barrier(d, dh))
+    for cb, k in zip(barriers, counts.tolist()):
+        cb.active = int(k)
     return total / n
+
+
+def _maybe_near(Vf: torch.Tensor, rows: torch.Tensor, dist, dh: float) -> torch.Tensor:
+    """Which pairs ``rows`` (corner indices ``(k, 4)`` into ``Vf``: a vertex and a face's corners, or two
+    edges' ends) may lie within ``dh``: a superset of those whose ``dist`` (in ``Vf``'s dtype) is below
+    ``dh^2``. Compiled where the kernels take ``Vf``: the float64 distances of ``_contact.c`` (0 for two
+    near-parallel edges), kept below ``dh`` plus a slack far above the torch code's rounding (``1e-3 dh``
+    and 1,024 units in the last place of the largest coordinate); else the torch distances themselves."""
+    if native.available(Vf) and len(rows) and bool(torch.isfinite(Vf).all()):
+        Vn = Vf.double().numpy()
+        R = np.ascontiguousarray(rows.numpy(), dtype=np.int64)
+        k, lib, out = len(R), native.library(), np.empty(len(R))
+        if dist is point_triangle_sqdist:
+            F, vt, ft = np.ascontiguousarray(R[:, 1:]), np.ascontiguousarray(R[:, 0]), np.arange(k, dtype=np.int64)
+            lib.contact_vertex_face_distances(Vn.ctypes.data, F.ctypes.data, k, vt.ctypes.data, ft.ctypes.data,
+                                              out.ctypes.data)
+        else:
+            ea = np.arange(0, 2 * k, 2, dtype=np.int64)
+            eb = ea + 1
+            lib.contact_edge_edge_distances(Vn.ctypes.data, R.ctypes.data, k, ea.ctypes.data, eb.ctypes.data,
+                                            out.ctypes.data)
+        slack = 1e-3 * dh + 1024.0 * torch.finfo(Vf.dtype).eps * float(Vf.abs().max())
+        return torch.from_numpy(out < dh + slack)
+    with torch.no_grad():
+        return dist(*(Vf[rows[:, k]] for k in range(4))) < dh * dh

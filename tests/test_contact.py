@@ -3,6 +3,8 @@ near-contact, and candidates that are never stale."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import math
 
 import numpy as np
@@ -317,10 +319,12 @@ def test_edge_candidates_are_exactly_the_edge_pairs_within_reach(compiled):
                                rtol=1e-15, atol=0)
 
 
+@functools.lru_cache(maxsize=None)
 def _hard_meshes():
     """Meshes for the two broad phases: crumpled closed and open surfaces, long stretched faces and edges, a
     vertex far out, coincident vertices (zero-length edges, zero-area faces), 200 vertices packed into a small
-    box (more pairs than the compiled search's first guess of room), one face."""
+    box (more pairs than the compiled search's first guess of room), one face. Built once (tests read them,
+    never change them)."""
     g = torch.Generator().manual_seed(11)
     out = []
     for kind in ("sphere", "sheet", "torus"):
@@ -342,7 +346,7 @@ def _hard_meshes():
     out.append(("packed", 1e-3 * V + 1e-4 * torch.randn(V.shape, generator=g, dtype=V.dtype), F, 2e-3))
     out.append(("one face", torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 0.1]], dtype=torch.float64),
                 torch.tensor([[0, 1, 2]]), 0.3))
-    return out
+    return tuple(out)
 
 
 @needs_cc
@@ -358,6 +362,34 @@ def test_the_compiled_search_hands_out_the_numpy_searchs_pairs_bit_for_bit(name)
     numpy_, compiled = a._candidates(Vn, False), b._candidates(Vn, True)
     assert len(compiled[0]) + len(compiled[2]) > 0
     assert all(x.dtype == y.dtype and torch.equal(x, y) for x, y in zip(numpy_, compiled))
+
+
+@needs_cc
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("name", ["crumpled sphere", "crumpled sheet", "stretched", "coincident"])
+def test_the_compiled_prefilter_changes_no_energy_gradient_or_count(name, dtype):
+    """The energy's compiled prefilter (float64 distances in C with a slack) keeps every pair that the torch
+    distance puts within d_hat: energy, gradient and active count equal the torch reference's bit for bit,
+    with d_hat set to pairs' own torch distances (pairs exactly at the threshold), in float32 and float64,
+    and 1,000 units from the origin (float32's rounding there is about 6e-5)."""
+    _, V, F, d = next(x for x in _hard_meshes() if x[0] == name)
+    for shift in (0.0, 1000.0):
+        W = (V + shift).to(dtype)
+        vt, ft, _, _ = ContactBarrier(F, 3 * d).candidates(W)  # pairs within 3 d and some beyond
+        at = point_triangle_sqdist(W[vt], W[F[ft, 0]], W[F[ft, 1]], W[F[ft, 2]]).sqrt()
+        at = at[(at > 0) & (at < 3 * d)].sort().values
+        for d_hat in (float(at[len(at) // 2]), float(at[len(at) // 5])):
+            out = []
+            for reference in (False, True):
+                barrier = ContactBarrier(F, d_hat, edges=True)
+                X = W.clone().requires_grad_(True)
+                with torch_reference() if reference else contextlib.nullcontext():
+                    e = barrier(X)
+                    e.backward()
+                out.append((e.detach(), X.grad, barrier.active))
+            (e1, g1, n1), (e2, g2, n2) = out
+            assert n1 == n2 and torch.equal(e1, e2) and torch.equal(g1, g2), (shift, d_hat)
+            assert n1 > 0
 
 
 @needs_cc
