@@ -286,7 +286,8 @@ class SeparationCertificate:
     1. Two faces sharing no vertex are disjoint in ``V0``, so their distance is the least of their six
        (vertex, face) and nine (edge, edge) distances. If that is more than ``2 s``, they are still apart
        in ``V1``. The contact barrier's last call, at ``V0`` (:meth:`~meshmei.contact.ContactBarrier.separation`),
-       handed out every such pair that may lie within its ``distance`` and bounds the others; a pair closer
+       kept every such pair found within its search's reach and bounds the others (that reach less twice
+       the farthest move since the search); a pair closer
        than ``2 s`` puts its faces (the face, and every face around the vertex; the faces of both edges) on
        the list for the exact test.
     2. Faces that share a vertex ``v`` both lie in ``v``'s star. Project the star onto the plane
@@ -387,7 +388,7 @@ class SeparationCertificate:
 
     def suspects(self, V1: torch.Tensor, V0: torch.Tensor, handed_out) -> np.ndarray | None:
         """The faces of ``V1`` that the exact test must still check (rules 1 and 2), from the last clean mesh
-        ``V0`` and what the contact barrier handed out at ``V0`` (:meth:`~meshmei.contact.ContactBarrier.separation`);
+        ``V0`` and the pairs the contact barrier kept at ``V0`` (:meth:`~meshmei.contact.ContactBarrier.separation`);
         None where the barrier's bound does not cover twice the step (the whole mesh must be tested)."""
         vt, ft, ea, eb, unseen = handed_out
         X1, X0 = V1.detach().cpu().double().numpy(), V0.detach().cpu().double().numpy()

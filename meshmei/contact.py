@@ -394,7 +394,7 @@ class ContactBarrier:
         self._pairs = None
         self._out_vf = self._out_ee = None  # pairs left out (leave_out), as sorted keys
         self._pending = None  # (vertices, future) of a prefetch
-        self._handout = None  # (vertices, pairs handed out, bound on the others' distances) of the last call
+        self._handout = None  # (vertices, pairs kept, bound on the others' distances) of the last call
         if edges:
             self.use_edges()
 
@@ -605,9 +605,9 @@ class ContactBarrier:
             self._since = 0
             moved = np.zeros(len(Vn))
         vt, ft, ea, eb, dvf, dee = self._pairs
-        # a pair not handed out is at least `distance` away now (kept, but not within reach of it) or was beyond
-        # reach at the search and has come closer by at most twice the farthest move since (not kept)
-        unseen = min(self.distance, self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0)))
+        # a pair not kept was beyond reach at the search and has come closer by at most twice the farthest move
+        # since
+        unseen = self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0))
         moved = torch.from_numpy(moved)
         keep_vf = dvf - moved[vt] - moved[self._Ft[ft]].amax(1) < self.distance
         out = [vt[keep_vf], ft[keep_vf]]
@@ -617,17 +617,19 @@ class ContactBarrier:
             out += [ea[keep_ee], eb[keep_ee]]
         else:
             out += [ea, eb]
-        self._handout = (V.detach(), out, unseen)
+        self._handout = (V.detach(), (vt, ft, ea, eb), unseen)
         self.seconds += time.perf_counter() - t0
         return tuple(x.to(V.device) for x in out)
 
     def separation(self, V: torch.Tensor):
-        """What the last call handed out, where it was for the vertices ``V`` and tells every close pair:
+        """The pairs the last call's search kept, where the call was for the vertices ``V``:
         ``(vt, ft, ea, eb, unseen)``, the (vertex, face) and (edge, edge) pairs (int64 arrays; edges index
-        :attr:`E`) and a distance that every other such pair of ``V`` keeps (less a margin over the torch
-        distances' rounding). None without edge pairs, with pairs left out (:meth:`leave_out`: they are never
-        handed out), or when the last call was for other vertices. For
-        :class:`~meshmei.certify.SeparationCertificate`."""
+        :attr:`E`) found within ``distance + 2 margin`` at the last search, and a distance that every other
+        such pair of ``V`` keeps: that reach less twice the farthest move since the search (less a margin over
+        the torch distances' rounding). All the kept pairs, not only those handed out to the energy (those
+        that may be within ``distance``): a certificate then covers steps up to half of that bound, not of
+        ``distance``. None without edge pairs, with pairs left out (:meth:`leave_out`: they are never kept),
+        or when the last call was for other vertices. For :class:`~meshmei.certify.SeparationCertificate`."""
         if self._handout is None or self.E is None:
             return None
         if (self._out_vf is not None and len(self._out_vf)) or (self._out_ee is not None and len(self._out_ee)):

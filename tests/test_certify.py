@@ -281,7 +281,7 @@ def test_whenever_the_separation_certificate_clears_a_step_libigl_finds_no_inter
     if compiled and not native.native_status()["compiled"]:
         pytest.skip("no compiled kernels")
     gen = torch.Generator().manual_seed(7)
-    cleared = clean = intersecting = caught = 0
+    cleared = clean = intersecting = caught = beyond = 0
     cases = []
     V, F = _two_sheets(0.0)
     h = mean_edge_length(V, F)
@@ -314,10 +314,12 @@ def test_whenever_the_separation_certificate_clears_a_step_libigl_finds_no_inter
             if ok:
                 cleared += 1
                 assert pairs == 0, f"cleared, but libigl finds {pairs} pairs"
+                # twice the step beyond the barrier's distance: proven from the pairs kept beyond it
+                beyond += 2.0 * float((V1 - V0).norm(dim=1).max()) > barrier.distance
     assert intersecting >= 10 and clean >= 40  # both sides reached
     # it applies wherever twice the step is within the barrier's bound (most small steps; a wild one is left
-    # to libigl whole), and then its verdict is libigl's
-    assert cleared >= 20 and caught >= 10
+    # to libigl whole), and then its verdict is libigl's; that bound is the search's reach, not the distance
+    assert cleared >= 20 and caught >= 10 and beyond >= 5
 
 
 def test_a_fan_wrapping_twice_fails_the_separation_certificates_star_rule():
