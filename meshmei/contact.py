@@ -608,18 +608,21 @@ class ContactBarrier:
         # a pair not kept was beyond reach at the search and has come closer by at most twice the farthest move
         # since
         unseen = self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0))
-        moved = torch.from_numpy(moved)
-        keep_vf = dvf - moved[vt] - moved[self._Ft[ft]].amax(1) < self.distance
-        out = [vt[keep_vf], ft[keep_vf]]
-        if len(ea):
-            side_a, side_b = (moved[self._Et[e]].amax(1) for e in (ea, eb))
-            keep_ee = dee - side_a - side_b < self.distance
-            out += [ea[keep_ee], eb[keep_ee]]
+        # the farthest move of each face's and each edge's corners, then each pair's bound (NumPy: a few
+        # operations on arrays of a few thousand, where torch's dispatch would cost more than the work)
+        Fn, (vtn, ftn, ean, ebn) = self.Fn, (x.numpy() for x in (vt, ft, ea, eb))
+        side = np.maximum(np.maximum(moved[Fn[:, 0]], moved[Fn[:, 1]]), moved[Fn[:, 2]])
+        keep = dvf.numpy() - moved[vtn] - side[ftn] < self.distance
+        out = [vtn[keep], ftn[keep]]
+        if len(ean):
+            side = np.maximum(moved[self.En[:, 0]], moved[self.En[:, 1]])
+            keep = dee.numpy() - side[ean] - side[ebn] < self.distance
+            out += [ean[keep], ebn[keep]]
         else:
-            out += [ea, eb]
+            out += [ean, ebn]
         self._handout = (V.detach(), (vt, ft, ea, eb), unseen)
         self.seconds += time.perf_counter() - t0
-        return tuple(x.to(V.device) for x in out)
+        return tuple(torch.from_numpy(x).to(V.device) for x in out)
 
     def separation(self, V: torch.Tensor):
         """The pairs the last call's search kept, where the call was for the vertices ``V``:
