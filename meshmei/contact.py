@@ -377,7 +377,6 @@ class ContactBarrier:
         F = as_faces(F)
         self.F = F
         self.Fn = np.ascontiguousarray(F.detach().cpu().numpy())
-        self._Ft = torch.from_numpy(self.Fn)
         self._least_vertices = int(self.Fn.max()) + 1  # the vertex count the faces need (checked every call)
         self.distance = float(distance)
         if margin is not None:
@@ -437,7 +436,6 @@ class ContactBarrier:
         if self.E is None:
             self.E = mesh_edges(self.F)  # (k, 2), i < j: the mesh's cached edge list
             self.En = self.E.cpu().numpy()
-            self._Et = torch.from_numpy(self.En)
             self._built_at = None
 
     @classmethod
@@ -653,8 +651,9 @@ class ContactBarrier:
 def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     """The contact energies ``(B,)`` of a batch of meshes ``V (B, n, 3)``, one :class:`ContactBarrier` per
     item (the same faces, ``distance`` and ``edges``): each item's candidates as its barrier keeps them;
-    their distances are measured once without a gradient for all items, and the pairs within ``distance``
-    once more with it (usually far fewer). Sets each barrier's ``active``."""
+    the pairs that may lie within ``distance`` are picked for all items at once (:func:`_maybe_near`: compiled
+    float64 distances with a slack), and only those are measured with a gradient in torch, whose distances
+    decide (usually far fewer than the candidates). Sets each barrier's ``active``."""
     B, n = V.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
