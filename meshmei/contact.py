@@ -54,6 +54,7 @@ queries let go of the GIL, which scipy's do with two or more query threads, not 
 from __future__ import annotations
 
 import itertools
+import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -695,7 +696,8 @@ def _maybe_near(Vf: torch.Tensor, rows: torch.Tensor, dist, dh: float) -> torch.
     ``dh^2``. Compiled where the kernels take ``Vf``: the float64 distances of ``_contact.c`` (0 for two
     near-parallel edges), kept below ``dh`` plus a slack far above the torch code's rounding (``1e-3 dh``
     and 1,024 units in the last place of the largest coordinate); else the torch distances themselves."""
-    if native.available(Vf) and len(rows) and bool(torch.isfinite(Vf).all()):
+    scale = float(Vf.abs().max()) if native.available(Vf) and len(rows) else math.nan  # NaN or inf: not finite
+    if math.isfinite(scale):
         Vn = Vf.double().numpy()
         R = np.ascontiguousarray(rows.numpy(), dtype=np.int64)
         k, lib, out = len(R), native.library(), np.empty(len(R))
@@ -708,7 +710,7 @@ def _maybe_near(Vf: torch.Tensor, rows: torch.Tensor, dist, dh: float) -> torch.
             eb = ea + 1
             lib.contact_edge_edge_distances(Vn.ctypes.data, R.ctypes.data, k, ea.ctypes.data, eb.ctypes.data,
                                             out.ctypes.data)
-        slack = 1e-3 * dh + 1024.0 * torch.finfo(Vf.dtype).eps * float(Vf.abs().max())
+        slack = 1e-3 * dh + 1024.0 * torch.finfo(Vf.dtype).eps * scale
         return torch.from_numpy(out < dh + slack)
     with torch.no_grad():
         return dist(*(Vf[rows[:, k]] for k in range(4))) < dh * dh

@@ -393,6 +393,23 @@ def test_the_compiled_prefilter_changes_no_energy_gradient_or_count(name, dtype)
 
 
 @needs_cc
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_the_prefilter_with_a_non_finite_coordinate_is_the_torch_filter(bad):
+    """A NaN or infinite coordinate anywhere: the prefilter does not take the compiled distances (C's
+    comparisons would drop NaN pairs silently) but the torch ones, and says the same as them."""
+    from meshmei.contact import _maybe_near
+
+    _, V, F, d = next(x for x in _hard_meshes() if x[0] == "crumpled sphere")
+    W = V.clone()
+    W[int(F[0, 0])] = bad
+    rows = torch.cat([torch.arange(len(W))[:, None].repeat_interleave(4, 0), F[:4].repeat(len(W), 1)], 1)
+    with torch.no_grad():
+        expected = point_triangle_sqdist(*(W[rows[:, k]] for k in range(4))) < (3 * d) ** 2
+    got = _maybe_near(W, rows, point_triangle_sqdist, 3 * d)
+    assert torch.equal(got, expected) and bool(expected.any())
+
+
+@needs_cc
 def test_a_non_finite_vertex_gives_what_the_numpy_search_gives(monkeypatch):
     """The compiled search does not take NaN or infinite coordinates: the NumPy search runs (the same
     outcome as within torch_reference)."""
