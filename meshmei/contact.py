@@ -316,19 +316,21 @@ def pair_distance_bounds(V: np.ndarray, F: np.ndarray, vt: np.ndarray, ft: np.nd
                          ea: np.ndarray, eb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower bounds on the distances of (vertex, face) pairs ``(vt, ft)`` and (edge, edge) pairs ``(ea, eb)``
     of ``V`` (float64 arrays; the faces ``F`` and edges ``E``), as :class:`meshmei.certify.SeparationCertificate`
-    needs them: the exact distances to rounding, and 0 for two edges within 1e-4 radians of parallel, whose
-    clamped closest points may miss the true ones (by the overlap times the angle). Compiled where the
-    kernels are built, else in torch."""
+    and the contact energy's prefilter need them: the exact distances to rounding, and 0 for two edges within
+    1e-4 radians of parallel, whose clamped closest points may miss the true ones (by the overlap times the
+    angle). Compiled where the kernels are built, else in torch."""
     V = np.ascontiguousarray(V, dtype=np.float64)
     vt, ft, ea, eb = (np.ascontiguousarray(x, dtype=np.int64) for x in (vt, ft, ea, eb))
     if native.enabled():
         lib = native.library()
         dvf, dee = np.empty(len(vt)), np.empty(len(ea))
         F, E = np.ascontiguousarray(F, dtype=np.int64), np.ascontiguousarray(E, dtype=np.int64)
-        lib.contact_vertex_face_distances(V.ctypes.data, F.ctypes.data, len(vt), vt.ctypes.data, ft.ctypes.data,
-                                          dvf.ctypes.data)
-        lib.contact_edge_edge_distances(V.ctypes.data, E.ctypes.data, len(ea), ea.ctypes.data, eb.ctypes.data,
-                                        dee.ctypes.data)
+        if len(vt):
+            lib.contact_vertex_face_distances(V.ctypes.data, F.ctypes.data, len(vt), vt.ctypes.data, ft.ctypes.data,
+                                              dvf.ctypes.data)
+        if len(ea):
+            lib.contact_edge_edge_distances(V.ctypes.data, E.ctypes.data, len(ea), ea.ctypes.data, eb.ctypes.data,
+                                            dee.ctypes.data)
         return dvf, dee
     Vt, Ft, Et = torch.from_numpy(V), torch.from_numpy(np.asarray(F)), torch.from_numpy(np.asarray(E))
     vt, ft, ea, eb = (torch.from_numpy(x) for x in (vt, ft, ea, eb))
@@ -693,23 +695,18 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
 def _maybe_near(Vf: torch.Tensor, rows: torch.Tensor, dist, dh: float) -> torch.Tensor:
     """Which pairs ``rows`` (corner indices ``(k, 4)`` into ``Vf``: a vertex and a face's corners, or two
     edges' ends) may lie within ``dh``: a superset of those whose ``dist`` (in ``Vf``'s dtype) is below
-    ``dh^2``. Compiled where the kernels take ``Vf``: the float64 distances of ``_contact.c`` (0 for two
-    near-parallel edges), kept below ``dh`` plus a slack far above the torch code's rounding (``1e-3 dh``
+    ``dh^2``. Compiled where the kernels take ``Vf``: the float64 distances of ``_contact.c`` by
+    :func:`pair_distance_bounds` (0 for two near-parallel edges), kept below ``dh`` plus a slack far above the torch code's rounding (``1e-3 dh``
     and 1,024 units in the last place of the largest coordinate); else the torch distances themselves."""
     scale = float(Vf.abs().max()) if native.available(Vf) and len(rows) else math.nan  # NaN or inf: not finite
     if math.isfinite(scale):
-        Vn = Vf.double().numpy()
-        R = np.ascontiguousarray(rows.numpy(), dtype=np.int64)
-        k, lib, out = len(R), native.library(), np.empty(len(R))
-        if dist is point_triangle_sqdist:
-            F, vt, ft = np.ascontiguousarray(R[:, 1:]), np.ascontiguousarray(R[:, 0]), np.arange(k, dtype=np.int64)
-            lib.contact_vertex_face_distances(Vn.ctypes.data, F.ctypes.data, k, vt.ctypes.data, ft.ctypes.data,
-                                              out.ctypes.data)
-        else:
-            ea = np.arange(0, 2 * k, 2, dtype=np.int64)
-            eb = ea + 1
-            lib.contact_edge_edge_distances(Vn.ctypes.data, R.ctypes.data, k, ea.ctypes.data, eb.ctypes.data,
-                                            out.ctypes.data)
+        R, k, none = rows.numpy(), len(rows), np.zeros(0, dtype=np.int64)
+        if dist is point_triangle_sqdist:  # row k: vertex R[k, 0] and the face R[k, 1:]
+            out, _ = pair_distance_bounds(Vf.numpy(), R[:, 1:], R[:, 0], np.arange(k), none.reshape(0, 2), none, none)
+        else:  # row k: the edges R[k, :2] and R[k, 2:], edges 2 k and 2 k + 1 of R as a list of edges
+            ends = np.arange(2 * k)
+            _, out = pair_distance_bounds(Vf.numpy(), none.reshape(0, 3), none, none, R.reshape(-1, 2), ends[0::2],
+                                          ends[1::2])
         slack = 1e-3 * dh + 1024.0 * torch.finfo(Vf.dtype).eps * scale
         return torch.from_numpy(out < dh + slack)
     with torch.no_grad():
