@@ -13,14 +13,18 @@
  * others) is kept in a list that every edge's query checks instead.
  *
  * Each search returns how many pairs it found (-1 for a non-finite coordinate, -2 for no memory) and
- * writes the first `cap` of them; the caller calls again with room for all where that was too few. */
+ * writes the first `cap` of them; the caller calls again with room for all where that was too few.
+ *
+ * Also here, sharing the distances and the angles: the exact distances of given pairs (the separation
+ * certificate's and the energy's prefilter) and the rules of meshmei.certify's certificates (the separation
+ * certificate's fans, the graph certificate's check). */
 
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <float.h>
 
-int meshmei_contact_abi(void) { return 2; }
+int meshmei_contact_abi(void) { return 3; }
 
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -434,4 +438,77 @@ void separation_fans(int64_t n, const double *V, int64_t m, const int64_t *F, co
         if (!ok[v]) continue;
         ok[v] = boundary[v] ? turn[v] < two_pi - 1e-9 : turn[v] < 1.5 * two_pi;
     }
+}
+
+/* Whether the 2D segments (x[a0], y[a0])-(x[a1], y[a1]) and (x[b0], ...)-(x[b1], ...) cross or come
+ * within tol (squared: tol2): meshmei.certify._segments_closer_than for one pair. */
+static double point_segment_sq(double px, double py, double qx, double qy, double rx, double ry) {
+    double dx = rx - qx, dy = ry - qy, dd = dx * dx + dy * dy;
+    double s = ((px - qx) * dx + (py - qy) * dy) / (dd > DBL_MIN ? dd : DBL_MIN);
+    s = s < 0.0 ? 0.0 : (s > 1.0 ? 1.0 : s);
+    double ex = qx + dx * s - px, ey = qy + dy * s - py;
+    return ex * ex + ey * ey;
+}
+
+static double orient2(double px, double py, double qx, double qy, double rx, double ry) {
+    return (qx - px) * (ry - py) - (qy - py) * (rx - px);
+}
+
+/* meshmei.certify.GraphCertificate.holds: V (n, 3), faces F (m, 3), face normals N (m, 3), direction d (3,),
+ * the plane's basis u, w (3,) each; kind[v]: 0 no face, 1 interior, 2 boundary; the boundary segment pairs
+ * (a0, a1, b0, b1, np of them); work: room for 3 n doubles. Returns 1 where proven: every face keeps its
+ * orientation along d (n . d > margin), every interior vertex's projected corner angles sum to one turn
+ * (within 1e-6) and every boundary vertex's to less (by 1e-9), and no two boundary segments that share no
+ * vertex cross or come within sep_margin times the projection's extent. As NumPy's twin, except that an
+ * interior vertex sums rough angles (within 5e-8 each: its faces keep their orientation, so the sum is a
+ * whole number of turns up to rounding, and one turn lies far inside the 1e-6 the rule allows). The
+ * certificate is a proof: its answer decides whether libigl's exact test runs, never a verdict. */
+int graph_holds(int64_t n, const double *V, int64_t m, const int64_t *F, const double *N, const double *d,
+                const double *u, const double *w, const uint8_t *kind, int64_t np, const int64_t *a0,
+                const int64_t *a1, const int64_t *b0, const int64_t *b1, double margin, double sep_margin,
+                double *work) {
+    const double two_pi = 6.283185307179586;
+    for (int64_t f = 0; f < m; f++) {
+        const double *nf = N + 3 * f;
+        if (!(nf[0] * d[0] + nf[1] * d[1] + nf[2] * d[2] > margin)) return 0;
+    }
+    double *x = work, *y = work + n, *turn = work + 2 * n;
+    double xlo = INFINITY, xhi = -INFINITY, ylo = INFINITY, yhi = -INFINITY;
+    for (int64_t v = 0; v < n; v++) {
+        const double *p = V + 3 * v;
+        x[v] = p[0] * u[0] + p[1] * u[1] + p[2] * u[2];
+        y[v] = p[0] * w[0] + p[1] * w[1] + p[2] * w[2];
+        turn[v] = 0.0;
+        xlo = x[v] < xlo ? x[v] : xlo, xhi = x[v] > xhi ? x[v] : xhi;
+        ylo = y[v] < ylo ? y[v] : ylo, yhi = y[v] > yhi ? y[v] : yhi;
+    }
+    for (int64_t f = 0; f < m; f++) {
+        const int64_t *t = F + 3 * f;
+        for (int k = 0; k < 3; k++) {
+            int64_t c = t[k], nx = t[(k + 1) % 3], pv = t[(k + 2) % 3];
+            double x1 = x[nx] - x[c], y1 = y[nx] - y[c], x2 = x[pv] - x[c], y2 = y[pv] - y[c];
+            double sine = x1 * y2 - y1 * x2, cosine = x1 * x2 + y1 * y2;
+            turn[c] += kind[c] == 2 ? atan2(sine, cosine) : rough_atan2(sine, cosine);
+        }
+    }
+    for (int64_t v = 0; v < n; v++) {
+        if (kind[v] == 1 && fabs(turn[v] - two_pi) > 1e-6) return 0; /* a fan that wraps twice, or rounding */
+        if (kind[v] == 2 && turn[v] >= two_pi - 1e-9) return 0;
+    }
+    if (np == 0) return 1;
+    double tol = sep_margin * hypot(xhi - xlo, yhi - ylo), tol2 = tol * tol;
+    for (int64_t i = 0; i < np; i++) {
+        double xa0 = x[a0[i]], ya0 = y[a0[i]], xa1 = x[a1[i]], ya1 = y[a1[i]];
+        double xb0 = x[b0[i]], yb0 = y[b0[i]], xb1 = x[b1[i]], yb1 = y[b1[i]];
+        if (fmin(xa0, xa1) > fmax(xb0, xb1) + tol || fmin(xb0, xb1) > fmax(xa0, xa1) + tol ||
+            fmin(ya0, ya1) > fmax(yb0, yb1) + tol || fmin(yb0, yb1) > fmax(ya0, ya1) + tol)
+            continue;
+        if (orient2(xa0, ya0, xa1, ya1, xb0, yb0) * orient2(xa0, ya0, xa1, ya1, xb1, yb1) < 0.0 &&
+            orient2(xb0, yb0, xb1, yb1, xa0, ya0) * orient2(xb0, yb0, xb1, yb1, xa1, ya1) < 0.0)
+            return 0; /* a proper crossing */
+        if (point_segment_sq(xa0, ya0, xb0, yb0, xb1, yb1) <= tol2 || point_segment_sq(xa1, ya1, xb0, yb0, xb1, yb1) <= tol2 ||
+            point_segment_sq(xb0, yb0, xa0, ya0, xa1, ya1) <= tol2 || point_segment_sq(xb1, yb1, xa0, ya0, xa1, ya1) <= tol2)
+            return 0;
+    }
+    return 1;
 }

@@ -101,7 +101,12 @@ class GraphCertificate:
         self._next, self._prev = F.roll(-1, 1).reshape(-1).numpy(), F.roll(1, 1).reshape(-1).numpy()
         self._interior, self._boundary = (used & ~topo.boundary_vertex).numpy(), (used & topo.boundary_vertex).numpy()
         sn = seg.numpy()
-        self._pairs = (sn[i.numpy(), 0], sn[i.numpy(), 1], sn[j.numpy(), 0], sn[j.numpy(), 1])
+        self._pairs = tuple(np.ascontiguousarray(a, dtype=np.int64)
+                            for a in (sn[i.numpy(), 0], sn[i.numpy(), 1], sn[j.numpy(), 0], sn[j.numpy(), 1]))
+        # for the compiled check: faces, each vertex's kind (0 no face, 1 interior, 2 boundary), the basis rows
+        self._F = np.ascontiguousarray(F.numpy(), dtype=np.int64)
+        self._kind = (self._interior.astype(np.uint8) + 2 * self._boundary.astype(np.uint8))
+        self._u, self._w = np.ascontiguousarray(basis[0].numpy()), np.ascontiguousarray(basis[1].numpy())
 
     @classmethod
     def for_start(cls, V0: torch.Tensor, F: torch.Tensor, normals: torch.Tensor, *,
@@ -129,12 +134,22 @@ class GraphCertificate:
             return None
         return cls(F, d, n)
 
-    def holds(self, V: torch.Tensor, normals: torch.Tensor) -> bool:
+    def holds(self, V: torch.Tensor, normals: torch.Tensor, compiled: bool | None = None) -> bool:
         """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
-        self-intersections (False: not proven; the mesh may still be clean). Checked in float64 numpy on the
-        CPU, whatever the inputs' device (on arrays this size numpy's per-operation cost is a fraction of
-        torch's); pass float64 normals, or the margins may fail on rounding."""
+        self-intersections (False: not proven; the mesh may still be clean). Checked in float64 on the CPU,
+        whatever the inputs' device: compiled where the kernels are built (``meshmei/_guard.c``, the same
+        rules: 0.03 against 0.5 ms on the 3D-MEI's sheet), else in NumPy (on arrays this size its
+        per-operation cost is a fraction of torch's); pass float64 normals, or the margins may fail on
+        rounding."""
         normals, V = normals.detach().cpu().double(), V.detach().cpu().double()
+        if native.enabled() if compiled is None else compiled:
+            Vn, Nn = np.ascontiguousarray(V.numpy()), np.ascontiguousarray(normals.numpy())
+            work = np.empty(3 * len(Vn))
+            a0, a1, b0, b1 = self._pairs
+            return bool(native.library().graph_holds(
+                len(Vn), Vn.ctypes.data, len(self._F), self._F.ctypes.data, Nn.ctypes.data, self._d.ctypes.data,
+                self._u.ctypes.data, self._w.ctypes.data, self._kind.ctypes.data, len(a0), a0.ctypes.data,
+                a1.ctypes.data, b0.ctypes.data, b1.ctypes.data, ORIENTATION_MARGIN, SEPARATION_MARGIN, work.ctypes.data))
         if float((normals.numpy() @ self._d).min()) <= ORIENTATION_MARGIN:
             return False
         P = V.numpy() @ self._basis_t  # (n, 2)

@@ -1,8 +1,11 @@
-"""meshmei's compiled kernels: two small C files built on first use into one shared library, with the torch
+"""meshmei's compiled kernels: three small C files built on first use into one shared library, with the torch
 (and NumPy) code as their reference and fallback.
 
 - ``render/_raster.c``: the renderer's CPU kernels (:mod:`meshmei.render.native`);
-- ``_contact.c``: the contact barrier's broad phase (:class:`meshmei.contact.ContactBarrier`).
+- ``_contact.c``: the contact barrier's broad phase (:class:`meshmei.contact.ContactBarrier`) and the
+  certificates' rules (:mod:`meshmei.certify`);
+- ``_guard.c``: the step guard's float64 face frame with its quality and turn rules
+  (:class:`meshmei.validity.StepGuard`).
 
 They are compiled once per source version with the system's C compiler (``$CC``, else ``cc``, ``gcc`` or
 ``clang``) into the cache directory (``$MESHMEI_CACHE_DIR``, else ``$XDG_CACHE_HOME/meshmei`` or
@@ -34,7 +37,8 @@ __all__ = ["native_status", "torch_reference", "available", "enabled", "library"
 
 _HERE = Path(__file__).parent
 # each file's ABI version, which its ``meshmei_<name>_abi()`` returns
-_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 2)}
+_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 3),
+            "guard": (_HERE / "_guard.c", 1)}
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
 
 _i64, _p, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
@@ -54,8 +58,12 @@ _SIGNATURES = {
     "contact_vertex_face_distances": [_p, _p, _i64, _p, _p, _p],
     "contact_edge_edge_distances": [_p, _p, _i64, _p, _p, _p],
     "separation_fans": [_i64, _p, _i64, _p, _p, _p, _p],
+    "guard_frame_parts": [_i64, _i64, _p, _p, ctypes.c_int, _p, _p, _p],
+    "guard_frame_finish": [_i64, _p, _p, _p, _dbl, _dbl, _p, _dbl, _p, _p, _p, _p],
+    "graph_holds": [_i64, _p, _i64, _p, _p, _p, _p, _p, _p, _i64, _p, _p, _p, _p, _dbl, _dbl, _p],
 }
-_RETURNS = {"contact_vertex_face": _i64, "contact_edge_edge": _i64}
+_RETURNS = {"contact_vertex_face": _i64, "contact_edge_edge": _i64, "guard_frame_parts": ctypes.c_int,
+            "graph_holds": ctypes.c_int}
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}
@@ -143,7 +151,7 @@ def library():
 
 def native_status() -> dict:
     """``{"compiled": bool, "reason": str | None}``: whether the compiled kernels are in use (CPU renders,
-    the contact barrier's search), and why not."""
+    the contact barrier's search, the step guard's check), and why not."""
     lib = library()
     return {"compiled": lib is not None, "reason": _state["reason"]}
 
@@ -151,7 +159,8 @@ def native_status() -> dict:
 @contextmanager
 def torch_reference():
     """Within this block (in this thread) the compiled kernels are not used: renders run the torch code
-    throughout, the contact barrier searches with its NumPy and SciPy code. The reference the kernels are
+    throughout, the contact barrier searches with its NumPy and SciPy code, the step guard checks with its torch
+    and NumPy code. The reference the kernels are
     tested against, and what CUDA tensors always run. A render's backward follows its forward; a contact
     search started here in a worker thread (:meth:`~meshmei.contact.ContactBarrier.prefetch`) follows the
     thread that started it."""

@@ -29,8 +29,18 @@ def certificate(V, F):
     return GraphCertificate.for_start(V, F, face_frame(V, F)[0])
 
 
-def holds(cert, V, F):
-    return cert.holds(V, face_frame(V, F)[0])
+def holds(cert, V, F, compiled=None):
+    return cert.holds(V, face_frame(V, F)[0], compiled)
+
+
+@pytest.fixture(params=[False, True], ids=["numpy", "compiled"])
+def compiled(request):
+    """The graph certificate's check in NumPy and compiled (``meshmei/_contact.c``)."""
+    from meshmei import native
+
+    if request.param and not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    return request.param
 
 
 def test_it_applies_to_discs_facing_one_way_and_to_nothing_else():
@@ -52,7 +62,7 @@ def test_it_applies_to_discs_facing_one_way_and_to_nothing_else():
     assert certificate(bent, F) is None
 
 
-def test_whenever_it_holds_libigl_finds_no_intersection():
+def test_whenever_it_holds_libigl_finds_no_intersection(compiled):
     """Soundness over many deformations of the sheet, from smooth to wild: a certified mesh is clean."""
     V, F = grid(14)
     cert = certificate(V, F)
@@ -74,7 +84,7 @@ def test_whenever_it_holds_libigl_finds_no_intersection():
             strip = W[:, 0] > 0.2
             W[strip, 0] = 0.4 - W[strip, 0]
             W[strip, 2] += 0.05 * (trial % 2 * 2 - 1)
-        ok = holds(cert, W, F)
+        ok = holds(cert, W, F, compiled)
         pairs = count_self_intersections(W, F)
         intersecting += pairs > 0
         if ok:
@@ -87,7 +97,7 @@ def test_whenever_it_holds_libigl_finds_no_intersection():
     assert intersecting >= 30 and certified > smooth  # the trials do reach both sides
 
 
-def test_a_ramp_that_overlaps_itself_in_projection_is_not_certified():
+def test_a_ramp_that_overlaps_itself_in_projection_is_not_certified(compiled):
     """A strip wound 1.5 turns up a helix: clean in 3D, but its projection overlaps itself, so no proof;
     flattened it intersects itself and is refused too."""
     k, turns = 60, 1.5
@@ -101,14 +111,14 @@ def test_a_ramp_that_overlaps_itself_in_projection_is_not_certified():
     assert float((n @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).min()) > 0.9  # faces point up
     cert = GraphCertificate(F, torch.tensor([0.0, 0.0, 1.0]), len(V))
     assert count_self_intersections(V, F) == 0
-    assert not holds(cert, V, F)
+    assert not holds(cert, V, F, compiled)
     flat = V.clone()
     flat[:, 2] = 0.0
     assert count_self_intersections(flat, F) > 0
-    assert not holds(cert, flat, F)
+    assert not holds(cert, flat, F, compiled)
 
 
-def test_a_fan_that_wraps_twice_is_not_certified():
+def test_a_fan_that_wraps_twice_is_not_certified(compiled):
     """Every face of a fan that wraps twice round its centre faces up, and the boundary pairs that share no
     vertex can be kept apart, yet two of its faces cross: the angle-sum rule catches it."""
     ring = torch.stack([torch.tensor([math.cos(k * math.pi / 2), math.sin(k * math.pi / 2), 0.1 * k]) for k in range(8)])
@@ -117,17 +127,40 @@ def test_a_fan_that_wraps_twice_is_not_certified():
     F = torch.tensor([[0, 1 + k, 1 + (k + 1) % 8] for k in range(8)])
     cert = GraphCertificate(F, torch.tensor([0.0, 0.0, 1.0]), len(V))
     assert count_self_intersections(V, F) > 0
-    assert not holds(cert, V, F)
+    assert not holds(cert, V, F, compiled)
 
 
-def test_a_sheet_folded_over_itself_is_not_certified():
+def test_a_sheet_folded_over_itself_is_not_certified(compiled):
     V, F = grid(12)
     cert = certificate(V, F)
     taco = V.clone()
     s = taco[:, 0] > 0.0
     taco[s, 0] = -taco[s, 0] * 0.9  # the right half laid back over the left, slightly apart
     taco[s, 2] = 0.05 + 0.1 * taco[s, 0].abs()
-    assert not holds(cert, taco, F)
+    assert not holds(cert, taco, F, compiled)
+
+
+def test_the_compiled_graph_rule_decides_as_the_numpy_one():
+    """On the 3D-MEI's sheet moved by noise from none to over an edge length, with and without a fold in z,
+    both decide the same (the compiled one sums rough angles at interior vertices), and both sides occur."""
+    from meshmei import native
+    from meshmei.contact import mean_edge_length
+
+    if not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    V, F = initial_mesh("sheet", n_vertices=400, dtype=torch.float64)
+    cert = certificate(V, F)
+    h = mean_edge_length(V, F)
+    gen = torch.Generator().manual_seed(0)
+    proven = 0
+    for trial in range(240):
+        X = V + (0.0, 0.05, 0.2, 0.4, 0.8, 1.5)[trial % 6] * h * torch.randn(V.shape, generator=gen, dtype=V.dtype)
+        if trial % 5 == 4:
+            X[:, 2] += 0.3 * torch.sin(6 * X[:, 0])
+        a = holds(cert, X, F, True)
+        assert a == holds(cert, X, F, False), trial
+        proven += a
+    assert 40 < proven < 200
 
 
 def test_the_guard_with_the_certificate_gives_the_verdicts_of_libigl_alone():

@@ -555,3 +555,82 @@ def test_a_guarded_stage_finer_than_the_reference_takes_a_step_scaled_with_its_e
             n = stage["n_vertices"]
             expect = 1e-2 * (100 / n) ** 0.5 if scaled and n > 100 else 1e-2  # at or below 100: as given
             assert stage["lr"] == pytest.approx(expect, rel=1e-12)
+
+
+def _frame_meshes():
+    """Hard meshes for the compiled frame: random faces over random points at scales from 1e-3 to 1e3,
+    collapsed faces (a repeated corner, coincident vertices), an upside-down copy against the reference."""
+    gen = torch.Generator().manual_seed(5)
+    for trial in range(40):
+        n, m = 60, int(torch.randint(1, 900, (), generator=gen))
+        V = torch.randn(n, 3, dtype=torch.float64, generator=gen) * 10.0 ** (trial % 7 - 3)
+        F = torch.randint(0, n, (m, 3), generator=gen)
+        F[: min(m, 3), 1] = F[: min(m, 3), 0]
+        V[7] = V[8]
+        yield V, F
+
+
+def test_the_compiled_guard_frame_is_the_torch_codes_bit_for_bit():
+    """Normals and qualities equal face_frame's in float64 bit for bit (torch's cross product fuses a product
+    into its subtraction and its square root is not correctly rounded here: the probe and the two passes keep
+    to both); the smallest quality and the turned faces equal the torch rule's count, with and without a mask
+    of trusted faces; a non-finite coordinate says so; an out-of-range cross product leaves it to torch."""
+    from meshmei import native
+    from meshmei.operators import sum_xyz
+    from meshmei.validity import _compiled_frame, face_frame
+
+    if not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    turned_faces = 0
+    for V, F in _frame_meshes():
+        R = face_frame(V, F)[0].flip(0)  # other faces' normals: many turned, some zero
+        mask = torch.arange(len(F)) % 3 > 0
+        for ref, trust in ((R, None), (R, mask), (None, None)):
+            n, q, qmin, turned = _compiled_frame(V, F, ref, math.cos(math.radians(90.0)) - 1e-12, trust)
+            n_, q_ = face_frame(V, F)
+            assert torch.equal(n, n_) and torch.equal(q, q_) and qmin == float(q_.min())
+            want = 0
+            if ref is not None:
+                hit = (sum_xyz(n_ * ref) < math.cos(math.radians(90.0)) - 1e-12) & (sum_xyz(n_.abs()) > 0) & \
+                    (sum_xyz(ref.abs()) > 0)
+                want = int((hit if trust is None else hit & trust).sum())
+            assert turned == want
+            turned_faces += turned
+    assert turned_faces > 1000  # the rule was exercised
+    V, F = next(_frame_meshes())
+    bad = V.clone()
+    bad[3, 1] = float("nan")
+    assert _compiled_frame(bad, F, None, 0.0, None) == "non-finite"
+    for scale in (1e-100, 1e100):  # squared cross products beyond float64's normal range: safe_norm's scaled path
+        assert _compiled_frame(V * scale, F, None, 0.0, None) is None
+
+
+def test_the_guard_gives_the_same_verdicts_and_frames_with_and_without_its_compiled_frame(ball):
+    from meshmei import native
+
+    if not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    V, F = ball
+    gen = torch.Generator().manual_seed(1)
+    candidates = [V + s * 0.05 * torch.randn(V.shape, generator=gen, dtype=V.dtype) for s in (0.0, 0.3, 1.0, 3.0)]
+    candidates += [V * torch.tensor([1.0, 1.0, -1.0], dtype=V.dtype), V.clone()]
+    candidates[-1][F[0, 0]] = 0.5 * (V[F[0, 1]] + V[F[0, 2]])  # a collapsed triangle
+    nan = V.clone()
+    nan[5, 0] = float("inf")
+    candidates.append(nan)
+    for rules in (ValidityRules(), ValidityRules(turn_from="step"), ValidityRules(max_turn_degrees=180)):
+        a, b = StepGuard(V, F, rules), StepGuard(V, F, rules)
+        reasons = set()
+        for X in candidates:
+            got = a._verdict(X)
+            with native.torch_reference():
+                want = b._verdict(X)
+            assert got[:2] == want[:2]
+            assert (got[2] is None) == (want[2] is None)
+            if got[2] is not None:
+                assert torch.equal(got[2][0], want[2][0]) and torch.equal(got[2][1], want[2][1])
+            assert a.accept(X) == (want[0] is None)
+            with native.torch_reference():
+                b.accept(X)
+            reasons.add(got[0])
+        assert {"quality", "turn", "non-finite", None} <= reasons or rules.max_turn_degrees == 180
