@@ -512,3 +512,48 @@ int graph_holds(int64_t n, const double *V, int64_t m, const int64_t *F, const d
     }
     return 1;
 }
+
+/* meshmei.certify.StarCertificate.holds: V (n, 3), faces F (m, 3) of a closed mesh, face normals N (m, 3);
+ * used[v]: 1 where v is a corner of some face; work: room for 4 n doubles. Returns 1 where proven: with c
+ * the used vertices' centroid, c lies inside every face's positive side (n . (a - c) > margin |a - c| at
+ * the face's first corner a), and the corner angles around each used vertex v, projected onto the plane
+ * perpendicular to v - c, sum to one turn (within 1e-6). As NumPy's twin, with rough angles (within 5e-8
+ * each: every corner's projected angle lies in (0, pi), so a sum is a whole number of turns up to
+ * rounding) and the centroid summed in order. */
+int star_holds(int64_t n, const double *V, int64_t m, const int64_t *F, const double *N, const uint8_t *used,
+               double margin, double *work) {
+    const double two_pi = 6.283185307179586, tiny = DBL_MIN;
+    double c[3] = {0.0, 0.0, 0.0}, k = 0.0;
+    for (int64_t v = 0; v < n; v++)
+        if (used[v]) {
+            for (int a = 0; a < 3; a++) c[a] += V[3 * v + a];
+            k += 1.0;
+        }
+    if (k == 0.0) return 1;
+    for (int a = 0; a < 3; a++) c[a] /= k;
+    double *P = work, *turn = work + 3 * n;
+    for (int64_t v = 0; v < n; v++) {
+        for (int a = 0; a < 3; a++) P[3 * v + a] = V[3 * v + a] - c[a];
+        turn[v] = 0.0;
+    }
+    for (int64_t f = 0; f < m; f++) {
+        const double *a = P + 3 * F[3 * f], *nf = N + 3 * f;
+        if (!(dot3(nf, a) > margin * sqrt(dot3(a, a)))) return 0; /* c on or outside the face's plane */
+    }
+    for (int64_t f = 0; f < m; f++) {
+        const int64_t *t = F + 3 * f;
+        for (int j = 0; j < 3; j++) {
+            const double *r = P + 3 * t[j], *p1 = P + 3 * t[(j + 1) % 3], *p2 = P + 3 * t[(j + 2) % 3];
+            double x1[3], x2[3], w[3];
+            for (int a = 0; a < 3; a++) x1[a] = p1[a] - r[a], x2[a] = p2[a] - r[a];
+            cross3(x1, x2, w);
+            double r2 = dot3(r, r);
+            r2 = r2 > tiny ? r2 : tiny;
+            double sine = dot3(r, w) / sqrt(r2), cosine = dot3(x1, x2) - dot3(r, x1) * dot3(r, x2) / r2;
+            turn[t[j]] += rough_atan2(sine, cosine);
+        }
+    }
+    for (int64_t v = 0; v < n; v++)
+        if (used[v] && fabs(turn[v] - two_pi) > 1e-6) return 0;
+    return 1;
+}

@@ -185,6 +185,7 @@ class StarCertificate:
         self._corner = F.reshape(-1).numpy()
         self._next, self._prev = F.roll(-1, 1).reshape(-1).numpy(), F.roll(1, 1).reshape(-1).numpy()
         self._used = np.unique(self._corner)
+        self._F = np.ascontiguousarray(F.numpy(), dtype=np.int64)  # for the compiled check
 
     @classmethod
     def for_start(cls, V0: torch.Tensor, F: torch.Tensor, normals: torch.Tensor) -> "StarCertificate | None":
@@ -198,11 +199,21 @@ class StarCertificate:
         cert = cls(F)
         return cert if cert.holds(V0, normals) else None
 
-    def holds(self, V: torch.Tensor, normals: torch.Tensor) -> bool:
+    def holds(self, V: torch.Tensor, normals: torch.Tensor, compiled: bool | None = None) -> bool:
         """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
-        self-intersections (False: not proven; the mesh may still be clean). Checked coordinate by
-        coordinate in float64 numpy on the CPU, whatever the inputs' device."""
+        self-intersections (False: not proven; the mesh may still be clean). Checked in float64 on the CPU,
+        whatever the inputs' device: compiled where the kernels are built (``meshmei/_contact.c``, the same
+        rules with rough angles), else coordinate by coordinate in NumPy."""
         Vn = V.detach().cpu().double().numpy()
+        if native.enabled() if compiled is None else compiled:
+            Vn = np.ascontiguousarray(Vn)
+            N = np.ascontiguousarray(normals.detach().cpu().double().numpy())
+            used = np.zeros(len(Vn), dtype=np.uint8)
+            used[self._used] = 1
+            work = np.empty(4 * len(Vn))
+            return bool(native.library().star_holds(len(Vn), Vn.ctypes.data, len(self._F), self._F.ctypes.data,
+                                                    N.ctypes.data, used.ctypes.data, ORIENTATION_MARGIN,
+                                                    work.ctypes.data))
         x, y, z = (np.ascontiguousarray(Vn[:, k] - Vn[self._used, k].mean()) for k in range(3))  # from c
         N = normals.detach().cpu().double().numpy()
         f = self._first

@@ -61,9 +61,10 @@ _SIGNATURES = {
     "guard_frame_parts": [_i64, _i64, _p, _p, ctypes.c_int, _p, _p, _p],
     "guard_frame_finish": [_i64, _p, _p, _p, _dbl, _dbl, _p, _dbl, _p, _p, _p, _p],
     "graph_holds": [_i64, _p, _i64, _p, _p, _p, _p, _p, _p, _i64, _p, _p, _p, _p, _dbl, _dbl, _p],
+    "star_holds": [_i64, _p, _i64, _p, _p, _p, _dbl, _p],
 }
 _RETURNS = {"contact_vertex_face": _i64, "contact_edge_edge": _i64, "guard_frame_parts": ctypes.c_int,
-            "graph_holds": ctypes.c_int}
+            "graph_holds": ctypes.c_int, "star_holds": ctypes.c_int}
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}

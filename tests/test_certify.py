@@ -201,7 +201,7 @@ def test_the_star_certificate_applies_to_closed_star_shaped_starts_only():
     assert star(V, F[:, [0, 2, 1]]) is None  # every normal points inwards: c is outside every face's plane
 
 
-def test_whenever_the_star_certificate_holds_libigl_finds_no_intersection():
+def test_whenever_the_star_certificate_holds_libigl_finds_no_intersection(compiled):
     """Soundness over deformations of the sphere, from radial relief to dents pushed through the centre."""
     V, F = sphere()
     cert = star(V, F)
@@ -220,7 +220,7 @@ def test_whenever_the_star_certificate_holds_libigl_finds_no_intersection():
             W = W + 0.01 * (1 + trial % 5) * torch.randn(W.shape, generator=gen, dtype=torch.float64)
         if kind == 3:  # a shear that grows with height: overhangs as seen from the centre
             W[:, 0] = W[:, 0] + 0.6 * (trial % 3) * W[:, 2] ** 2
-        ok = cert.holds(W, face_frame(W, F)[0])
+        ok = cert.holds(W, face_frame(W, F)[0], compiled)
         pairs = count_self_intersections(W, F)
         intersecting += pairs > 0
         if ok:
@@ -233,14 +233,38 @@ def test_whenever_the_star_certificate_holds_libigl_finds_no_intersection():
     assert intersecting >= 10 and certified > radial  # the trials do reach both sides
 
 
-def test_a_cap_pushed_through_the_centre_is_not_certified():
+def test_the_compiled_star_check_decides_as_the_numpy_one():
+    """On the 3D-MEI's sphere moved by noise from none to two edge lengths, with and without a lobe, both
+    decide the same (the compiled one sums rough angles), and both sides occur."""
+    from meshmei import native
+    from meshmei.contact import mean_edge_length
+
+    if not native.native_status()["compiled"]:
+        pytest.skip("no compiled kernels")
+    V, F = initial_mesh("sphere", n_vertices=400, dtype=torch.float64)
+    cert = star(V, F)
+    h = mean_edge_length(V, F)
+    gen = torch.Generator().manual_seed(0)
+    proven = 0
+    for trial in range(240):
+        X = V + (0.0, 0.1, 0.3, 0.6, 1.0, 2.0)[trial % 6] * h * torch.randn(V.shape, generator=gen, dtype=V.dtype)
+        if trial % 5 == 4:
+            X = X * (1 + 0.6 * torch.sin(5 * X[:, :1]))
+        n = face_frame(X, F)[0]
+        a = cert.holds(X, n, True)
+        assert a == cert.holds(X, n, False), trial
+        proven += a
+    assert 40 < proven < 200
+
+
+def test_a_cap_pushed_through_the_centre_is_not_certified(compiled):
     V, F = sphere()
     cert = star(V, F)
     W = V.clone()
     cap = W[:, 2] > 0.3
     W[cap, 2] = -W[cap, 2] - 0.1  # the top cap pushed down through the centre and out below the bottom
     assert count_self_intersections(W, F) > 0
-    assert not cert.holds(W, face_frame(W, F)[0])
+    assert not cert.holds(W, face_frame(W, F)[0], compiled)
 
 
 @pytest.mark.parametrize("init, expect", [("sheet", True), ("sphere", True), ("torus", False)])
