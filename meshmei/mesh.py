@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ._checks import all_finite
 from .errors import MeshError
 from .topology import same_faces
 
@@ -114,8 +115,8 @@ def check_mesh(V, F, *, batched: bool | None = False):
         F = G
     if batched and V.shape[0] == 0:
         raise MeshError(f"batch is empty: V has shape {tuple(V.shape)}")
-    bad = ~torch.isfinite(V)
-    if bool(bad.any()):
+    if not all_finite(V):
+        bad = ~torch.isfinite(V)
         rows = bad.any(-1)
         first = tuple(rows.nonzero()[0].tolist())
         where = first[0] if len(first) == 1 else first

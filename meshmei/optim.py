@@ -17,6 +17,7 @@ from typing import Callable
 
 import torch
 
+from ._checks import all_finite
 from .deform.largesteps import AdamUniform
 
 __all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "Lookahead", "make_optimizer",
@@ -246,7 +247,7 @@ def _returned(out) -> tuple:
 def _guard(values: torch.Tensor, step: int, optimizer, error: type[Exception], where: str) -> None:
     """Raise ``error`` where the loss ``values`` (a scalar or ``(B,)``) is NaN or Inf. Before any step
     (``step`` 0) the learning rate cannot be the cause: the message points at the objective's inputs."""
-    if bool(torch.isfinite(values).all()):
+    if all_finite(values):
         return
     lr = optimizer.param_groups[0]["lr0"]
     bad = [] if values.ndim == 0 else (~torch.isfinite(values)).nonzero().squeeze(1).tolist()
@@ -266,7 +267,7 @@ def _guard_gradients(params, step: int, error: type[Exception], where: str) -> N
     it into the parameters, and a step guard would then refuse every later step, a run that stalls
     without a word."""
     for p in params:
-        if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+        if p.grad is not None and not all_finite(p.grad):
             raise error(f"the gradient became non-finite at step {step}{where} although the loss was finite: "
                         f"a term of the objective has no finite slope there (a parameter of shape "
                         f"{tuple(p.shape)})")

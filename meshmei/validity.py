@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from . import native
-from ._checks import check_positive
+from ._checks import all_finite, check_positive
 from .certify import GraphCertificate, SeparationCertificate, StarCertificate
 from .contact import log_barrier
 from .errors import MeshError
@@ -265,7 +265,7 @@ class StepGuard:
         # the frame, the smallest quality and the turned faces in one compiled pass where it applies
         checked = None if frame is not None else _compiled_frame(
             Vd, self.F, self.normals if turn else None, self.cos_bound - 1e-12, self.turn_faces)
-        if checked == "non-finite" or (checked is None and not bool(torch.isfinite(Vd).all())):
+        if checked == "non-finite" or (checked is None and not all_finite(Vd)):
             return "non-finite", "non-finite vertices", None
         if self.rules.max_step is not None:
             moved = float((Vd - self.accepted).norm(dim=1).max())

@@ -403,3 +403,21 @@ def test_sum_xyz_is_torchs_sum_over_three_bit_for_bit_values_and_gradients(dtype
     # three negative zeros: -0 here, +0 from torch's reduction; equal as numbers
     z = torch.full((2, 3), -0.0, dtype=dtype)
     assert (sum_xyz(z) == z.sum(-1)).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.complex64])
+def test_all_finite_agrees_with_isfinite_at_every_position_and_extreme(dtype):
+    """One reduction (the largest |x|) in place of isfinite().all(): NaN or Inf anywhere, alone or beside the
+    dtype's largest finite values, is caught; huge finite values, zeros and empty tensors pass."""
+    from meshmei._checks import all_finite
+
+    big = torch.finfo(dtype).max if not dtype.is_complex else torch.finfo(torch.float32).max
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        for i in range(7):
+            x = torch.full((7,), big, dtype=dtype) * (-1) ** torch.arange(7)
+            x[i] = bad
+            assert not bool(torch.isfinite(x).all())
+            assert all_finite(x) is False
+    assert all_finite(torch.full((3, 4), big, dtype=dtype)) is True
+    assert all_finite(torch.zeros(0, 3, dtype=dtype)) is True and all_finite(torch.zeros(5, dtype=dtype)) is True
+    assert all_finite(torch.arange(5)) is True  # integers are finite

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from .._checks import check_positive
+from .._checks import all_finite, check_positive
 from ..errors import EncoderError
 from .base import DEFAULT_NORM, Encoder, Preprocess, check_images, eval_mode
 
@@ -438,7 +438,7 @@ class ModelEncoder(Encoder):
                                f"{batch} it returned {tuple(out.shape)}, expected {want}")
         if not out.is_floating_point():
             raise EncoderError(f"the model must return float responses, got dtype {out.dtype}")
-        if not bool(torch.isfinite(out).all()) and bool(torch.isfinite(x).all()):
+        if not all_finite(out) and all_finite(x):
             bad = int((~torch.isfinite(out)).sum())
             raise EncoderError(f"the model{self._member(i)} returned non-finite responses to finite images of shape "
                                f"{tuple(x.shape)} ({bad} of {out.numel()} values NaN or Inf)")
