@@ -421,3 +421,9 @@ def test_all_finite_agrees_with_isfinite_at_every_position_and_extreme(dtype):
     assert all_finite(torch.full((3, 4), big, dtype=dtype)) is True
     assert all_finite(torch.zeros(0, 3, dtype=dtype)) is True and all_finite(torch.zeros(5, dtype=dtype)) is True
     assert all_finite(torch.arange(5)) is True  # integers are finite
+    import warnings
+
+    x = torch.ones(3, dtype=dtype, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a tensor with a graph: no 'converting to a scalar' warning
+        assert all_finite(x * 2) is True
