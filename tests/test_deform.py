@@ -328,3 +328,34 @@ def test_learn_scales_must_be_a_boolean():
     V, _ = icosphere(1)
     with pytest.raises(ValueError, match="learn_scales must be True or False, got 'no'"):  # switched them on
         RBFDeformer(V, learn_scales="no")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [None, 3])
+def test_the_dense_map_with_its_mask_in_the_exponent_is_the_masked_product_bit_for_bit(dtype, batch):
+    """dense_map folds the mask into the exponent (-inf off the pair list) and writes its backward: the
+    displacement and both gradients equal autograd's through exp(-D2 inv) * mask @ offsets bit for bit, one
+    mesh or a batch; scales whose inv is 0 or inf take the masked form (where -inf * 0 would be NaN)."""
+    from meshmei.deform.rbf import dense_map, dense_negatives
+
+    gen = torch.Generator().manual_seed(3)
+    shape = () if batch is None else (batch,)
+    n, K = 50, 40
+    D2 = torch.rand(*shape, n, K, generator=gen, dtype=torch.float64).to(dtype) * 4.0
+    mask = (torch.rand(*shape, n, K, generator=gen) < 0.5).to(dtype)
+    D2 = D2 * mask  # zero off the pair list, as RBFDeformer keeps it
+    D2[..., 0, 0], mask[..., 0, 0] = 0.0, 1.0  # a vertex at its own kernel's centre
+    neg = dense_negatives(D2, mask)
+    for log_sigma in (torch.randn(*shape, K, generator=gen, dtype=torch.float64).to(dtype) * 0.5,
+                      torch.full((*shape, K), 80.0, dtype=dtype), torch.full((*shape, K), -400.0, dtype=dtype)):
+        grads = []
+        for use in (neg, None):
+            ls = log_sigma.clone().requires_grad_()
+            off = torch.randn(*shape, K, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64).to(dtype)
+            off.requires_grad_()
+            out = dense_map(0.5 * torch.exp(-2.0 * ls), off, D2, mask, use)
+            (out * torch.linspace(-1.0, 2.0, out.numel(), dtype=dtype).reshape(out.shape)).sum().backward()
+            grads.append((out.detach(), off.grad, ls.grad))
+        for a, b in zip(*grads):
+            assert torch.equal(a, b) or (a.isnan() == b.isnan()).all() and torch.equal(a.nan_to_num(), b.nan_to_num())
+    assert bool(torch.isfinite(grads[0][0]).all()) is False  # inv = inf: NaN at the centre either way

@@ -111,6 +111,53 @@ class _FixedMap(torch.autograd.Function):
         return ctx.Wt @ grad.contiguous(), None, None
 
 
+class _DenseMap(torch.autograd.Function):
+    """``exp(-D2 / (2 sigma^2)) @ offsets`` over a dense ``(..., n, K)`` pair matrix, with the mask folded into
+    the exponent: ``neg_out`` is ``-D2`` with ``-inf`` off the pair list, whose exponential is exactly the
+    masked weight (``+0``), and ``neg`` is ``-D2`` (``-0`` off the list) for the scales' gradient. The same
+    operations as ``exp(-D2 * inv) * mask @ offsets`` under autograd, minus the negation and the mask's product
+    forward and one product backward, so the values and both gradients are its bit for bit (tested); the
+    caller keeps ``inv`` positive and finite (``-inf * 0`` would be NaN where the masked form gives 0)."""
+
+    @staticmethod
+    def forward(ctx, inv, offsets, neg_out, neg):
+        W = (neg_out * inv.unsqueeze(-2)).exp_()
+        ctx.save_for_backward(W, offsets)
+        ctx.neg = neg
+        return torch.matmul(W, offsets)
+
+    @staticmethod
+    def backward(ctx, grad):
+        W, offsets = ctx.saved_tensors
+        g_inv = g_off = None
+        if ctx.needs_input_grad[0]:
+            # autograd's order: the product's gradient, times the mask (here W's zeros), times exp's result,
+            # times -D2, summed over the vertices
+            gW = torch.matmul(grad, offsets.transpose(-1, -2))
+            g_inv = gW.mul_(W).mul_(ctx.neg).sum(-2)
+        if ctx.needs_input_grad[1]:
+            g_off = torch.matmul(W.transpose(-1, -2), grad)
+        return g_inv, g_off, None, None
+
+
+def dense_map(inv: torch.Tensor, offsets: torch.Tensor, D2: torch.Tensor, mask: torch.Tensor, neg=None) -> torch.Tensor:
+    """``(exp(-D2 * inv) * mask) @ offsets`` for ``D2, mask (..., n, K)``, ``inv (..., K)`` and ``offsets (..., K,
+    3)``: by :class:`_DenseMap` where ``neg = (neg_out, -D2)`` is given, the dtypes agree and every ``inv`` is
+    positive and finite, else as written (the same values and gradients either way)."""
+    if neg is not None and offsets.dtype == D2.dtype:
+        lo, hi = torch.aminmax(inv.detach())
+        if 0.0 < float(lo) and float(hi) < math.inf:
+            return _DenseMap.apply(inv, offsets, *neg)
+    W = torch.exp(-D2 * inv.unsqueeze(-2)) * mask
+    return torch.matmul(W.to(offsets.dtype), offsets)
+
+
+def dense_negatives(D2: torch.Tensor, mask: torch.Tensor) -> tuple:
+    """``(neg_out, neg)`` for :func:`dense_map`: ``-D2`` with ``-inf`` off the pair list, and ``-D2``."""
+    neg = -D2
+    return neg.masked_fill(mask == 0, -math.inf), neg
+
+
 def _check_rest(V0, r_cut, headroom) -> None:
     if not isinstance(V0, torch.Tensor) or not V0.is_floating_point() or V0.ndim != 2 or V0.shape[1] != 3:
         got = (f"a {type(V0).__name__} of dtype {V0.dtype} and shape {tuple(V0.shape)}" if hasattr(V0, "shape")
@@ -237,6 +284,7 @@ class RBFDeformer(torch.nn.Module):
             self.register_buffer("log_sigma", log_sigma)
         for name in ("_rows", "_cols", "_d2", "_radius", "_dense_d2", "_dense_mask"):
             self.register_buffer(name, None, persistent=False)
+        self._dense_neg = None
         self.n_rebuilds = -1
         self._build(torch.exp(log_sigma))
 
@@ -299,7 +347,7 @@ class RBFDeformer(torch.nn.Module):
         self._cols = torch.from_numpy(cols).to(dev)
         self._d2 = torch.from_numpy(d2).to(device=dev, dtype=dt)  # (P,) fixed squared kernel distances
         self._radius = torch.from_numpy(radius).to(device=dev, dtype=dt)  # (K,) radius each kernel's list covers
-        self._dense_d2 = self._dense_mask = None
+        self._dense_d2 = self._dense_mask = self._dense_neg = None
         n, K = self.V0.shape[0], len(radius)
         if n * K <= DENSE_MAX_ENTRIES and len(rows) >= DENSE_MIN_FILL * n * K:
             # nearly every pair is kept (a small mesh with wide kernels, as a 3D-MEI's): one dense (n, K)
@@ -309,7 +357,7 @@ class RBFDeformer(torch.nn.Module):
             D2[self._rows, self._cols] = self._d2
             mask = torch.zeros(n, K, dtype=dt, device=dev)
             mask[self._rows, self._cols] = 1.0
-            self._dense_d2, self._dense_mask = D2, mask
+            self._dense_d2, self._dense_mask, self._dense_neg = D2, mask, dense_negatives(D2, mask)
         self.n_rebuilds += 1
 
     def _ensure_covered(self) -> None:
@@ -323,13 +371,13 @@ class RBFDeformer(torch.nn.Module):
         (a refused step undone, the best iterate restored) puts the list back with :meth:`restore`, so that
         the mesh is again the one it evaluated (and a step guard checked), not one no guard saw.
         """
-        return (self._rows, self._cols, self._d2, self._radius, self._dense_d2, self._dense_mask)
+        return (self._rows, self._cols, self._d2, self._radius, self._dense_d2, self._dense_mask, self._dense_neg)
 
     def restore(self, saved: tuple) -> None:
         """Put back a pair list taken by :meth:`snapshot` (counted as a rebuild when it differs)."""
         if saved[0] is self._rows:
             return
-        self._rows, self._cols, self._d2, self._radius, self._dense_d2, self._dense_mask = saved
+        self._rows, self._cols, self._d2, self._radius, self._dense_d2, self._dense_mask, self._dense_neg = saved
         self.n_rebuilds += 1  # cached matrices (and a batch's stacked dense maps) are keyed on the count
 
     def cover(self, log_sigma: torch.Tensor) -> None:
@@ -389,11 +437,9 @@ class RBFDeformer(torch.nn.Module):
     def displacement_with(self, offsets: torch.Tensor, log_sigma: torch.Tensor) -> torch.Tensor:
         """The displacement for other parameters ``offsets (K, 3)`` and ``log_sigma (K,)`` on this deformer's
         pair list (call :meth:`cover` for ``log_sigma`` first); differentiable in both."""
-        if self._dense_d2 is not None:
-            D2, mask = self._dense_d2, self._dense_mask
+        if self._dense_d2 is not None:  # (n, K) weights, zero off the pair list
             inv = 0.5 * torch.exp(-2.0 * log_sigma)  # (K,) 1 / (2 sigma^2)
-            W = torch.exp(-D2 * inv.unsqueeze(0)) * mask  # (n, K), zero off the pair list
-            return (W.to(offsets.dtype) @ offsets).to(self.V0.dtype)
+            return dense_map(inv, offsets, self._dense_d2, self._dense_mask, self._dense_neg).to(self.V0.dtype)
         if not log_sigma.requires_grad and log_sigma is self.log_sigma:  # fixed scales: a constant sparse matrix
             # torch's CSR products have no float16 or bfloat16 kernels: half-precision offsets multiply in float32
             dtype = torch.float32 if offsets.element_size() < 4 else offsets.dtype

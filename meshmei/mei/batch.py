@@ -16,6 +16,7 @@ from typing import Iterator
 
 import torch
 
+from ..deform.rbf import dense_map, dense_negatives
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
@@ -91,12 +92,11 @@ class BatchScene:
             return self.V0 + disp
         key = tuple(r.n_rebuilds for r in self.rbfs)
         if key != self._dense_key:
-            self._dense = (torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs]))
+            D2, mask = torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
+            self._dense = (D2, mask, dense_negatives(D2, mask))
             self._dense_key = key
-        D2, mask = self._dense
         inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (B, K)
-        W = torch.exp(-D2 * inv.unsqueeze(1)) * mask  # (B, n, K)
-        return self.V0 + torch.matmul(W.to(self.offsets.dtype), self.offsets).to(self.V0.dtype)
+        return self.V0 + dense_map(inv, self.offsets, *self._dense).to(self.V0.dtype)  # (B, n, K) weights
 
     def image(self, V, F, *, pose: bool | None = None) -> torch.Tensor:
         kw = {}
