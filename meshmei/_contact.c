@@ -6,7 +6,7 @@
  * widened by `reach`, overlaps. A pair found there is kept when this file's own distance (the formulas of
  * meshmei.contact._point_triangle and _segment_segment, in double) is below `lim` (the caller's reach^2 with
  * a relative slack of 1e-6), so the kept pairs hold every pair whose distance, as the torch code measures
- * it, is below reach: the caller measures those again in torch and keeps them as before.
+ * it, is below reach; their squared distances are written beside them.
  *
  * Cost: O(n + pairs found in the cells); the grid's cells are sized to the primitives and to `reach`, at
  * most 8 per primitive, and an edge whose box covers more than 64 cells (one stretched far beyond the
@@ -24,7 +24,7 @@
 #include <stdlib.h>
 #include <float.h>
 
-int meshmei_contact_abi(void) { return 3; }
+int meshmei_contact_abi(void) { return 4; }
 
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -203,18 +203,21 @@ static void box_of(const double *V, const int64_t *idx, int k, double widen, dou
     }
 }
 
-static void emit(int64_t *found, int64_t cap, int64_t *out_a, int64_t *out_b, int64_t a, int64_t b) {
+static void emit(int64_t *found, int64_t cap, int64_t *out_a, int64_t *out_b, double *out_d, int64_t a, int64_t b,
+                 double d) {
     if (*found < cap) {
         out_a[*found] = a;
         out_b[*found] = b;
+        out_d[*found] = d;
     }
     (*found)++;
 }
 
-/* (vertex, face) pairs: out_v, out_f (room for `cap`). The vertices in a grid of cells about the size of a
- * face's box widened by reach; each face looks in the cells that box overlaps (mostly 8). */
+/* (vertex, face) pairs: out_v, out_f and their squared distances out_d (room for `cap`). The vertices in a
+ * grid of cells about the size of a face's box widened by reach; each face looks in the cells that box
+ * overlaps (mostly 8). */
 int64_t contact_vertex_face(int64_t n, const double *V, int64_t m, const int64_t *F, double lim, int64_t cap,
-                            int64_t *out_v, int64_t *out_f) {
+                            int64_t *out_v, int64_t *out_f, double *out_d) {
     if (!all_finite(n, V)) return -1;
     double widen = sqrt(lim), mean = 0.0, lo[3], hi[3];
     for (int64_t f = 0; f < m; f++) {
@@ -238,7 +241,8 @@ int64_t contact_vertex_face(int64_t n, const double *V, int64_t m, const int64_t
                 if (v == tri[0] || v == tri[1] || v == tri[2] || P[0] < lo[0] || P[0] > hi[0] || P[1] < lo[1] ||
                     P[1] > hi[1] || P[2] < lo[2] || P[2] > hi[2])
                     continue;
-                if (point_triangle(P, A, B, C) < lim) emit(&found, cap, out_v, out_f, v, f);
+                double d = point_triangle(P, A, B, C);
+                if (d < lim) emit(&found, cap, out_v, out_f, out_d, v, f, d);
             }
         }
     }
@@ -250,29 +254,31 @@ int64_t contact_vertex_face(int64_t n, const double *V, int64_t m, const int64_t
  * where they lie within lim: (a, b) with a < b, except where `first` marks one edge and not the other */
 static void edge_pair(const double *V, const int64_t *E, const uint8_t *first, int64_t i, int64_t j,
                       const double *lo, const double *hi, double lim, int64_t *found, int64_t cap, int64_t *out_a,
-                      int64_t *out_b) {
+                      int64_t *out_b, double *out_d) {
     const int64_t *ei = E + 2 * i, *ej = E + 2 * j;
     if (ei[0] == ej[0] || ei[0] == ej[1] || ei[1] == ej[0] || ei[1] == ej[1]) return;
     const double *P2 = V + 3 * ej[0], *Q2 = V + 3 * ej[1];
     for (int a = 0; a < 3; a++)
         if ((P2[a] < Q2[a] ? Q2[a] : P2[a]) < lo[a] || (P2[a] < Q2[a] ? P2[a] : Q2[a]) > hi[a]) return;
-    if (!(segment_segment(V + 3 * ei[0], V + 3 * ei[1], P2, Q2) < lim)) return;
+    double d = segment_segment(V + 3 * ei[0], V + 3 * ei[1], P2, Q2);
+    if (!(d < lim)) return;
     int64_t a = i < j ? i : j, b = i < j ? j : i;
     if (first && first[b] && !first[a]) {
         int64_t t = a;
         a = b, b = t;
     }
-    emit(found, cap, out_a, out_b, a, b);
+    emit(found, cap, out_a, out_b, out_d, a, b, d);
 }
 
-/* (edge, edge) pairs: out_a, out_b (room for `cap`; the order within a pair as edge_pair writes it). The
+/* (edge, edge) pairs: out_a, out_b and their squared distances out_d (room for `cap`; the order within a pair
+ * as edge_pair writes it, the distance as measured from edge i to edge j). The
  * short edges' midpoints in a grid; a short edge looks for the short edges after it in the grid's order
  * whose midpoints lie within its half-extent, the largest short half-extent and reach (the cells that box
  * overlaps; two edges within reach of each other each lie in the other's box, so the pair is found from the
  * one the grid holds first), and tests every long edge (half-extent above twice the mean: stretched ones, not
  * in the grid); a long edge tests the long edges after it. Each pair once. */
 int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *E, const uint8_t *first,
-                          double lim, int64_t cap, int64_t *out_a, int64_t *out_b) {
+                          double lim, int64_t cap, int64_t *out_a, int64_t *out_b, double *out_d) {
     if (!all_finite(n, V)) return -1;
     size_t room = (size_t)(k > 0 ? k : 1);
     double widen = sqrt(lim), mean = 0.0, lo[3], hi[3];
@@ -334,12 +340,13 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
                     if (fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
                         fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen || fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen)
                         continue;
-                    edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b);
+                    edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b, out_d);
                 }
             }
         }
         for (int64_t t = 0; t < nlong; t++)
-            if (!long_i || longs[t] > i) edge_pair(V, E, first, i, longs[t], lo, hi, lim, &found, cap, out_a, out_b);
+            if (!long_i || longs[t] > i)
+                edge_pair(V, E, first, i, longs[t], lo, hi, lim, &found, cap, out_a, out_b, out_d);
     }
 done:
     grid_free(&g), free(box), free(P), free(packed), free(longs), free(slot), free(ids), free(pos), free(size);

@@ -22,19 +22,24 @@ unseen, with ``min_interval=1``, as reconstruction uses it). With a larger ``min
 a search waits that many calls even when a vertex moved more than ``margin``, so a pair can come within
 ``distance`` unseen between two searches (at ten times the 3D-MEI's learning rate a review found 115-121 such
 pairs over a run, the nearest at 0.2-0.3 ``distance``; none at the default rate): the barrier is then a
-preference, and the step guard holds the guarantee. A search is a broad phase, then the exact distances in
-torch on what it keeps. The broad phase is compiled (``_contact.c``, :mod:`meshmei.native`): a uniform grid
+preference, and the step guard holds the guarantee. A search is a broad phase with the exact distances of
+what it keeps. The broad phase is compiled (``_contact.c``, :mod:`meshmei.native`): a uniform grid
 of cells over the vertices and the edges' midpoints, sized to the primitives and ``reach``, each face and
 edge tested against the points of the cells its widened box overlaps with the same distance formulas in
 C, which keep every pair within ``reach`` with a relative slack of 1e-6 (:data:`_SLACK`); O(n + pairs
 tested). Where the kernels are not built, or within :func:`~meshmei.native.torch_reference`, the NumPy and
 SciPy broad phase runs: KD-trees over the vertices and the face centroids (and the edges' midpoints),
 whose pairs, most of them a vertex and the faces of its own ring or the next, are cut by a cheap lower
-bound (the distance to the half-plane beyond the face's farthest edge), O(n log n). Either way the torch
-distances decide, so the two hand out the same pairs in the same order with the same distances, bit for
-bit (tested on hard meshes; a 3D-MEI and the default reconstruction end bit for bit as before). A 3D-MEI
+bound (the distance to the half-plane beyond the face's farthest edge), O(n log n), then the torch distances
+decide. The compiled search keeps its own pairs and float64 distances: every pair the torch distance puts
+within ``reach``, in the same order (by face then vertex, by first then second edge), and others only within
+the slack, with distances equal to rounding (tested on hard meshes). The cached pairs are handed out with a
+relative slack of :data:`_SLACK` over ``distance`` on either kind of distance, and the torch distances of
+the energy decide which pairs count, so the energy and its gradient are the same bit for bit either way
+(tested over runs of steps; a 3D-MEI and the default reconstruction end bit for bit as before). A 3D-MEI
 search of a 400-vertex sphere with edge pairs took 19-20 ms with the NumPy broad phase and 3.7 ms with the
-compiled one, 1.3 ms of it in C (the rest the torch distances and sorting).
+compiled one, 1.3 ms of it in C (the rest the torch distances and sorting); without the torch pass, the
+searches of a 150-step sphere 3D-MEI cost 0.61-0.63 ms a step instead of 0.89-0.92 (wrapped timers).
 
 Between searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's
 distance shrinks at most by how far its vertices moved since the search); of those, the compiled float64
@@ -290,24 +295,27 @@ def _nearby(P: np.ndarray, C: np.ndarray, r: float):
 
 _SLACK = 1e-6
 """Relative slack on ``reach^2`` of the compiled broad phase (``_contact.c``): its own distances keep every
-pair that the torch code measures within ``reach`` (the two differ by rounding, far below this)."""
+pair that the torch code measures within ``reach`` (the two differ by rounding, far below this); and on
+``distance`` where cached pairs are handed out, on either kind of distance."""
 
 
 def _compiled_pairs(kernel: str, Vn: np.ndarray, idx: np.ndarray, reach: float, *extra):
     """Run a broad-phase kernel of ``_contact.c`` (``contact_vertex_face`` or ``contact_edge_edge``) on the
-    vertices ``Vn`` and faces or edges ``idx``; the pairs ``(a, b)`` as two int64 arrays, or None where it
-    cannot tell (a non-finite coordinate, no memory: the NumPy search runs instead)."""
+    vertices ``Vn`` and faces or edges ``idx``; the pairs ``(a, b)`` as two int64 arrays and their squared
+    distances by the kernel (every one below ``reach^2 (1 + _SLACK)``), or None where it cannot tell (a
+    non-finite coordinate, no memory: the NumPy search runs instead)."""
     fn = getattr(native.library(), kernel)
     Vn, idx = np.ascontiguousarray(Vn, dtype=np.float64), np.ascontiguousarray(idx, dtype=np.int64)
     lim = reach * reach * (1.0 + _SLACK)
     cap = 16 * len(idx) + 64
     for _ in range(2):
-        a, b = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-        found = fn(len(Vn), Vn.ctypes.data, len(idx), idx.ctypes.data, *extra, lim, cap, a.ctypes.data, b.ctypes.data)
+        a, b, d2 = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64), np.empty(cap)
+        found = fn(len(Vn), Vn.ctypes.data, len(idx), idx.ctypes.data, *extra, lim, cap, a.ctypes.data, b.ctypes.data,
+                   d2.ctypes.data)
         if found < 0:
             return None
         if found <= cap:
-            return a[:found], b[:found]
+            return a[:found], b[:found], d2[:found]
         cap = found  # too little room: once more with room for all
     raise AssertionError("the contact search found more pairs on a second look at the same vertices")
 
@@ -453,23 +461,25 @@ class ContactBarrier:
     def _candidates(self, Vn: np.ndarray, compiled: bool = False):
         """(vertex, face) pairs, the vertex not in the face, within ``distance + 2 margin`` (by face, then
         vertex), then the edge pairs of :meth:`_edge_candidates`, then the two kinds' distances. ``compiled``:
-        the broad phase by ``_contact.c`` (the same pairs: both keep every pair the torch distance puts
-        within reach, and that distance decides)."""
+        the broad phase by ``_contact.c``, whose own pairs and distances are kept (every pair the torch
+        distance puts within reach, and others only within its slack); else the torch distances decide."""
         reach = self.distance + 2.0 * self.margin
         found = _compiled_pairs("contact_vertex_face", Vn, self.Fn, reach) if compiled else None
-        vi, fi = found if found is not None else self._vertex_face_near(Vn, reach)
-        # keep the pairs whose exact distance is within reach now
-        Vd = torch.from_numpy(Vn)
-        vt, ft = torch.from_numpy(vi), torch.from_numpy(fi)
-        Fd = torch.from_numpy(self.Fn)
-        d2 = point_triangle_sqdist(Vd[vt], Vd[Fd[ft, 0]], Vd[Fd[ft, 1]], Vd[Fd[ft, 2]])
-        near = d2 < reach * reach
+        if found is not None:  # the kernel's pairs and distances as they are (below reach, up to its slack)
+            vi, fi, d2 = found
+            near = np.ones(len(vi), dtype=bool)
+        else:  # keep the pairs whose torch distance is within reach
+            vi, fi = self._vertex_face_near(Vn, reach)
+            Vd = torch.from_numpy(Vn)
+            vt, ft, Fd = torch.from_numpy(vi), torch.from_numpy(fi), torch.from_numpy(self.Fn)
+            d2 = point_triangle_sqdist(Vd[vt], Vd[Fd[ft, 0]], Vd[Fd[ft, 1]], Vd[Fd[ft, 2]]).numpy()
+            near = d2 < reach * reach
         if self._out_vf is not None and len(self._out_vf):
-            near &= torch.from_numpy(~np.isin(vt.numpy() * len(self.Fn) + ft.numpy(), self._out_vf))
-        vt, ft, d2 = vt[near], ft[near], d2[near]
-        order = np.lexsort((vt.numpy(), ft.numpy()))  # by face, then vertex: not the search's order
+            near &= ~np.isin(vi * len(self.Fn) + fi, self._out_vf)
+        vi, fi, d2 = vi[near], fi[near], d2[near]
+        order = np.lexsort((vi, fi))  # by face, then vertex: not the search's order
         ea, eb, de = self._edge_candidates(Vn, reach, compiled=compiled)
-        return vt[order], ft[order], ea, eb, d2[order].sqrt(), de
+        return torch.from_numpy(vi[order]), torch.from_numpy(fi[order]), ea, eb, torch.from_numpy(d2[order]).sqrt(), de
 
     def _vertex_face_near(self, Vn: np.ndarray, reach: float):
         """The NumPy and SciPy broad phase of :meth:`_candidates`: (vertex, face) index arrays holding every
@@ -520,16 +530,19 @@ class ContactBarrier:
         # not: the NumPy search's order, which the compiled one keeps (its results are then the same bit for bit)
         first = np.ascontiguousarray(big, dtype=np.uint8)
         found = _compiled_pairs("contact_edge_edge", Vn, En, reach, first.ctypes.data) if compiled else None
-        i, j = found if found is not None else self._edge_edge_near(mid, half, typical, big, En, reach)
-        i, j = torch.from_numpy(i), torch.from_numpy(j)
-        Vd, Et = torch.from_numpy(Vn), torch.from_numpy(En)
-        d2 = segment_sqdist(Vd[Et[i, 0]], Vd[Et[i, 1]], Vd[Et[j, 0]], Vd[Et[j, 1]])
-        near = d2 < reach * reach
+        if found is not None:  # as in _candidates
+            i, j, d2 = found
+            near = np.ones(len(i), dtype=bool)
+        else:
+            i, j = self._edge_edge_near(mid, half, typical, big, En, reach)
+            Vd, Et, it, jt = torch.from_numpy(Vn), torch.from_numpy(En), torch.from_numpy(i), torch.from_numpy(j)
+            d2 = segment_sqdist(Vd[Et[it, 0]], Vd[Et[it, 1]], Vd[Et[jt, 0]], Vd[Et[jt, 1]]).numpy()
+            near = d2 < reach * reach
         if self._out_ee is not None and len(self._out_ee):
-            near &= torch.from_numpy(~np.isin(_pair_keys(i.numpy(), j.numpy(), len(En)), self._out_ee))
+            near &= ~np.isin(_pair_keys(i, j, len(En)), self._out_ee)
         i, j, d2 = i[near], j[near], d2[near]
-        order = np.lexsort((j.numpy(), i.numpy()))
-        return i[order], j[order], d2[order].sqrt()
+        order = np.lexsort((j, i))
+        return torch.from_numpy(i[order]), torch.from_numpy(j[order]), torch.from_numpy(d2[order]).sqrt()
 
     @staticmethod
     def _edge_edge_near(mid, half, typical, big, En, reach):
@@ -613,13 +626,15 @@ class ContactBarrier:
         unseen = self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0))
         # the farthest move of each face's and each edge's corners, then each pair's bound (NumPy: a few
         # operations on arrays of a few thousand, where torch's dispatch would cost more than the work)
-        Fn, (vtn, ftn, ean, ebn) = self.Fn, (x.numpy() for x in (vt, ft, ea, eb))
+        # (the search's distances are the compiled kernel's or torch's: a relative slack far above their rounding
+        # hands out every pair either would)
+        Fn, (vtn, ftn, ean, ebn), within = self.Fn, (x.numpy() for x in (vt, ft, ea, eb)), self.distance * (1.0 + _SLACK)
         side = np.maximum(np.maximum(moved[Fn[:, 0]], moved[Fn[:, 1]]), moved[Fn[:, 2]])
-        keep = dvf.numpy() - moved[vtn] - side[ftn] < self.distance
+        keep = dvf.numpy() - moved[vtn] - side[ftn] < within
         out = [vtn[keep], ftn[keep]]
         if len(ean):
             side = np.maximum(moved[self.En[:, 0]], moved[self.En[:, 1]])
-            keep = dee.numpy() - side[ean] - side[ebn] < self.distance
+            keep = dee.numpy() - side[ean] - side[ebn] < within
             out += [ean[keep], ebn[keep]]
         else:
             out += [ean, ebn]

@@ -37,7 +37,7 @@ __all__ = ["native_status", "torch_reference", "available", "enabled", "library"
 
 _HERE = Path(__file__).parent
 # each file's ABI version, which its ``meshmei_<name>_abi()`` returns
-_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 3),
+_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 4),
             "guard": (_HERE / "_guard.c", 1)}
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
 
@@ -53,8 +53,8 @@ _SIGNATURES = {
        for t in ("f32", "f64")},
     **{f"normals_fwd_{t}": [_i64, _i64, _i64, _p, _p, _dbl, _p, _p] for t in ("f32", "f64")},
     **{f"normals_bwd_{t}": [_i64, _i64, _i64, _p, _p, _dbl, _p, _p, _p, _p] for t in ("f32", "f64")},
-    "contact_vertex_face": [_i64, _p, _i64, _p, _dbl, _i64, _p, _p],
-    "contact_edge_edge": [_i64, _p, _i64, _p, _p, _dbl, _i64, _p, _p],
+    "contact_vertex_face": [_i64, _p, _i64, _p, _dbl, _i64, _p, _p, _p],
+    "contact_edge_edge": [_i64, _p, _i64, _p, _p, _dbl, _i64, _p, _p, _p],
     "contact_vertex_face_distances": [_p, _p, _i64, _p, _p, _p],
     "contact_edge_edge_distances": [_p, _p, _i64, _p, _p, _p],
     "separation_fans": [_i64, _p, _i64, _p, _p, _p, _p],
