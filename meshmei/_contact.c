@@ -513,8 +513,10 @@ int graph_holds(int64_t n, const double *V, int64_t m, const int64_t *F, const d
         if (orient2(xa0, ya0, xa1, ya1, xb0, yb0) * orient2(xa0, ya0, xa1, ya1, xb1, yb1) < 0.0 &&
             orient2(xb0, yb0, xb1, yb1, xa0, ya0) * orient2(xb0, yb0, xb1, yb1, xa1, ya1) < 0.0)
             return 0; /* a proper crossing */
-        if (point_segment_sq(xa0, ya0, xb0, yb0, xb1, yb1) <= tol2 || point_segment_sq(xa1, ya1, xb0, yb0, xb1, yb1) <= tol2 ||
-            point_segment_sq(xb0, yb0, xa0, ya0, xa1, ya1) <= tol2 || point_segment_sq(xb1, yb1, xa0, ya0, xa1, ya1) <= tol2)
+        if (point_segment_sq(xa0, ya0, xb0, yb0, xb1, yb1) <= tol2 ||
+            point_segment_sq(xa1, ya1, xb0, yb0, xb1, yb1) <= tol2 ||
+            point_segment_sq(xb0, yb0, xa0, ya0, xa1, ya1) <= tol2 ||
+            point_segment_sq(xb1, yb1, xa0, ya0, xa1, ya1) <= tol2)
             return 0;
     }
     return 1;

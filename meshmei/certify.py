@@ -137,10 +137,10 @@ class GraphCertificate:
     def holds(self, V: torch.Tensor, normals: torch.Tensor, compiled: bool | None = None) -> bool:
         """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
         self-intersections (False: not proven; the mesh may still be clean). Checked in float64 on the CPU,
-        whatever the inputs' device: compiled where the kernels are built (``meshmei/_guard.c``, the same
-        rules: 0.03 against 0.5 ms on the 3D-MEI's sheet), else in NumPy (on arrays this size its
-        per-operation cost is a fraction of torch's); pass float64 normals, or the margins may fail on
-        rounding."""
+        whatever the inputs' device: compiled where the kernels are built (``meshmei/_contact.c``, the same
+        rules with rough angles at interior vertices: 0.08 against 0.17 ms a call on the 3D-MEI's sheet),
+        else in NumPy (on arrays this size its per-operation cost is a fraction of torch's); pass float64
+        normals, or the margins may fail on rounding."""
         normals, V = normals.detach().cpu().double(), V.detach().cpu().double()
         if native.enabled() if compiled is None else compiled:
             Vn, Nn = np.ascontiguousarray(V.numpy()), np.ascontiguousarray(normals.numpy())
@@ -149,7 +149,8 @@ class GraphCertificate:
             return bool(native.library().graph_holds(
                 len(Vn), Vn.ctypes.data, len(self._F), self._F.ctypes.data, Nn.ctypes.data, self._d.ctypes.data,
                 self._u.ctypes.data, self._w.ctypes.data, self._kind.ctypes.data, len(a0), a0.ctypes.data,
-                a1.ctypes.data, b0.ctypes.data, b1.ctypes.data, ORIENTATION_MARGIN, SEPARATION_MARGIN, work.ctypes.data))
+                a1.ctypes.data, b0.ctypes.data, b1.ctypes.data, ORIENTATION_MARGIN, SEPARATION_MARGIN,
+                work.ctypes.data))
         if float((normals.numpy() @ self._d).min()) <= ORIENTATION_MARGIN:
             return False
         P = V.numpy() @ self._basis_t  # (n, 2)
@@ -203,7 +204,8 @@ class StarCertificate:
         """Whether ``V`` ``(n, 3)`` with its unit face ``normals`` ``(m, 3)`` is proven free of
         self-intersections (False: not proven; the mesh may still be clean). Checked in float64 on the CPU,
         whatever the inputs' device: compiled where the kernels are built (``meshmei/_contact.c``, the same
-        rules with rough angles), else coordinate by coordinate in NumPy."""
+        rules with rough angles: 0.07 against 0.22 ms a call on the 3D-MEI's sphere), else coordinate by
+        coordinate in NumPy."""
         Vn = V.detach().cpu().double().numpy()
         if native.enabled() if compiled is None else compiled:
             Vn = np.ascontiguousarray(Vn)

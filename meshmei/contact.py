@@ -628,7 +628,8 @@ class ContactBarrier:
         # operations on arrays of a few thousand, where torch's dispatch would cost more than the work)
         # (the search's distances are the compiled kernel's or torch's: a relative slack far above their rounding
         # hands out every pair either would)
-        Fn, (vtn, ftn, ean, ebn), within = self.Fn, (x.numpy() for x in (vt, ft, ea, eb)), self.distance * (1.0 + _SLACK)
+        Fn, (vtn, ftn, ean, ebn) = self.Fn, (x.numpy() for x in (vt, ft, ea, eb))
+        within = self.distance * (1.0 + _SLACK)
         side = np.maximum(np.maximum(moved[Fn[:, 0]], moved[Fn[:, 1]]), moved[Fn[:, 2]])
         keep = dvf.numpy() - moved[vtn] - side[ftn] < within
         out = [vtn[keep], ftn[keep]]

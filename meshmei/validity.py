@@ -87,13 +87,14 @@ def _kernel_frame(Vd, F, fused, normals, cos_limit, turn_faces):
     lib = native.library()
     Vd, F = Vd.contiguous(), F.contiguous()
     m = F.shape[0]
-    C, S, L2 = torch.empty(m, 3, dtype=torch.float64), torch.empty(m, dtype=torch.float64), torch.empty(m, dtype=torch.float64)
+    f64 = dict(dtype=torch.float64)
+    C, S, L2 = torch.empty(m, 3, **f64), torch.empty(m, **f64), torch.empty(m, **f64)
     rc = lib.guard_frame_parts(Vd.shape[0], m, Vd.data_ptr(), F.data_ptr(), fused, C.data_ptr(), S.data_ptr(),
                                L2.data_ptr())
     if rc:
         return "non-finite" if rc < 0 else None
     S.sqrt_()  # torch's square root: the torch code's rounding
-    N, Q, stats = torch.empty(m, 3, dtype=torch.float64), torch.empty(m, dtype=torch.float64), torch.empty(2, dtype=torch.float64)
+    N, Q, stats = torch.empty(m, 3, **f64), torch.empty(m, **f64), torch.empty(2, **f64)
     R = None if normals is None else normals.to(torch.float64).contiguous()
     T = None if turn_faces is None else turn_faces.contiguous()
     lib.guard_frame_finish(m, C.data_ptr(), S.data_ptr(), L2.data_ptr(), resolve_eps(None, torch.float64),
@@ -110,7 +111,8 @@ def _compiled_frame(Vd: torch.Tensor, F: torch.Tensor, normals, cos_limit: float
     ``normals`` None: no turn rule, 0). ``"non-finite"`` where a coordinate of ``Vd`` is not finite; None
     where the kernels do not apply (not built, within :func:`~meshmei.native.torch_reference`, not CPU
     float64, a squared cross product out of float64's normal range): the torch code runs instead. One pass
-    in C, torch's square root, one more pass: about a tenth of the torch code's time at 740 faces."""
+    in C, torch's square root, one more pass: the guard's check of a 3D-MEI step from the sheet (740 faces,
+    with the graph certificate) 0.57-0.62 ms instead of 1.3-1.5 (wrapped timers)."""
     if not (native.available(Vd) and Vd.dtype == torch.float64 and F.device.type == "cpu"):
         return None
     fused = _frame_rule()
@@ -280,7 +282,8 @@ class StepGuard:
             q, n_turned = float(quality.min()), 0
             if turn:
                 turned = sum_xyz(n * self.normals) < self.cos_bound - 1e-12
-                turned &= (sum_xyz(n.abs()) > 0) & (sum_xyz(self.normals.abs()) > 0)  # a zero-area face has no direction
+                # a zero-area face has no direction
+                turned &= (sum_xyz(n.abs()) > 0) & (sum_xyz(self.normals.abs()) > 0)
                 if self.turn_faces is not None:
                     turned &= self.turn_faces
                 n_turned = int(turned.sum())
