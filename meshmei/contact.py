@@ -625,9 +625,8 @@ class ContactBarrier:
         # since
         unseen = self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0))
         # the farthest move of each face's and each edge's corners, then each pair's bound (NumPy: a few
-        # operations on arrays of a few thousand, where torch's dispatch would cost more than the work)
-        # (the search's distances are the compiled kernel's or torch's: a relative slack far above their rounding
-        # hands out every pair either would)
+        # operations on arrays of a few thousand, where torch's dispatch would cost more than the work), with a
+        # relative slack far above the rounding of either kind of search distance (the kernel's or torch's)
         Fn, (vtn, ftn, ean, ebn) = self.Fn, (x.numpy() for x in (vt, ft, ea, eb))
         within = self.distance * (1.0 + _SLACK)
         side = np.maximum(np.maximum(moved[Fn[:, 0]], moved[Fn[:, 1]]), moved[Fn[:, 2]])
@@ -712,8 +711,9 @@ def _maybe_near(Vf: torch.Tensor, rows: torch.Tensor, dist, dh: float) -> torch.
     """Which pairs ``rows`` (corner indices ``(k, 4)`` into ``Vf``: a vertex and a face's corners, or two
     edges' ends) may lie within ``dh``: a superset of those whose ``dist`` (in ``Vf``'s dtype) is below
     ``dh^2``. Compiled where the kernels take ``Vf``: the float64 distances of ``_contact.c`` by
-    :func:`pair_distance_bounds` (0 for two near-parallel edges), kept below ``dh`` plus a slack far above the torch code's rounding (``1e-3 dh``
-    and 1,024 units in the last place of the largest coordinate); else the torch distances themselves."""
+    :func:`pair_distance_bounds` (0 for two near-parallel edges), kept below ``dh`` plus a slack far above the
+    torch code's rounding (``1e-3 dh`` and 1,024 units in the last place of the largest coordinate); else the
+    torch distances themselves."""
     scale = float(Vf.abs().max()) if native.available(Vf) and len(rows) else math.nan  # NaN or inf: not finite
     if math.isfinite(scale):
         R, k, none = rows.numpy(), len(rows), np.zeros(0, dtype=np.int64)
