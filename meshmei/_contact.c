@@ -16,15 +16,15 @@
  * writes the first `cap` of them; the caller calls again with room for all where that was too few.
  *
  * Also here, sharing the distances and the angles: the exact distances of given pairs (the separation
- * certificate's and the energy's prefilter) and the rules of meshmei.certify's certificates (the separation
- * certificate's fans, the graph certificate's check). */
+ * certificate's) and the rules of meshmei.certify's certificates (the separation certificate's fans, the graph
+ * certificate's check); and the contact energy of given pairs with its gradient (contact_energy). */
 
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <float.h>
 
-int meshmei_contact_abi(void) { return 4; }
+int meshmei_contact_abi(void) { return 5; }
 
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -376,6 +376,113 @@ void contact_edge_edge_distances(const double *V, const int64_t *E, int64_t k, c
         for (int a = 0; a < 3; a++) d1[a] = Q1[a] - P1[a], d2[a] = Q2[a] - P2[a];
         double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2);
         out[i] = a * e - b * b <= 1e-8 * a * e ? 0.0 : sqrt(segment_segment(P1, Q1, P2, Q2));
+    }
+}
+
+/* The closest point of the triangle ABC to P as weights on its corners (w[0..2]; the rule of point_triangle:
+ * the projection where it falls inside, else the nearest edge's closest point) and the squared distance. */
+static double point_triangle_weights(const double *P, const double *A, const double *B, const double *C, double *wt) {
+    const double tiny = DBL_MIN;
+    double ab[3], ac[3], ap[3], n[3], w[3];
+    for (int k = 0; k < 3; k++) {
+        ab[k] = B[k] - A[k];
+        ac[k] = C[k] - A[k];
+        ap[k] = P[k] - A[k];
+    }
+    cross3(ab, ac, n);
+    double nn = dot3(n, n);
+    cross3(ap, ac, w);
+    double u = dot3(w, n);
+    cross3(ab, ap, w);
+    double v = dot3(w, n);
+    if (u >= 0.0 && v >= 0.0 && u + v <= nn && nn > tiny) {
+        double s = dot3(ap, n);
+        wt[1] = u / nn, wt[2] = v / nn, wt[0] = 1.0 - wt[1] - wt[2];
+        return s * s / nn;
+    }
+    const double *X[3] = {A, B, C}, *Y[3] = {B, C, A};
+    double best = INFINITY, tb = 0.0;
+    int eb = 0;
+    for (int e = 0; e < 3; e++) {
+        double D[3], PX[3];
+        for (int k = 0; k < 3; k++) {
+            D[k] = Y[e][k] - X[e][k];
+            PX[k] = P[k] - X[e][k];
+        }
+        double dd = dot3(D, D);
+        double t = clamp01(dot3(PX, D) / (dd > tiny ? dd : tiny));
+        for (int k = 0; k < 3; k++) w[k] = PX[k] - D[k] * t;
+        double d = dot3(w, w);
+        if (d < best) best = d, tb = t, eb = e;
+    }
+    wt[0] = wt[1] = wt[2] = 0.0;
+    wt[eb] = 1.0 - tb, wt[(eb + 1) % 3] = tb;
+    return best;
+}
+
+/* The closest points' parameters s, t of the segments P1 Q1, P2 Q2 (segment_segment's rule) and the squared
+ * distance. */
+static double segment_params(const double *P1, const double *Q1, const double *P2, const double *Q2, double *st) {
+    const double tiny = DBL_MIN;
+    double d1[3], d2[3], r[3], w[3];
+    for (int k = 0; k < 3; k++) {
+        d1[k] = Q1[k] - P1[k];
+        d2[k] = Q2[k] - P2[k];
+        r[k] = P1[k] - P2[k];
+    }
+    double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2), c = dot3(d1, r), f = dot3(d2, r);
+    double den = a * e - b * b;
+    double s = den > 1e-12 * a * e ? clamp01((b * f - c * e) / den) : 0.0;
+    double t = (b * s + f) / (e > tiny ? e : tiny);
+    double ac = a > tiny ? a : tiny;
+    if (t < 0.0) s = clamp01(-c / ac);
+    else if (t > 1.0) s = clamp01((b - c) / ac);
+    t = clamp01(t);
+    if (e <= tiny) {
+        s = clamp01(-c / ac);
+        t = 0.0;
+    }
+    for (int k = 0; k < 3; k++) w[k] = r[k] + d1[k] * s - d2[k] * t;
+    st[0] = s, st[1] = t;
+    return dot3(w, w);
+}
+
+/* The contact energy of k pairs, rows[4 i .. 4 i + 3] indices into V (float64, (vertices, 3)): a vertex and a
+ * face's corners (kind 0) or two edges' ends (kind 1). A pair whose squared distance d2 is below dh^2 adds
+ * incremental potential contact's barrier b(d) = -(d - dh)^2 log(d / dh), d = sqrt(max(d2, tiny)) (`tiny`:
+ * the smallest positive number of the caller's dtype, as meshmei.contact clamps it), to energy[item[i]] and
+ * counts one in count[item[i]]; with `grad` (else NULL), its gradient in the corners is added there (zero for
+ * d2 below tiny, as the clamp's): b'(d) (X - Y) / d at the closest points X, Y of the two sides, spread on the
+ * corners by the closest points' weights (Danskin's theorem). Coordinates must be finite (the caller checks). */
+void contact_energy(int64_t k, const double *V, const int64_t *rows, int kind, double dh, double tiny,
+                    const int64_t *item, double *energy, int64_t *count, double *grad) {
+    for (int64_t i = 0; i < k; i++) {
+        const int64_t *r = rows + 4 * i;
+        const double *X[4] = {V + 3 * r[0], V + 3 * r[1], V + 3 * r[2], V + 3 * r[3]};
+        double wgt[4], d2;
+        if (kind == 0) {
+            d2 = point_triangle_weights(X[0], X[1], X[2], X[3], wgt + 1);
+            wgt[0] = -1.0;
+        } else {
+            double st[2];
+            d2 = segment_params(X[0], X[1], X[2], X[3], st);
+            wgt[0] = -(1.0 - st[0]), wgt[1] = -st[0], wgt[2] = 1.0 - st[1], wgt[3] = st[1];
+        }
+        if (!(d2 < dh * dh)) continue;
+        double d = sqrt(d2 > tiny ? d2 : tiny), gap = d - dh, lg = log(d / dh);
+        energy[item[i]] += -gap * gap * lg;
+        count[item[i]] += 1;
+        if (grad == NULL || !(d2 > tiny)) continue;
+        /* the difference of the two sides' closest points: sum of -wgt * corner (first side's weights -1 or
+         * -(1 - s), -s; the other's positive), and the barrier's slope over d */
+        double diff[3] = {0.0, 0.0, 0.0};
+        for (int c = 0; c < 4; c++)
+            for (int a = 0; a < 3; a++) diff[a] -= wgt[c] * X[c][a];
+        double slope = (-2.0 * gap * lg - gap * gap / d) / d;
+        for (int c = 0; c < 4; c++) {
+            double *gc = grad + 3 * r[c];
+            for (int a = 0; a < 3; a++) gc[a] -= slope * wgt[c] * diff[a];
+        }
     }
 }
 

@@ -1,12 +1,14 @@
 /* The step guard's per-candidate check (meshmei.validity.StepGuard), compiled: the float64 face frame with
  * the quality and turn rules. It repeats meshmei.validity.face_frame in float64 operation by operation, in
- * the torch code's order, so its normals and qualities are the torch code's bit for bit (tested). */
+ * the torch code's order, so its normals and qualities are the torch code's bit for bit (tested). And the
+ * guard's barrier with its gradient (guard_barrier), in float64, equal to the torch code to rounding. */
 
 #include <math.h>
 #include <stdint.h>
 #include <float.h>
+#include <stddef.h>
 
-int meshmei_guard_abi(void) { return 1; }
+int meshmei_guard_abi(void) { return 2; }
 
 /* The step guard's face frame (meshmei.validity.face_frame in float64) runs in two passes with torch's
  * square root between them: torch's CPU square root of float64 is not correctly rounded (about one value in
@@ -89,4 +91,96 @@ void guard_frame_finish(int64_t m, const double *C, const double *RS, const doub
     }
     stats[0] = qmin;
     stats[1] = turned;
+}
+
+/* incremental potential contact's barrier b(x) = -(x - h)^2 log(x / h) for x < h (x raised to `tiny`, the
+ * caller's dtype's smallest normal number, as meshmei.contact.log_barrier clamps it), else 0; its slope into
+ * *slope (0 where x was raised) */
+static double barrier_slope(double x, double h, double tiny, double *slope) {
+    if (!(x < h)) {
+        *slope = 0.0;
+        return 0.0;
+    }
+    double xc = x > tiny ? x : tiny, gap = xc - h, lg = log(xc / h);
+    *slope = x > tiny ? -2.0 * gap * lg - gap * gap / xc : 0.0;
+    return -gap * gap * lg;
+}
+
+/* The step guard's barrier (meshmei.validity.StepGuard.barrier) of B meshes V (B, n, 3) over the faces F
+ * (m, 3), in float64, with its gradient in the same pass: per face, b(q - floor; q_band) on its quality
+ * q = qconst |c| / l2 (c the cross product, l2 the summed squared edge lengths; q_band <= 0: none), and with
+ * reference normals R (m, 3) (NULL: no turn energy), b(cos - cos_bound; band) on the cosine of its normal
+ * c / max(|c|, eps l2) to its reference (band <= 0: none; turn_faces, NULL for every face, picks the faces
+ * that have it). The energies go to energy[B]; with `grad` (else NULL) their gradients are added to grad
+ * (B, n, 3). Returns -1 where a coordinate is not finite, 1 where a face inside a band has a squared cross
+ * product outside float64's normal range (meshmei.operators.safe_norm's scaled path: the caller runs the
+ * torch code), else 0. */
+int guard_barrier(int64_t B, int64_t n, int64_t m, const double *V, const int64_t *F, const double *R,
+                  const uint8_t *turn_faces, double floor_q, double q_band, double cos_bound, double band, double eps,
+                  double qconst, double tiny, double *energy, double *grad) {
+    for (int64_t i = 0; i < 3 * n * B; i++)
+        if (!isfinite(V[i])) return -1;
+    for (int64_t it = 0; it < B; it++) {
+        const double *X = V + 3 * n * it;
+        double *G = grad ? grad + 3 * n * it : NULL, e = 0.0;
+        for (int64_t f = 0; f < m; f++) {
+            const int64_t *t = F + 3 * f;
+            const double *T0 = X + 3 * t[0], *T1 = X + 3 * t[1], *T2 = X + 3 * t[2];
+            double a[3], b[3], e0[3], e1[3], c[3];
+            for (int k = 0; k < 3; k++)
+                a[k] = T1[k] - T0[k], b[k] = T2[k] - T0[k], e0[k] = T2[k] - T1[k], e1[k] = T0[k] - T2[k];
+            c[0] = a[1] * b[2] - a[2] * b[1];
+            c[1] = a[2] * b[0] - a[0] * b[2];
+            c[2] = a[0] * b[1] - a[1] * b[0];
+            double sq = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+            double l2 = (e0[0] * e0[0] + e0[1] * e0[1] + e0[2] * e0[2]) + (e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+                        + (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+            double dbl = sq > 0.0 ? sqrt(sq > DBL_MIN ? sq : DBL_MIN) : 0.0, L = l2 > DBL_MIN ? l2 : DBL_MIN;
+            double q = qconst * dbl / L, sq_, sl_q = 0.0, sl_t = 0.0, cs = 0.0, den = 0.0;
+            int inside = 0;
+            if (q_band > 0.0 && q - floor_q < q_band) {
+                e += barrier_slope(q - floor_q, q_band, tiny, &sq_);
+                sl_q = sq_, inside = 1;
+            }
+            int turn = R && band > 0.0 && (!turn_faces || turn_faces[f]);
+            if (turn) {
+                const double *r = R + 3 * f;
+                den = dbl > eps * l2 ? dbl : eps * l2;
+                cs = den > 0.0 ? (c[0] * r[0] + c[1] * r[1] + c[2] * r[2]) / den : 0.0;
+                if (cs - cos_bound < band) {
+                    e += barrier_slope(cs - cos_bound, band, tiny, &sq_);
+                    sl_t = sq_, inside = 1;
+                }
+            }
+            if (!inside) continue;
+            if ((sq < DBL_MIN || sq > DBL_MAX) && (c[0] != 0.0 || c[1] != 0.0 || c[2] != 0.0)) return 1;
+            if (G == NULL || (sl_q == 0.0 && sl_t == 0.0)) continue;
+            /* the energy's derivatives in c (gc) and in l2 (gl) */
+            double gc[3] = {0.0, 0.0, 0.0}, gl = 0.0;
+            if (sl_q != 0.0 && dbl > 0.0 && sq > DBL_MIN) {
+                for (int k = 0; k < 3; k++) gc[k] += sl_q * qconst * c[k] / (dbl * L);
+                if (l2 > DBL_MIN) gl -= sl_q * q / L;
+            }
+            if (sl_t != 0.0 && den > 0.0) {
+                const double *r = R + 3 * f;
+                if (dbl > eps * l2) { /* c / |c| */
+                    for (int k = 0; k < 3; k++) gc[k] += sl_t * (r[k] - cs * c[k] / dbl) / dbl;
+                } else { /* c / (eps l2) */
+                    for (int k = 0; k < 3; k++) gc[k] += sl_t * r[k] / den;
+                    gl -= sl_t * cs / l2;
+                }
+            }
+            /* c = a x b: d(gc . c)/da = b x gc, /db = gc x a; l2's: 2 (e1 - a), 2 (a - e0), 2 (e0 - e1) */
+            double ga[3] = {b[1] * gc[2] - b[2] * gc[1], b[2] * gc[0] - b[0] * gc[2], b[0] * gc[1] - b[1] * gc[0]};
+            double gb[3] = {gc[1] * a[2] - gc[2] * a[1], gc[2] * a[0] - gc[0] * a[2], gc[0] * a[1] - gc[1] * a[0]};
+            double *G0 = G + 3 * t[0], *G1 = G + 3 * t[1], *G2 = G + 3 * t[2];
+            for (int k = 0; k < 3; k++) {
+                G0[k] += -ga[k] - gb[k] + 2.0 * gl * (e1[k] - a[k]);
+                G1[k] += ga[k] + 2.0 * gl * (a[k] - e0[k]);
+                G2[k] += gb[k] + 2.0 * gl * (e0[k] - e1[k]);
+            }
+        }
+        energy[it] = e;
+    }
+    return 0;
 }

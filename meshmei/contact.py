@@ -34,22 +34,26 @@ bound (the distance to the half-plane beyond the face's farthest edge), O(n log 
 decide. The compiled search keeps its own pairs and float64 distances: every pair the torch distance puts
 within ``reach``, in the same order (by face then vertex, by first then second edge), and others only within
 the slack, with distances equal to rounding (tested on hard meshes). The cached pairs are handed out with a
-relative slack of :data:`_SLACK` over ``distance`` on either kind of distance, and the torch distances of
-the energy decide which pairs count, so the energy and its gradient are the same bit for bit either way
-(tested over runs of steps; a 3D-MEI and the default reconstruction end bit for bit as before). A 3D-MEI
-search of a 400-vertex sphere with edge pairs took 19-20 ms with the NumPy broad phase and 3.7 ms with the
-compiled one, 1.3 ms of it in C (the rest the torch distances and sorting); without the torch pass, the
-searches of a 150-step sphere 3D-MEI cost 0.61-0.63 ms a step instead of 0.89-0.92 (wrapped timers).
+relative slack of :data:`_SLACK` over ``distance`` on either kind of distance.
 
 Between searches a step hands out only the cached pairs that may have come within ``distance`` (a pair's
-distance shrinks at most by how far its vertices moved since the search); of those, the compiled float64
-distances (with a slack far above rounding) pick the ones that may lie within ``distance``, and only these
-are measured in torch with a gradient, whose distances decide, so the energy is the torch code's bit for
-bit: O(n) with a small constant. A larger ``margin`` would search less often, but beyond ``distance / 2`` (with
-``distance`` a third of an edge) the candidates reach the faces one ring away: at ``margin = distance``
-a search of the 10k bunny keeps 103,000 pairs instead of 3,600 and costs 2.4 times as much, for 40 % fewer
-searches. Reconstruction starts each step's search in a worker thread (:meth:`ContactBarrier.prefetch`)
-before its sampled Chamfer term: on two cores the 10k bunny's default run took 3 to 14 % less time (162.0 s
+distance shrinks at most by how far its vertices moved since the search). The energy of those is compiled
+too (``contact_energy`` in ``_contact.c``, :func:`_compiled_contact`): each pair measured once in float64,
+its barrier and its gradient on the four corners written in the same pass, which the backward only scales:
+O(pairs handed out). It replaced a pass of about sixty small torch operations and their backward: a 150-step
+sphere 3D-MEI spent 3.8-3.9 ms a step in the energy's forward and 0.9-1.0 in the search and handout, then
+1.0 in both (the search prefetched), and its backward lost about 1.3 ms (wrapped timers). Measured in float64
+whatever the vertices' dtype, it is also the more accurate: on float32 meshes 1,000 units from the origin
+the torch code's float32 gradients were off by more than their size, the compiled ones by 2e-8 (tests
+against the float64 torch code on the same coordinates). Where the kernels are not built, for a non-finite
+coordinate, and within :func:`~meshmei.native.torch_reference`, torch measures the pairs (without a graph,
+then those within ``distance`` with one).
+
+A larger ``margin`` would search less often, but beyond ``distance / 2`` (with ``distance`` a third of an
+edge) the candidates reach the faces one ring away: at ``margin = distance`` a search of the 10k bunny keeps
+103,000 pairs instead of 3,600 and costs 2.4 times as much, for 40 % fewer searches. The 3D-MEI starts each
+step's search in a worker thread (:meth:`ContactBarrier.prefetch`) before its render, reconstruction before
+its sampled Chamfer term: on two cores the 10k bunny's default run took 3 to 14 % less time (162.0 s
 for 167.1 s, and 143.9 s for 168.2 s, in two A/B pairs), the 2.5k run the same (96.6 s and 96.8 s, means of
 two runs each), with the same result bit for bit. The two overlap only where the Chamfer term's KD-tree
 queries let go of the GIL, which scipy's do with two or more query threads, not with one
@@ -70,7 +74,7 @@ from scipy.spatial import cKDTree
 from torch.autograd.function import once_differentiable
 
 from . import native
-from ._checks import check_positive
+from ._checks import all_finite, check_positive
 from .errors import MeshError
 from .mesh import as_faces, check_mesh
 from .operators import edges as mesh_edges
@@ -324,7 +328,7 @@ def pair_distance_bounds(V: np.ndarray, F: np.ndarray, vt: np.ndarray, ft: np.nd
                          ea: np.ndarray, eb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower bounds on the distances of (vertex, face) pairs ``(vt, ft)`` and (edge, edge) pairs ``(ea, eb)``
     of ``V`` (float64 arrays; the faces ``F`` and edges ``E``), as :class:`meshmei.certify.SeparationCertificate`
-    and the contact energy's prefilter need them: the exact distances to rounding, and 0 for two edges within
+    needs them: the exact distances to rounding, and 0 for two edges within
     1e-4 radians of parallel, whose clamped closest points may miss the true ones (by the overlap times the
     angle). Compiled where the kernels are built, else in torch."""
     V = np.ascontiguousarray(V, dtype=np.float64)
@@ -670,10 +674,12 @@ class ContactBarrier:
 
 def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     """The contact energies ``(B,)`` of a batch of meshes ``V (B, n, 3)``, one :class:`ContactBarrier` per
-    item (the same faces, ``distance`` and ``edges``): each item's candidates as its barrier keeps them;
-    the pairs that may lie within ``distance`` are picked for all items at once (:func:`_maybe_near`: compiled
-    float64 distances with a slack), and only those are measured with a gradient in torch, whose distances
-    decide (usually far fewer than the candidates). Sets each barrier's ``active``."""
+    item (the same faces, ``distance`` and ``edges``): each item's candidates as its barrier keeps them, the
+    pairs among them within ``distance`` counted. Compiled where the kernels take ``V`` (CPU, finite
+    coordinates): ``_contact.c`` measures every candidate in float64 and writes the energy and its gradient in
+    one pass (:func:`_compiled_contact`); else (and within :func:`~meshmei.native.torch_reference`) torch
+    measures them, then those within ``distance`` again with a gradient (:func:`_torch_contact`).
+    The two agree to rounding (float64 against ``V``'s dtype). Sets each barrier's ``active``."""
     B, n = V.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
@@ -684,46 +690,56 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
                                          (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
         parts = [(x[first], x[second]) for x in found]
         item = torch.cat([torch.full((len(a),), b, dtype=torch.long, device=V.device) for b, (a, _) in enumerate(parts)])
-        if not len(item):
-            continue
-        rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
-        near = _maybe_near(Vf.detach(), rows, dist, dh)  # most steps of a smooth mesh have no pair within reach
-        if bool(near.any()):
-            kinds.append((rows[near], item[near], dist))
+        if len(item):
+            rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
+            kinds.append((rows, item, dist))
+    if kinds and native.available(V) and all_finite(Vf):
+        pairs = [(0 if dist is point_triangle_sqdist else 1, rows, item) for rows, item, dist in kinds]
+        total, counts = _compiled_contact(V, pairs, dh)
+    else:
+        total, counts = _torch_contact(V, Vf, kinds, dh)
+    for cb, k in zip(barriers, counts.tolist()):
+        cb.active = int(k)
+    return total
+
+
+def _torch_contact(V, Vf, kinds, dh):
+    """:func:`contact_energies`' torch code: the energies ``(B,)`` and the counts of pairs within ``dh``. The
+    pairs within ``dh`` are picked without a graph (most steps of a smooth mesh have none), and only those are
+    measured again with one."""
+    B, n = V.shape[:2]
     counts = torch.zeros(B, dtype=torch.long)
     total = V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient, where no pair is near
     for rows, item, dist in kinds:
-        # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
-        d2 = dist(*(Vf.index_select(0, rows[:, k]) for k in range(4)))
-        close = d2.detach() < dh * dh
-        if not bool(close.any()):
+        with torch.no_grad():
+            near = dist(*(Vf[rows[:, k]] for k in range(4))) < dh * dh
+        if not bool(near.any()):
             continue
-        counts += torch.bincount(item[close].cpu(), minlength=B)
-        # the pairs beyond distance (kept by _maybe_near's slack) add zeros, value and gradient, to the sums
-        d = torch.where(close, d2, torch.inf).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
+        rows, item = rows[near], item[near]
+        counts += torch.bincount(item.cpu(), minlength=B)
+        # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
+        d = dist(*(Vf.index_select(0, rows[:, k]) for k in range(4))).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
         total = total.index_add(0, item, log_barrier(d, dh))
-    for cb, k in zip(barriers, counts.tolist()):
-        cb.active = int(k)
-    return total / n
+    return total / n, counts
 
 
-def _maybe_near(Vf: torch.Tensor, rows: torch.Tensor, dist, dh: float) -> torch.Tensor:
-    """Which pairs ``rows`` (corner indices ``(k, 4)`` into ``Vf``: a vertex and a face's corners, or two
-    edges' ends) may lie within ``dh``: a superset of those whose ``dist`` (in ``Vf``'s dtype) is below
-    ``dh^2``. Compiled where the kernels take ``Vf``: the float64 distances of ``_contact.c`` by
-    :func:`pair_distance_bounds` (0 for two near-parallel edges), kept below ``dh`` plus a slack far above the
-    torch code's rounding (``1e-3 dh`` and 1,024 units in the last place of the largest coordinate); else the
-    torch distances themselves."""
-    scale = float(Vf.abs().max()) if native.available(Vf) and len(rows) else math.nan  # NaN or inf: not finite
-    if math.isfinite(scale):
-        R, k, none = rows.numpy(), len(rows), np.zeros(0, dtype=np.int64)
-        if dist is point_triangle_sqdist:  # row k: vertex R[k, 0] and the face R[k, 1:]
-            out, _ = pair_distance_bounds(Vf.numpy(), R[:, 1:], R[:, 0], np.arange(k), none.reshape(0, 2), none, none)
-        else:  # row k: the edges R[k, :2] and R[k, 2:], edges 2 k and 2 k + 1 of R as a list of edges
-            ends = np.arange(2 * k)
-            _, out = pair_distance_bounds(Vf.numpy(), none.reshape(0, 3), none, none, R.reshape(-1, 2), ends[0::2],
-                                          ends[1::2])
-        slack = 1e-3 * dh + 1024.0 * torch.finfo(Vf.dtype).eps * scale
-        return torch.from_numpy(out < dh + slack)
-    with torch.no_grad():
-        return dist(*(Vf[rows[:, k]] for k in range(4))) < dh * dh
+def _compiled_contact(V, pairs, dh):
+    """:func:`contact_energies` by ``_contact.c``'s ``contact_energy``: the energies ``(B,)`` of ``V (B, n,
+    3)`` and the counts of pairs within ``dh``. ``pairs``: ``(kind, rows, item)`` per kind, 0 for vertex-face
+    pairs and 1 for edge pairs, ``rows (k, 4)`` their corners' indices into ``V.reshape(-1, 3)``, ``item
+    (k,)`` their items. Every pair handed out is measured in float64, and its gradient written in the same
+    pass (:func:`~meshmei.native.with_gradient`: the backward only scales it)."""
+    B, n = V.shape[:2]
+    Vd = np.ascontiguousarray(V.detach().reshape(-1, 3).numpy(), dtype=np.float64)
+    energy, counts = np.zeros(B), np.zeros(B, dtype=np.int64)
+    want_grad = torch.is_grad_enabled() and V.requires_grad
+    grad = np.zeros_like(Vd) if want_grad else None
+    tiny, lib = torch.finfo(V.dtype).tiny, native.library()
+    for kind, rows, item in pairs:
+        rows, item = (np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in (rows, item))
+        lib.contact_energy(len(rows), Vd.ctypes.data, rows.ctypes.data, kind, dh, tiny, item.ctypes.data,
+                           energy.ctypes.data, counts.ctypes.data, None if grad is None else grad.ctypes.data)
+    value = torch.from_numpy(energy / n).to(V.dtype)
+    if want_grad:
+        value = native.with_gradient(V, value, torch.from_numpy(grad / n).to(V.dtype).reshape(V.shape))
+    return value, torch.from_numpy(counts)

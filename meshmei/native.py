@@ -2,10 +2,10 @@
 (and NumPy) code as their reference and fallback.
 
 - ``render/_raster.c``: the renderer's CPU kernels (:mod:`meshmei.render.native`);
-- ``_contact.c``: the contact barrier's broad phase (:class:`meshmei.contact.ContactBarrier`) and the
-  certificates' rules (:mod:`meshmei.certify`);
-- ``_guard.c``: the step guard's float64 face frame with its quality and turn rules
-  (:class:`meshmei.validity.StepGuard`).
+- ``_contact.c``: the contact barrier's broad phase and its energy with the gradient
+  (:class:`meshmei.contact.ContactBarrier`) and the certificates' rules (:mod:`meshmei.certify`);
+- ``_guard.c``: the step guard's float64 face frame with its quality and turn rules, and its barrier with
+  the gradient (:class:`meshmei.validity.StepGuard`).
 
 They are compiled once per source version with the system's C compiler (``$CC``, else ``cc``, ``gcc`` or
 ``clang``) into the cache directory (``$MESHMEI_CACHE_DIR``, else ``$XDG_CACHE_HOME/meshmei`` or
@@ -32,13 +32,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
+from torch.autograd.function import once_differentiable
 
-__all__ = ["native_status", "torch_reference", "available", "enabled", "library"]
+__all__ = ["native_status", "torch_reference", "available", "enabled", "library", "with_gradient"]
 
 _HERE = Path(__file__).parent
 # each file's ABI version, which its ``meshmei_<name>_abi()`` returns
-_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 4),
-            "guard": (_HERE / "_guard.c", 1)}
+_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 5),
+            "guard": (_HERE / "_guard.c", 2)}
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
 
 _i64, _p, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
@@ -57,13 +58,16 @@ _SIGNATURES = {
     "contact_edge_edge": [_i64, _p, _i64, _p, _p, _dbl, _i64, _p, _p, _p],
     "contact_vertex_face_distances": [_p, _p, _i64, _p, _p, _p],
     "contact_edge_edge_distances": [_p, _p, _i64, _p, _p, _p],
+    "contact_energy": [_i64, _p, _p, ctypes.c_int, _dbl, _dbl, _p, _p, _p, _p],
     "separation_fans": [_i64, _p, _i64, _p, _p, _p, _p],
     "guard_frame_parts": [_i64, _i64, _p, _p, ctypes.c_int, _p, _p, _p],
     "guard_frame_finish": [_i64, _p, _p, _p, _dbl, _dbl, _p, _dbl, _p, _p, _p, _p],
+    "guard_barrier": [_i64, _i64, _i64, _p, _p, _p, _p, _dbl, _dbl, _dbl, _dbl, _dbl, _dbl, _dbl, _p, _p],
     "graph_holds": [_i64, _p, _i64, _p, _p, _p, _p, _p, _p, _i64, _p, _p, _p, _p, _dbl, _dbl, _p],
     "star_holds": [_i64, _p, _i64, _p, _p, _p, _dbl, _p],
 }
 _RETURNS = {"contact_vertex_face": _i64, "contact_edge_edge": _i64, "guard_frame_parts": ctypes.c_int,
+            "guard_barrier": ctypes.c_int,
             "graph_holds": ctypes.c_int, "star_holds": ctypes.c_int}
 
 _lock = threading.Lock()
@@ -144,7 +148,7 @@ def library():
                 except (OSError, RuntimeError, subprocess.SubprocessError) as e:
                     _state["reason"] = f"{type(e).__name__}: {e}"
                     warnings.warn(f"meshmei: the compiled kernels are not available ({_state['reason']}); the "
-                                  "torch and NumPy code runs instead (the same results, slower on CPU)",
+                                  "torch and NumPy code runs instead (results equal to rounding, slower on CPU)",
                                   RuntimeWarning, stacklevel=3)
             _state["tried"] = True
     return _state["lib"]
@@ -152,7 +156,7 @@ def library():
 
 def native_status() -> dict:
     """``{"compiled": bool, "reason": str | None}``: whether the compiled kernels are in use (CPU renders,
-    the contact barrier's search, the step guard's check), and why not."""
+    the contact barrier's search and energy, the step guard's check and barrier), and why not."""
     lib = library()
     return {"compiled": lib is not None, "reason": _state["reason"]}
 
@@ -160,8 +164,8 @@ def native_status() -> dict:
 @contextmanager
 def torch_reference():
     """Within this block (in this thread) the compiled kernels are not used: renders run the torch code
-    throughout, the contact barrier searches with its NumPy and SciPy code, the step guard checks with its torch
-    and NumPy code. The reference the kernels are
+    throughout, the contact barrier searches with its NumPy and SciPy code and measures in torch, the step
+    guard checks with its torch and NumPy code and its barrier is torch's. The reference the kernels are
     tested against, and what CUDA tensors always run. A render's backward follows its forward; a contact
     search started here in a worker thread (:meth:`~meshmei.contact.ContactBarrier.prefetch`) follows the
     thread that started it."""
@@ -181,3 +185,23 @@ def enabled() -> bool:
 def available(t: torch.Tensor) -> bool:
     """Whether the compiled kernels take this tensor's device and dtype here and now."""
     return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and enabled()
+
+
+class _WithGradient(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, V, value, G):
+        ctx.save_for_backward(G)
+        return value.clone()
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        (G,) = ctx.saved_tensors
+        return g.reshape(g.shape + (1,) * (G.ndim - g.ndim)) * G, None, None
+
+
+def with_gradient(V: torch.Tensor, value: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """``value`` (``(B,)``, one per item of ``V (B, ...)``) with a graph to ``V`` whose gradient is ``G``
+    (``V``'s shape) per unit of each item's value: what a kernel that writes a function and its gradient in
+    one pass hands to autograd (the contact energy, the guard's barrier). The backward only scales ``G``."""
+    return _WithGradient.apply(V, value, G)

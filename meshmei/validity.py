@@ -119,6 +119,38 @@ def _compiled_frame(Vd: torch.Tensor, F: torch.Tensor, normals, cos_limit: float
     return None if fused is None else _kernel_frame(Vd, F, fused, normals, cos_limit, turn_faces)
 
 
+def _compiled_barrier(guard, V: torch.Tensor, q_band: float, band: float):
+    """:meth:`StepGuard.barrier` of ``V`` ((n, 3) or (B, n, 3)) by ``_guard.c``'s ``guard_barrier`` (``band``
+    0: no turn energy): the energy in float64 with its gradient from the same pass, which the backward only
+    scales (:func:`~meshmei.native.with_gradient`); or None where the kernel does not apply (not built,
+    within :func:`~meshmei.native.torch_reference`, not a CPU float tensor) or leaves the energy to the torch
+    code (a non-finite coordinate, a face in a band whose squared cross product leaves float64's normal
+    range)."""
+    if not native.available(V):
+        return None
+    X = V if V.ndim == 3 else V[None]
+    B, n = X.shape[:2]
+    Xd = np.ascontiguousarray(X.detach().numpy(), dtype=np.float64)
+    energy = np.zeros(B)
+    want_grad = torch.is_grad_enabled() and X.requires_grad
+    grad = np.zeros_like(Xd) if want_grad else None
+    turn = band > 0.0
+    R = guard.normals if turn else None  # float64, contiguous
+    T = guard.turn_faces if turn else None
+    T = None if T is None else np.ascontiguousarray(T.numpy(), dtype=np.uint8)
+    rc = native.library().guard_barrier(
+        B, n, guard.F.shape[0], Xd.ctypes.data, guard.F.data_ptr(), None if R is None else R.data_ptr(),
+        None if T is None else T.ctypes.data, guard.quality_floor, q_band, guard.cos_bound, band,
+        resolve_eps(None, V.dtype), 2.0 * math.sqrt(3.0), float(torch.finfo(V.dtype).tiny), energy.ctypes.data,
+        None if grad is None else grad.ctypes.data)
+    if rc != 0:
+        return None
+    value = torch.from_numpy(energy).to(V.dtype)
+    if want_grad:
+        value = native.with_gradient(X, value, torch.from_numpy(grad).to(V.dtype))
+    return value if V.ndim == 3 else value[0]
+
+
 @dataclass(frozen=True)
 class ValidityRules:
     """What an accepted mesh must meet.
@@ -397,6 +429,11 @@ class StepGuard:
         five refused and stalled (docs/benchmarks.md, *Valid steps*). The sum runs over faces, so a single
         face at its bound is felt whatever the mesh size. A batch ``V (B, n, 3)`` (meshes of this guard's
         start) gives the ``(B,)`` energies.
+
+        On CPU, where the kernels are built, one pass of ``_guard.c`` over every face gives the energy in
+        float64 and its gradient (:func:`_compiled_barrier`; equal to the torch code to rounding, tested):
+        forward and backward of a crumpled 740-face sheet in float32 0.34 ms against the torch code's 1.8 ms.
+        Elsewhere the torch code screens the faces without a graph and builds one over those inside a band.
         """
         if V.ndim not in (2, 3) or V.shape[-2:] != (self.n_vertices, 3):
             raise MeshError(f"the barrier's vertices must have shape ({self.n_vertices}, 3) or (B, "
@@ -406,6 +443,9 @@ class StepGuard:
         if turn:
             T = math.radians(self.rules.max_turn_degrees)
             band = math.cos(max(T - math.radians(turn_band_degrees), 0.0)) - self.cos_bound
+        compiled = _compiled_barrier(self, V, q_band, band if turn else 0.0)
+        if compiled is not None:
+            return compiled
         # Most faces of most iterates lie outside both bands, where the energy is exactly zero with zero
         # slope: find the faces inside (the same comparisons as log_barrier's) without a graph, then build
         # the graph over those alone (a batch: faces inside for some item).

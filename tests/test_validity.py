@@ -382,10 +382,14 @@ def test_under_turn_from_step_a_sound_face_squeezed_thin_still_may_not_turn_over
     assert not guard.accept(V2) and guard.reasons["turn"] == 1
 
 
-def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_faces(ball):
-    """The barrier builds its graph over the faces inside a band only; value and gradient must be those of
-    the sum over every face (alone and in a batch)."""
+@pytest.mark.parametrize("reference", [False, True])
+def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_faces(ball, reference):
+    """The barrier (the torch code's graph over the faces inside a band only, or the compiled kernel's pass)
+    has the value and gradient of the sum over every face (alone and in a batch)."""
+    import contextlib
     import math
+
+    from meshmei.native import torch_reference
 
     from meshmei.contact import log_barrier
     from meshmei.validity import face_frame
@@ -402,21 +406,111 @@ def test_the_guard_barrier_over_the_faces_near_a_bound_equals_the_sum_over_all_f
     gen = torch.Generator().manual_seed(0)
     batch = torch.stack([V + s * torch.randn(V.shape, generator=gen, dtype=V.dtype) for s in (0.0, 0.01, 0.04, 0.08)])
     nonzero = 0
-    for W in [*batch, batch]:
-        W = W.clone().requires_grad_(True)
-        mine, = torch.autograd.grad(guard.barrier(W).sum(), W)
-        ref, = torch.autograd.grad(every_face(W).sum(), W)
-        # the same terms, summed in another order: equal to rounding
-        assert torch.allclose(guard.barrier(W), every_face(W), rtol=1e-12, atol=0)
-        assert torch.allclose(mine, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()))
-        nonzero += int((guard.barrier(W) > 0).sum())
-    assert nonzero >= 2 and float(guard.barrier(batch)[0]) == 0.0  # both sides of the bands are reached
+    with torch_reference() if reference else contextlib.nullcontext():
+        for W in [*batch, batch]:
+            W = W.clone().requires_grad_(True)
+            mine, = torch.autograd.grad(guard.barrier(W).sum(), W)
+            ref, = torch.autograd.grad(every_face(W).sum(), W)
+            # the same terms, summed in another order: equal to rounding
+            assert torch.allclose(guard.barrier(W), every_face(W), rtol=1e-12, atol=0)
+            assert torch.allclose(mine, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()))
+            nonzero += int((guard.barrier(W) > 0).sum())
+        assert nonzero >= 2 and float(guard.barrier(batch)[0]) == 0.0  # both sides of the bands are reached
+
+
+def _guard_barrier_runs(guard, W, reference):
+    """(value, gradient) of ``guard.barrier`` at ``W``, within torch_reference or not."""
+    import contextlib
+
+    from meshmei.native import torch_reference
+
+    X = W.clone().requires_grad_(True)
+    with torch_reference() if reference else contextlib.nullcontext():
+        e = guard.barrier(X)
+        e.backward()
+    return e.detach(), X.grad
+
+
+@pytest.mark.parametrize("kind", ["sheet", "sphere", "torus"])
+def test_the_compiled_guard_barrier_is_the_float64_barrier_of_the_same_coordinates(kind):
+    """The compiled barrier works in float64 whatever the vertices' dtype: in float64 it is the torch code's
+    to rounding; in float32 its gradient is that of the torch code in float64 on the same (float32)
+    coordinates to float32's rounding of the result, nearer than the torch code in float32 comes. Crumpled
+    meshes whose faces lie in both bands and beyond the bounds (where the value is the dtype's clamp's and
+    the slope zero, in both)."""
+    from meshmei.contact import mean_edge_length
+    from meshmei.native import native_status
+
+    if not native_status()["compiled"]:
+        pytest.skip("no compiled kernels on this machine")
+    V0, F = initial_mesh(kind, n_vertices=400, dtype=torch.float64)
+    guard = StepGuard(V0, F)
+    W = V0 + 0.4 * mean_edge_length(V0, F) * torch.randn(V0.shape, generator=torch.Generator().manual_seed(0),
+                                                          dtype=V0.dtype)
+    e, g = _guard_barrier_runs(guard, W, reference=False)
+    e64, g64 = _guard_barrier_runs(guard, W, reference=True)
+    assert float(e64) > 0 and float(g64.norm()) > 0
+    torch.testing.assert_close(e, e64, rtol=1e-14, atol=0)
+    assert float((g - g64).norm() / g64.norm()) < 1e-12
+    W32 = W.float()
+    e, g = _guard_barrier_runs(guard, W32, reference=False)
+    e32, g32 = _guard_barrier_runs(guard, W32, reference=True)
+    _, g64 = _guard_barrier_runs(guard, W32.double(), reference=True)
+    assert e.dtype == g.dtype == torch.float32
+    torch.testing.assert_close(e, e32, rtol=1e-6, atol=0)  # float32's clamp for faces past a bound, in both
+    err, err32 = (float((x.double() - g64).norm() / g64.norm()) for x in (g, g32))
+    assert err < 1e-7 and err < err32
+
+
+def test_the_compiled_guard_barriers_gradient_is_its_derivative(ball):
+    """Central differences of the barrier (float64) on a batch of two meshes with faces in both bands:
+    torch's gradcheck. And a face so thin that its normal is its cross product over ``eps`` times its
+    squared edges (face_frame's floor, a quality of about 1e-13): the torch code's value and gradient, to
+    that face's rounding."""
+    V, F = ball
+    guard = StepGuard(V, F, ValidityRules(min_quality=0.02))
+    gen = torch.Generator().manual_seed(1)
+    t = math.radians(75.0)  # every face turned into the turn band, face 0 slid into the quality band
+    R = torch.tensor([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]], dtype=V.dtype)
+    a, b, c = F[0].tolist()
+    turned = V @ R.T
+    turned[a] = 0.02 * turned[a] + 0.98 * 0.5 * (turned[b] + turned[c])
+    X = torch.stack([turned, V @ R.T + 0.005 * torch.randn(V.shape, generator=gen, dtype=V.dtype)])
+    assert all(guard.why_not(x) is None for x in X)  # inside the bounds, where the barrier is smooth
+    X.requires_grad_(True)
+    assert bool((guard.barrier(X).detach() > 0).all())
+    assert torch.autograd.gradcheck(lambda Y: guard.barrier(Y), (X,), eps=1e-8, atol=1e-6, rtol=1e-5)
+    W = X[0].detach().clone()
+    a, b, c = F[0].tolist()
+    mid, e = 0.5 * (W[b] + W[c]), (W[c] - W[b]) / (W[c] - W[b]).norm()
+    side = (W[a] - mid) - ((W[a] - mid) @ e) * e  # toward a, across the edge b c: the face keeps its turn
+    W[a] = mid + 1e-14 * side / side.norm()
+    from meshmei.validity import face_frame
+    q = float(face_frame(W, F)[1][0])
+    assert 0 < q < 2 * math.sqrt(3) * 1.8e-12  # below face_frame's floor on the normal's length
+    (e, g), (e_ref, g_ref) = (_guard_barrier_runs(guard, W, r) for r in (False, True))
+    # its cross product is a difference of products 1e12 times larger: rounding leaves it a relative 1e-5
+    # (different in each code), and the face's turn energy with it
+    torch.testing.assert_close(e, e_ref, rtol=1e-3, atol=0)
+    assert float((g - g_ref).norm() / g_ref.norm()) < 1e-3
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_the_guard_barrier_of_a_non_finite_coordinate_is_the_torch_codes(ball, bad):
+    """A NaN or infinite coordinate: the compiled kernel declines, and the torch code gives its value (NaN)."""
+    V, F = ball
+    guard = StepGuard(V, F)
+    W = V.clone()
+    W[5, 1] = bad
+    (e, _), (e_ref, _) = (_guard_barrier_runs(guard, W, r) for r in (False, True))
+    assert bool(e.isnan()) and bool(e_ref.isnan())
 
 
 def test_the_guard_barrier_after_an_accepted_candidate_screens_with_its_frame_and_gives_the_same_energy(ball,
                                                                                                        monkeypatch):
-    """After accepting a float32 candidate, the barrier of those vertices screens its faces with the
-    accepted float64 frame (no second frame): value and gradient as a guard that never saw it computes."""
+    """After accepting a float32 candidate, the barrier of those vertices (the torch code, where the kernels
+    are not used) screens its faces with the accepted float64 frame (no second frame): value and gradient as
+    a guard that never saw it computes."""
     import meshmei.validity as validity
 
     V, F = ball
@@ -427,6 +521,7 @@ def test_the_guard_barrier_after_an_accepted_candidate_screens_with_its_frame_an
     calls = []
     frame = validity.face_frame
     monkeypatch.setattr(validity, "face_frame", lambda *a: calls.append(a[1].shape[0]) or frame(*a))
+    monkeypatch.setattr(validity.native, "available", lambda t: False)  # the torch code's screening
     Wg = W.clone().requires_grad_(True)
     mine = seen.barrier(Wg)
     g_mine, = torch.autograd.grad(mine, Wg)

@@ -54,21 +54,22 @@ MEI_MODES = {"off": dict(valid_steps=False), "guard alone": dict(barrier_weight=
 
 def mei_cost_split(steps: int = 60, rounds: int = 5) -> list:
     """Median ms per 3D-MEI step (simple cell, 64 px, 400 vertices) from the sphere and the sheet, for each
-    of :data:`MEI_MODES`, alternating; ratios to off; and the response and :data:`HEALTH_COLUMNS` after
-    ``steps`` steps (last round)."""
+    of :data:`MEI_MODES`, alternating (the order reversed every other round); the median over rounds of each
+    round's ratio to off (a paired ratio: this machine's load drifts between rounds far more than within
+    one), with its range; and the response and :data:`HEALTH_COLUMNS` after ``steps`` steps (last round)."""
     rows = []
     for init in ("sphere", "sheet"):
         times = {m: [] for m in MEI_MODES}
         last = {}
-        for _ in range(rounds):
-            for mode, kw in MEI_MODES.items():
+        for r in range(rounds):
+            for mode, kw in (list(MEI_MODES.items())[::-1] if r % 2 else MEI_MODES.items()):
                 res = optimize_mei(GaborSimpleCell(), 0, init, steps=steps, seeds=(0,), **kw)
                 times[mode].append(median(step_intervals(res.time_history, 5)))
                 last[mode] = res
-        off = median(times["off"])
         for mode in MEI_MODES:
-            t = median(times[mode])
-            rows.append([init, mode, f"{1000 * t:.1f}", f"{t / off:.2f}", f"{last[mode].activation:.3f}",
+            ratios = [t / o for t, o in zip(times[mode], times["off"])]
+            rows.append([init, mode, f"{1000 * median(times[mode]):.1f}",
+                         f"{median(ratios):.2f} ({min(ratios):.2f}-{max(ratios):.2f})", f"{last[mode].activation:.3f}",
                          *health_cells([last[mode].health()])])
             print(rows[-1], flush=True)
     return rows
@@ -83,7 +84,9 @@ def run_mei_cost(rounds: int = 9) -> Path:
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
         "",
         f"Simple cell, 64 px, 400-vertex start, 60 steps, seed 0; median ms per step over {rounds} alternated "
-        "rounds (wall time, including the halvings of refused steps); response = fraction of the bound "
+        "rounds (wall time, including the halvings of refused steps; the modes' order reversed every other "
+        "round); ratio to off = the median of each round's ratio (range over rounds in brackets: the load of "
+        "this machine drifts between rounds); response = fraction of the bound "
         "after 60 steps (last round), and the health of that result: " + HEALTH_LEGEND + ". "
         "The default is the guard with its barrier, plus the contact barrier "
         "from the sphere, not from the sheet (`meshmei.mei.DEFAULT_CONTACT_WEIGHT`); the guard's "

@@ -150,6 +150,8 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
 
     def objective(point):
         V = scene.vertices()
+        if contacts is not None:  # its candidate search (C and NumPy, without the GIL) runs beside the render
+            contacts[0].prefetch(V)
         scene.widen(point.fraction)
         f = scene.expected(encoder(scene.views(V, F), neuron)[:, 0])  # one view, or the robust quadrature
         loss, record = -f, {"response": float(f.detach())}
