@@ -24,7 +24,7 @@
 #include <stdlib.h>
 #include <float.h>
 
-int meshmei_contact_abi(void) { return 5; }
+int meshmei_contact_abi(void) { return 6; }
 
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -447,17 +447,26 @@ static double segment_params(const double *P1, const double *Q1, const double *P
     return dot3(w, w);
 }
 
-/* The contact energy of k pairs, rows[4 i .. 4 i + 3] indices into V (float64, (vertices, 3)): a vertex and a
- * face's corners (kind 0) or two edges' ends (kind 1). A pair whose squared distance d2 is below dh^2 adds
+/* The contact energy of k pairs of one mesh, the item-th of a batch (its vertices at V + 3 n item, float64,
+ * (n, 3) each): vertex a[i] and face b[i], the corners table[3 b[i] ..] (kind 0), or edge a[i] and edge b[i],
+ * the ends table[2 a[i] ..] and table[2 b[i] ..] (kind 1). A pair whose squared distance d2 is below dh^2 adds
  * incremental potential contact's barrier b(d) = -(d - dh)^2 log(d / dh), d = sqrt(max(d2, tiny)) (`tiny`:
- * the smallest positive number of the caller's dtype, as meshmei.contact clamps it), to energy[item[i]] and
- * counts one in count[item[i]]; with `grad` (else NULL), its gradient in the corners is added there (zero for
- * d2 below tiny, as the clamp's): b'(d) (X - Y) / d at the closest points X, Y of the two sides, spread on the
- * corners by the closest points' weights (Danskin's theorem). Coordinates must be finite (the caller checks). */
-void contact_energy(int64_t k, const double *V, const int64_t *rows, int kind, double dh, double tiny,
-                    const int64_t *item, double *energy, int64_t *count, double *grad) {
+ * the smallest positive number of the caller's dtype, as meshmei.contact clamps it), to energy[item] and
+ * counts one in count[item]; with `grad` (else NULL), its gradient in the corners is added there (the
+ * batch's, (B n, 3); zero for d2 below tiny, as the clamp's): b'(d) (X - Y) / d at the closest points X, Y
+ * of the two sides, spread on the corners by the closest points' weights (Danskin's theorem). Coordinates
+ * must be finite (the caller checks). */
+void contact_energy(int64_t k, const double *V, const int64_t *a, const int64_t *b, const int64_t *table, int kind,
+                    int64_t item, int64_t n, double dh, double tiny, double *energy, int64_t *count, double *grad) {
+    const int64_t base = n * item;
     for (int64_t i = 0; i < k; i++) {
-        const int64_t *r = rows + 4 * i;
+        int64_t r[4];
+        if (kind == 0) {
+            r[0] = a[i], r[1] = table[3 * b[i]], r[2] = table[3 * b[i] + 1], r[3] = table[3 * b[i] + 2];
+        } else {
+            r[0] = table[2 * a[i]], r[1] = table[2 * a[i] + 1], r[2] = table[2 * b[i]], r[3] = table[2 * b[i] + 1];
+        }
+        for (int c = 0; c < 4; c++) r[c] += base;
         const double *X[4] = {V + 3 * r[0], V + 3 * r[1], V + 3 * r[2], V + 3 * r[3]};
         double wgt[4], d2;
         if (kind == 0) {
@@ -470,8 +479,8 @@ void contact_energy(int64_t k, const double *V, const int64_t *rows, int kind, d
         }
         if (!(d2 < dh * dh)) continue;
         double d = sqrt(d2 > tiny ? d2 : tiny), gap = d - dh, lg = log(d / dh);
-        energy[item[i]] += -gap * gap * lg;
-        count[item[i]] += 1;
+        energy[item] += -gap * gap * lg;
+        count[item] += 1;
         if (grad == NULL || !(d2 > tiny)) continue;
         /* the difference of the two sides' closest points: sum of -wgt * corner (first side's weights -1 or
          * -(1 - s), -s; the other's positive), and the barrier's slope over d */

@@ -684,19 +684,19 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
     found = [cb.candidates(V[b]) for b, cb in enumerate(barriers)]
-    Vf = V.reshape(-1, 3)
-    kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
-    for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
-                                         (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
-        parts = [(x[first], x[second]) for x in found]
-        item = torch.cat([torch.full((len(a),), b, dtype=torch.long, device=V.device) for b, (a, _) in enumerate(parts)])
-        if len(item):
-            rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
-            kinds.append((rows, item, dist))
-    if kinds and native.available(V) and all_finite(Vf):
-        pairs = [(0 if dist is point_triangle_sqdist else 1, rows, item) for rows, item, dist in kinds]
-        total, counts = _compiled_contact(V, pairs, dh)
+    if native.available(V) and all_finite(V):
+        total, counts = _compiled_contact(V, barriers[0], found, kinds_used, dh)
     else:
+        Vf = V.reshape(-1, 3)
+        kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
+        for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
+                                             (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
+            parts = [(x[first], x[second]) for x in found]
+            item = torch.cat([torch.full((len(a),), b, dtype=torch.long, device=V.device)
+                              for b, (a, _) in enumerate(parts)])
+            if len(item):
+                rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
+                kinds.append((rows, item, dist))
         total, counts = _torch_contact(V, Vf, kinds, dh)
     for cb, k in zip(barriers, counts.tolist()):
         cb.active = int(k)
@@ -723,22 +723,26 @@ def _torch_contact(V, Vf, kinds, dh):
     return total / n, counts
 
 
-def _compiled_contact(V, pairs, dh):
+def _compiled_contact(V, barrier, found, kinds_used, dh):
     """:func:`contact_energies` by ``_contact.c``'s ``contact_energy``: the energies ``(B,)`` of ``V (B, n,
-    3)`` and the counts of pairs within ``dh``. ``pairs``: ``(kind, rows, item)`` per kind, 0 for vertex-face
-    pairs and 1 for edge pairs, ``rows (k, 4)`` their corners' indices into ``V.reshape(-1, 3)``, ``item
-    (k,)`` their items. Every pair handed out is measured in float64, and its gradient written in the same
-    pass (:func:`~meshmei.native.with_gradient`: the backward only scales it)."""
+    3)`` and the counts of pairs within ``dh``. ``found``: each item's candidates, ``(vt, ft, ea, eb)`` into
+    ``barrier``'s faces and edges; ``kinds_used``: 1 (vertex-face pairs) or 2 (and edge pairs). Every pair
+    handed out is measured in float64, item by item, vertex-face pairs first, and its gradient written in the
+    same pass (:func:`~meshmei.native.with_gradient`: the backward only scales it)."""
     B, n = V.shape[:2]
     Vd = np.ascontiguousarray(V.detach().reshape(-1, 3).numpy(), dtype=np.float64)
     energy, counts = np.zeros(B), np.zeros(B, dtype=np.int64)
     want_grad = torch.is_grad_enabled() and V.requires_grad
     grad = np.zeros_like(Vd) if want_grad else None
     tiny, lib = torch.finfo(V.dtype).tiny, native.library()
-    for kind, rows, item in pairs:
-        rows, item = (np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in (rows, item))
-        lib.contact_energy(len(rows), Vd.ctypes.data, rows.ctypes.data, kind, dh, tiny, item.ctypes.data,
-                           energy.ctypes.data, counts.ctypes.data, None if grad is None else grad.ctypes.data)
+    tables = [None if t is None else np.ascontiguousarray(t, dtype=np.int64) for t in (barrier.Fn, barrier.En)]
+    for b, pairs in enumerate(found):
+        for kind in range(kinds_used):
+            first, second = (np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in pairs[2 * kind:2 * kind + 2])
+            if len(first):
+                lib.contact_energy(len(first), Vd.ctypes.data, first.ctypes.data, second.ctypes.data,
+                                   tables[kind].ctypes.data, kind, b, n, dh, tiny, energy.ctypes.data,
+                                   counts.ctypes.data, None if grad is None else grad.ctypes.data)
     value = torch.from_numpy(energy / n).to(V.dtype)
     if want_grad:
         value = native.with_gradient(V, value, torch.from_numpy(grad / n).to(V.dtype).reshape(V.shape))

@@ -38,7 +38,7 @@ __all__ = ["native_status", "torch_reference", "available", "enabled", "library"
 
 _HERE = Path(__file__).parent
 # each file's ABI version, which its ``meshmei_<name>_abi()`` returns
-_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 5),
+_SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 6),
             "guard": (_HERE / "_guard.c", 2)}
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
 
@@ -58,7 +58,7 @@ _SIGNATURES = {
     "contact_edge_edge": [_i64, _p, _i64, _p, _p, _dbl, _i64, _p, _p, _p],
     "contact_vertex_face_distances": [_p, _p, _i64, _p, _p, _p],
     "contact_edge_edge_distances": [_p, _p, _i64, _p, _p, _p],
-    "contact_energy": [_i64, _p, _p, ctypes.c_int, _dbl, _dbl, _p, _p, _p, _p],
+    "contact_energy": [_i64, _p, _p, _p, _p, ctypes.c_int, _i64, _i64, _dbl, _dbl, _p, _p, _p],
     "separation_fans": [_i64, _p, _i64, _p, _p, _p, _p],
     "guard_frame_parts": [_i64, _i64, _p, _p, ctypes.c_int, _p, _p, _p],
     "guard_frame_finish": [_i64, _p, _p, _p, _dbl, _dbl, _p, _dbl, _p, _p, _p, _p],
