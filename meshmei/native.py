@@ -188,6 +188,8 @@ def available(t: torch.Tensor) -> bool:
 
 
 class _WithGradient(torch.autograd.Function):
+    """:func:`with_gradient`'s node: its forward copies the value, its backward scales the kept gradient."""
+
     @staticmethod
     def forward(ctx, V, value, G):
         ctx.save_for_backward(G)

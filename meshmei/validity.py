@@ -135,11 +135,12 @@ def _compiled_barrier(guard, V: torch.Tensor, q_band: float, band: float):
     want_grad = torch.is_grad_enabled() and X.requires_grad
     grad = np.zeros_like(Xd) if want_grad else None
     turn = band > 0.0
-    R = guard.normals if turn else None  # float64, contiguous
+    F = guard.F.contiguous()  # int64 (check_mesh)
+    R = guard.normals.to(torch.float64).contiguous() if turn else None
     T = guard.turn_faces if turn else None
     T = None if T is None else np.ascontiguousarray(T.numpy(), dtype=np.uint8)
     rc = native.library().guard_barrier(
-        B, n, guard.F.shape[0], Xd.ctypes.data, guard.F.data_ptr(), None if R is None else R.data_ptr(),
+        B, n, F.shape[0], Xd.ctypes.data, F.data_ptr(), None if R is None else R.data_ptr(),
         None if T is None else T.ctypes.data, guard.quality_floor, q_band, guard.cos_bound, band,
         resolve_eps(None, V.dtype), 2.0 * math.sqrt(3.0), float(torch.finfo(V.dtype).tiny), energy.ctypes.data,
         None if grad is None else grad.ctypes.data)
