@@ -37,8 +37,9 @@ static void cross3(const double *a, const double *b, double *out) {
 static double clamp01(double x) { return x < 0.0 ? 0.0 : (x > 1.0 ? 1.0 : x); }
 
 /* squared distance from P to the triangle ABC: the projection onto the plane where it falls inside, else the
- * nearest edge's closest point (a degenerate triangle: its edges) */
-static double point_triangle(const double *P, const double *A, const double *B, const double *C) {
+ * nearest edge's closest point (a degenerate triangle: its edges); that closest point's weights on the
+ * corners into wt[0..2] */
+static double point_triangle_weights(const double *P, const double *A, const double *B, const double *C, double *wt) {
     const double tiny = DBL_MIN;
     double ab[3], ac[3], ap[3], n[3], w[3];
     for (int k = 0; k < 3; k++) {
@@ -54,10 +55,12 @@ static double point_triangle(const double *P, const double *A, const double *B, 
     double v = dot3(w, n);
     if (u >= 0.0 && v >= 0.0 && u + v <= nn && nn > tiny) {
         double s = dot3(ap, n);
+        wt[1] = u / nn, wt[2] = v / nn, wt[0] = 1.0 - wt[1] - wt[2];
         return s * s / nn;
     }
     const double *X[3] = {A, B, C}, *Y[3] = {B, C, A};
-    double best = INFINITY;
+    double best = INFINITY, tb = 0.0;
+    int eb = 0;
     for (int e = 0; e < 3; e++) {
         double D[3], PX[3];
         for (int k = 0; k < 3; k++) {
@@ -68,13 +71,16 @@ static double point_triangle(const double *P, const double *A, const double *B, 
         double t = clamp01(dot3(PX, D) / (dd > tiny ? dd : tiny));
         for (int k = 0; k < 3; k++) w[k] = PX[k] - D[k] * t;
         double d = dot3(w, w);
-        if (d < best) best = d;
+        if (d < best) best = d, tb = t, eb = e;
     }
+    wt[0] = wt[1] = wt[2] = 0.0;
+    wt[eb] = 1.0 - tb, wt[(eb + 1) % 3] = tb;
     return best;
 }
 
-/* squared distance between the segments P1 Q1 and P2 Q2 (Ericson, 5.1.9, as the torch code clamps it) */
-static double segment_segment(const double *P1, const double *Q1, const double *P2, const double *Q2) {
+/* squared distance between the segments P1 Q1 and P2 Q2 (Ericson, 5.1.9, as the torch code clamps it), and
+ * the closest points' parameters s, t into st[0..1] */
+static double segment_params(const double *P1, const double *Q1, const double *P2, const double *Q2, double *st) {
     const double tiny = DBL_MIN;
     double d1[3], d2[3], r[3], w[3];
     for (int k = 0; k < 3; k++) {
@@ -95,7 +101,20 @@ static double segment_segment(const double *P1, const double *Q1, const double *
         t = 0.0;
     }
     for (int k = 0; k < 3; k++) w[k] = r[k] + d1[k] * s - d2[k] * t;
+    st[0] = s, st[1] = t;
     return dot3(w, w);
+}
+
+/* squared distance from P to the triangle ABC (point_triangle_weights without the weights) */
+static double point_triangle(const double *P, const double *A, const double *B, const double *C) {
+    double w[3];
+    return point_triangle_weights(P, A, B, C, w);
+}
+
+/* squared distance between the segments P1 Q1 and P2 Q2 (segment_params without the parameters) */
+static double segment_segment(const double *P1, const double *Q1, const double *P2, const double *Q2) {
+    double st[2];
+    return segment_params(P1, Q1, P2, Q2, st);
 }
 
 typedef struct {
@@ -377,74 +396,6 @@ void contact_edge_edge_distances(const double *V, const int64_t *E, int64_t k, c
         double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2);
         out[i] = a * e - b * b <= 1e-8 * a * e ? 0.0 : sqrt(segment_segment(P1, Q1, P2, Q2));
     }
-}
-
-/* The closest point of the triangle ABC to P as weights on its corners (w[0..2]; the rule of point_triangle:
- * the projection where it falls inside, else the nearest edge's closest point) and the squared distance. */
-static double point_triangle_weights(const double *P, const double *A, const double *B, const double *C, double *wt) {
-    const double tiny = DBL_MIN;
-    double ab[3], ac[3], ap[3], n[3], w[3];
-    for (int k = 0; k < 3; k++) {
-        ab[k] = B[k] - A[k];
-        ac[k] = C[k] - A[k];
-        ap[k] = P[k] - A[k];
-    }
-    cross3(ab, ac, n);
-    double nn = dot3(n, n);
-    cross3(ap, ac, w);
-    double u = dot3(w, n);
-    cross3(ab, ap, w);
-    double v = dot3(w, n);
-    if (u >= 0.0 && v >= 0.0 && u + v <= nn && nn > tiny) {
-        double s = dot3(ap, n);
-        wt[1] = u / nn, wt[2] = v / nn, wt[0] = 1.0 - wt[1] - wt[2];
-        return s * s / nn;
-    }
-    const double *X[3] = {A, B, C}, *Y[3] = {B, C, A};
-    double best = INFINITY, tb = 0.0;
-    int eb = 0;
-    for (int e = 0; e < 3; e++) {
-        double D[3], PX[3];
-        for (int k = 0; k < 3; k++) {
-            D[k] = Y[e][k] - X[e][k];
-            PX[k] = P[k] - X[e][k];
-        }
-        double dd = dot3(D, D);
-        double t = clamp01(dot3(PX, D) / (dd > tiny ? dd : tiny));
-        for (int k = 0; k < 3; k++) w[k] = PX[k] - D[k] * t;
-        double d = dot3(w, w);
-        if (d < best) best = d, tb = t, eb = e;
-    }
-    wt[0] = wt[1] = wt[2] = 0.0;
-    wt[eb] = 1.0 - tb, wt[(eb + 1) % 3] = tb;
-    return best;
-}
-
-/* The closest points' parameters s, t of the segments P1 Q1, P2 Q2 (segment_segment's rule) and the squared
- * distance. */
-static double segment_params(const double *P1, const double *Q1, const double *P2, const double *Q2, double *st) {
-    const double tiny = DBL_MIN;
-    double d1[3], d2[3], r[3], w[3];
-    for (int k = 0; k < 3; k++) {
-        d1[k] = Q1[k] - P1[k];
-        d2[k] = Q2[k] - P2[k];
-        r[k] = P1[k] - P2[k];
-    }
-    double a = dot3(d1, d1), e = dot3(d2, d2), b = dot3(d1, d2), c = dot3(d1, r), f = dot3(d2, r);
-    double den = a * e - b * b;
-    double s = den > 1e-12 * a * e ? clamp01((b * f - c * e) / den) : 0.0;
-    double t = (b * s + f) / (e > tiny ? e : tiny);
-    double ac = a > tiny ? a : tiny;
-    if (t < 0.0) s = clamp01(-c / ac);
-    else if (t > 1.0) s = clamp01((b - c) / ac);
-    t = clamp01(t);
-    if (e <= tiny) {
-        s = clamp01(-c / ac);
-        t = 0.0;
-    }
-    for (int k = 0; k < 3; k++) w[k] = r[k] + d1[k] * s - d2[k] * t;
-    st[0] = s, st[1] = t;
-    return dot3(w, w);
 }
 
 /* The contact energy of k pairs of one mesh, the item-th of a batch (its vertices at V + 3 n item, float64,
