@@ -730,10 +730,8 @@ def _compiled_contact(V, barrier, found, kinds_used, dh):
     handed out is measured in float64, item by item, vertex-face pairs first, and its gradient written in the
     same pass (:func:`~meshmei.native.with_gradient`: the backward only scales it)."""
     B, n = V.shape[:2]
-    Vd = np.ascontiguousarray(V.detach().reshape(-1, 3).numpy(), dtype=np.float64)
-    energy, counts = np.zeros(B), np.zeros(B, dtype=np.int64)
-    want_grad = torch.is_grad_enabled() and V.requires_grad
-    grad = np.zeros_like(Vd) if want_grad else None
+    Vd, energy, grad = native.kernel_buffers(V)  # (B, n, 3), indexed by the kernel as (B n, 3)
+    counts = np.zeros(B, dtype=np.int64)
     tiny, lib = torch.finfo(V.dtype).tiny, native.library()
     tables = [None if t is None else np.ascontiguousarray(t, dtype=np.int64) for t in (barrier.Fn, barrier.En)]
     for b, pairs in enumerate(found):
@@ -743,7 +741,4 @@ def _compiled_contact(V, barrier, found, kinds_used, dh):
                 lib.contact_energy(len(first), Vd.ctypes.data, first.ctypes.data, second.ctypes.data,
                                    tables[kind].ctypes.data, kind, b, n, dh, tiny, energy.ctypes.data,
                                    counts.ctypes.data, None if grad is None else grad.ctypes.data)
-    value = torch.from_numpy(energy / n).to(V.dtype)
-    if want_grad:
-        value = native.with_gradient(V, value, torch.from_numpy(grad / n).to(V.dtype).reshape(V.shape))
-    return value, torch.from_numpy(counts)
+    return native.with_gradient(V, energy / n, None if grad is None else grad / n), torch.from_numpy(counts)

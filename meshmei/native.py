@@ -31,10 +31,11 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
-__all__ = ["native_status", "torch_reference", "available", "enabled", "library", "with_gradient"]
+__all__ = ["native_status", "torch_reference", "available", "enabled", "library", "kernel_buffers", "with_gradient"]
 
 _HERE = Path(__file__).parent
 # each file's ABI version, which its ``meshmei_<name>_abi()`` returns
@@ -202,8 +203,22 @@ class _WithGradient(torch.autograd.Function):
         return g.reshape(g.shape + (1,) * (G.ndim - g.ndim)) * G, None, None
 
 
-def with_gradient(V: torch.Tensor, value: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
-    """``value`` (``(B,)``, one per item of ``V (B, ...)``) with a graph to ``V`` whose gradient is ``G``
-    (``V``'s shape) per unit of each item's value: what a kernel that writes a function and its gradient in
-    one pass hands to autograd (the contact energy, the guard's barrier). The backward only scales ``G``."""
-    return _WithGradient.apply(V, value, G)
+def kernel_buffers(V: torch.Tensor):
+    """For a kernel that writes one value per item of ``V (B, ...)`` and, where autograd wants it, their
+    gradient: ``(Vd, value, grad)``, ``V``'s coordinates as a contiguous float64 array, ``(B,)`` zeros, and
+    zeros of ``Vd``'s shape (None where no gradient is wanted: grad mode off, or ``V`` without one). Hand
+    them back with :func:`with_gradient` after the kernel has filled them."""
+    Vd = np.ascontiguousarray(V.detach().numpy(), dtype=np.float64)
+    wanted = torch.is_grad_enabled() and V.requires_grad
+    return Vd, np.zeros(V.shape[0]), np.zeros_like(Vd) if wanted else None
+
+
+def with_gradient(V: torch.Tensor, value: np.ndarray, grad: np.ndarray | None) -> torch.Tensor:
+    """A kernel's values ``(B,)`` (one per item of ``V (B, ...)``) as a tensor of ``V``'s dtype, with a graph
+    to ``V`` whose gradient is ``grad`` (``V``'s size) per unit of each item's value, or without one where
+    ``grad`` is None (:func:`kernel_buffers`): what a kernel that writes a function and its gradient in one
+    pass hands to autograd (the contact energy, the guard's barrier). The backward only scales ``grad``."""
+    out = torch.from_numpy(value).to(V.dtype)
+    if grad is None:
+        return out
+    return _WithGradient.apply(V, out, torch.from_numpy(grad).to(V.dtype).reshape(V.shape))

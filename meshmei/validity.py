@@ -130,10 +130,7 @@ def _compiled_barrier(guard, V: torch.Tensor, q_band: float, band: float):
         return None
     X = V if V.ndim == 3 else V[None]
     B, n = X.shape[:2]
-    Xd = np.ascontiguousarray(X.detach().numpy(), dtype=np.float64)
-    energy = np.zeros(B)
-    want_grad = torch.is_grad_enabled() and X.requires_grad
-    grad = np.zeros_like(Xd) if want_grad else None
+    Xd, energy, grad = native.kernel_buffers(X)
     turn = band > 0.0
     F = guard.F.contiguous()  # int64 (check_mesh)
     R = guard.normals.to(torch.float64).contiguous() if turn else None
@@ -146,9 +143,7 @@ def _compiled_barrier(guard, V: torch.Tensor, q_band: float, band: float):
         None if grad is None else grad.ctypes.data)
     if rc != 0:
         return None
-    value = torch.from_numpy(energy).to(V.dtype)
-    if want_grad:
-        value = native.with_gradient(X, value, torch.from_numpy(grad).to(V.dtype))
+    value = native.with_gradient(X, energy, grad)
     return value if V.ndim == 3 else value[0]
 
 
