@@ -111,6 +111,14 @@ class _FixedMap(torch.autograd.Function):
         return ctx.Wt @ grad.contiguous(), None, None
 
 
+def _columns(X: torch.Tensor) -> torch.Tensor:
+    """``X (..., K, 3)`` stored column by column (the same values, as the transpose of a contiguous ``(..., 3,
+    K)``): CPU BLAS multiplies ``(n, K) @ (K, 3)`` about 3 times faster with the right factor in that layout
+    (71 against 230 us at n = K = 409), and autograd's backward of an unbatched product then takes ``W^T @ g``
+    as ``(g^T @ W)^T``, equally faster (76 against 268 us). Values change at rounding level only."""
+    return X.transpose(-1, -2).contiguous().transpose(-1, -2)
+
+
 class _DenseMap(torch.autograd.Function):
     """``exp(-D2 / (2 sigma^2)) @ offsets`` over a dense ``(..., n, K)`` pair matrix, with the mask folded into
     the exponent: ``neg_out`` is ``-D2`` with ``-inf`` off the pair list, whose exponential is exactly the
@@ -124,7 +132,7 @@ class _DenseMap(torch.autograd.Function):
         W = (neg_out * inv.unsqueeze(-2)).exp_()
         ctx.save_for_backward(W, offsets)
         ctx.neg = neg
-        return torch.matmul(W, offsets)
+        return torch.matmul(W, _columns(offsets))
 
     @staticmethod
     def backward(ctx, grad):
@@ -136,7 +144,10 @@ class _DenseMap(torch.autograd.Function):
             gW = torch.matmul(grad, offsets.transpose(-1, -2))
             g_inv = gW.mul_(W).mul_(ctx.neg).sum(-2)
         if ctx.needs_input_grad[1]:
-            g_off = torch.matmul(W.transpose(-1, -2), grad)
+            if W.ndim == 2:  # autograd's order for a matrix product whose right factor is stored by columns
+                g_off = torch.matmul(grad.transpose(-1, -2), W).transpose(-1, -2)
+            else:  # and for a batched one
+                g_off = torch.matmul(W.transpose(-1, -2), grad)
         return g_inv, g_off, None, None
 
 
@@ -149,7 +160,7 @@ def dense_map(inv: torch.Tensor, offsets: torch.Tensor, D2: torch.Tensor, mask: 
         if 0.0 < float(lo) and float(hi) < math.inf:
             return _DenseMap.apply(inv, offsets, *neg)
     W = torch.exp(-D2 * inv.unsqueeze(-2)) * mask
-    return torch.matmul(W.to(offsets.dtype), offsets)
+    return torch.matmul(W.to(offsets.dtype), _columns(offsets))
 
 
 def dense_negatives(D2: torch.Tensor, mask: torch.Tensor) -> tuple:
