@@ -1,11 +1,13 @@
-"""meshmei's compiled kernels: three small C files built on first use into one shared library, with the torch
+"""meshmei's compiled kernels: four small C files built on first use into one shared library, with the torch
 (and NumPy) code as their reference and fallback.
 
 - ``render/_raster.c``: the renderer's CPU kernels (:mod:`meshmei.render.native`);
 - ``_contact.c``: the contact barrier's broad phase and its energy with the gradient
   (:class:`meshmei.contact.ContactBarrier`) and the certificates' rules (:mod:`meshmei.certify`);
 - ``_guard.c``: the step guard's float64 face frame with its quality and turn rules, and its barrier with
-  the gradient (:class:`meshmei.validity.StepGuard`).
+  the gradient (:class:`meshmei.validity.StepGuard`);
+- ``_regularizers.c``: the uniform Laplacian, edge and area losses with their gradients
+  (:mod:`meshmei.regularizers`).
 
 They are compiled once per source version with the system's C compiler (``$CC``, else ``cc``, ``gcc`` or
 ``clang``) into the cache directory (``$MESHMEI_CACHE_DIR``, else ``$XDG_CACHE_HOME/meshmei`` or
@@ -40,7 +42,7 @@ __all__ = ["native_status", "torch_reference", "available", "enabled", "library"
 _HERE = Path(__file__).parent
 # each file's ABI version, which its ``meshmei_<name>_abi()`` returns
 _SOURCES = {"raster": (_HERE / "render" / "_raster.c", 5), "contact": (_HERE / "_contact.c", 6),
-            "guard": (_HERE / "_guard.c", 2)}
+            "guard": (_HERE / "_guard.c", 2), "regularizers": (_HERE / "_regularizers.c", 1)}
 _FLAGS = ["-O3", "-std=c99", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math"]
 
 _i64, _p, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
@@ -66,10 +68,11 @@ _SIGNATURES = {
     "guard_barrier": [_i64, _i64, _i64, _p, _p, _p, _p, _dbl, _dbl, _dbl, _dbl, _dbl, _dbl, _dbl, _p, _p],
     "graph_holds": [_i64, _p, _i64, _p, _p, _p, _p, _p, _p, _i64, _p, _p, _p, _p, _dbl, _dbl, _p],
     "star_holds": [_i64, _p, _i64, _p, _p, _p, _dbl, _p],
+    "reg_losses": [_i64, _i64, _i64, _i64, _p, _p, _p, _p, _p, ctypes.c_int, _p, _p],
 }
 _RETURNS = {"contact_vertex_face": _i64, "contact_edge_edge": _i64, "guard_frame_parts": ctypes.c_int,
             "guard_barrier": ctypes.c_int,
-            "graph_holds": ctypes.c_int, "star_holds": ctypes.c_int}
+            "graph_holds": ctypes.c_int, "star_holds": ctypes.c_int, "reg_losses": ctypes.c_int}
 
 _lock = threading.Lock()
 _state: dict = {"lib": None, "reason": None, "tried": False}
@@ -157,7 +160,8 @@ def library():
 
 def native_status() -> dict:
     """``{"compiled": bool, "reason": str | None}``: whether the compiled kernels are in use (CPU renders,
-    the contact barrier's search and energy, the step guard's check and barrier), and why not."""
+    the contact barrier's search and energy, the step guard's check and barrier, three regularizers), and why
+    not."""
     lib = library()
     return {"compiled": lib is not None, "reason": _state["reason"]}
 
@@ -166,10 +170,10 @@ def native_status() -> dict:
 def torch_reference():
     """Within this block (in this thread) the compiled kernels are not used: renders run the torch code
     throughout, the contact barrier searches with its NumPy and SciPy code and measures in torch, the step
-    guard checks with its torch and NumPy code and its barrier is torch's. The reference the kernels are
-    tested against, and what CUDA tensors always run. A render's backward follows its forward; a contact
-    search started here in a worker thread (:meth:`~meshmei.contact.ContactBarrier.prefetch`) follows the
-    thread that started it."""
+    guard checks with its torch and NumPy code and its barrier is torch's, and so are the regularizers. The
+    reference the kernels are tested against, and what CUDA tensors always run. A render's backward follows
+    its forward; a contact search started here in a worker thread
+    (:meth:`~meshmei.contact.ContactBarrier.prefetch`) follows the thread that started it."""
     before = getattr(_local, "off", False)
     _local.off = True
     try:
@@ -189,36 +193,42 @@ def available(t: torch.Tensor) -> bool:
 
 
 class _WithGradient(torch.autograd.Function):
-    """:func:`with_gradient`'s node: its forward copies the value, its backward scales the kept gradient."""
+    """:func:`with_gradient`'s node: its forward copies the value, its backward scales the kept gradient (and
+    sums it over the functions, where there are several)."""
 
     @staticmethod
     def forward(ctx, V, value, G):
         ctx.save_for_backward(G)
+        ctx.several = G.ndim > V.ndim
         return value.clone()
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g):
         (G,) = ctx.saved_tensors
-        return g.reshape(g.shape + (1,) * (G.ndim - g.ndim)) * G, None, None
+        out = g.reshape(g.shape + (1,) * (G.ndim - g.ndim)) * G
+        return out.sum(0) if ctx.several else out, None, None
 
 
-def kernel_buffers(V: torch.Tensor):
+def kernel_buffers(V: torch.Tensor, functions: int | None = None):
     """For a kernel that writes one value per item of ``V (B, ...)`` and, where autograd wants it, their
     gradient: ``(Vd, value, grad)``, ``V``'s coordinates as a contiguous float64 array, ``(B,)`` zeros, and
-    zeros of ``Vd``'s shape (None where no gradient is wanted: grad mode off, or ``V`` without one). Hand
-    them back with :func:`with_gradient` after the kernel has filled them."""
+    zeros of ``Vd``'s shape (None where no gradient is wanted: grad mode off, or ``V`` without one). With
+    ``functions`` k, for a kernel that writes k such functions: values ``(k, B)`` and gradients ``(k,)`` plus
+    ``Vd``'s shape. Hand them back with :func:`with_gradient` after the kernel has filled them."""
     Vd = np.ascontiguousarray(V.detach().numpy(), dtype=np.float64)
     wanted = torch.is_grad_enabled() and V.requires_grad
-    return Vd, np.zeros(V.shape[0]), np.zeros_like(Vd) if wanted else None
+    lead = () if functions is None else (functions,)
+    return Vd, np.zeros(lead + V.shape[:1]), np.zeros(lead + Vd.shape) if wanted else None
 
 
 def with_gradient(V: torch.Tensor, value: np.ndarray, grad: np.ndarray | None) -> torch.Tensor:
-    """A kernel's values ``(B,)`` (one per item of ``V (B, ...)``) as a tensor of ``V``'s dtype, with a graph
-    to ``V`` whose gradient is ``grad`` (``V``'s size) per unit of each item's value, or without one where
-    ``grad`` is None (:func:`kernel_buffers`): what a kernel that writes a function and its gradient in one
-    pass hands to autograd (the contact energy, the guard's barrier). The backward only scales ``grad``."""
+    """A kernel's values ``(B,)`` (one per item of ``V (B, ...)``), or ``(k, B)`` for k functions, as a tensor
+    of ``V``'s dtype, with a graph to ``V`` whose gradient is ``grad`` (``(k,)`` and ``V``'s size) per unit of
+    each value, or without one where ``grad`` is None (:func:`kernel_buffers`): what a kernel that writes a
+    function and its gradient in one pass hands to autograd (the contact energy, the guard's barrier, the
+    regularizers). The backward only scales ``grad`` (and sums over the functions)."""
     out = torch.from_numpy(value).to(V.dtype)
     if grad is None:
         return out
-    return _WithGradient.apply(V, out, torch.from_numpy(grad).to(V.dtype).reshape(V.shape))
+    return _WithGradient.apply(V, out, torch.from_numpy(grad).to(V.dtype).reshape(grad.shape[:-V.ndim] + V.shape))

@@ -4,6 +4,14 @@ All take vertex positions ``V`` of shape ``(n, 3)`` (returning a scalar) or a ba
 sharing the face array ``F`` (returning ``(B,)``). Rest poses ``V0`` may be ``(n, 3)`` or ``(B, n, 3)``.
 They are differentiable, work in float32 and float64, and stay finite on degenerate meshes.
 
+On CPU float tensors the uniform Laplacian, edge and area losses run as compiled kernels
+(``meshmei/_regularizers.c``, :mod:`meshmei.native`): each loss with its gradient in one float64 pass, handed
+to autograd as the guard's and contact barriers are (the backward only scales the gradient, so they take no
+second derivative). Their torch code is the reference and the fallback (no compiler, CUDA, half precision,
+:func:`meshmei.native.torch_reference`, squared lengths beyond float64's range); the two agree to rounding
+(float32 inputs: the compiled value is the float64 one, rounded once). :func:`regularizer_values` evaluates
+several losses as an optimisation step does, those three in one pass.
+
 =====================  ==========================================================================
 ``laplacian_loss``     uniform: ``mean_i |v_i - mean_{j in N(i)} v_j|^2`` over non-isolated vertices;
                        cotangent: ``sum_i |(L V)_i|^2 / M_i  /  sum_i M_i`` over interior vertices
@@ -24,6 +32,7 @@ from __future__ import annotations
 
 import torch
 
+from . import native
 from .errors import MeshError
 from .mesh import check_mesh, check_rest_pose
 from .operators import (
@@ -53,6 +62,7 @@ __all__ = [
     "best_fit_rotations",
     "REGULARIZERS",
     "REGULARIZER_LABELS",
+    "regularizer_values",
     "RESOLUTION_POWERS",
     "scale_weights",
 ]
@@ -69,6 +79,46 @@ def _pow2_extent(V):
     ext = (X.amax(-2) - X.amin(-2)).amax(-1)
     _, e = torch.frexp(torch.where(ext > 0, ext, torch.ones_like(ext)))
     return torch.ldexp(torch.ones_like(ext), e - 1)[..., None, None]
+
+
+# the losses _regularizers.c computes, by name, with the bit that asks for each (its values come in this order)
+_COMPILED = {"laplacian": 1, "edge": 2, "area": 4}
+
+
+def _compiled(V: torch.Tensor, F: torch.Tensor, names) -> torch.Tensor | None:
+    """The losses ``names`` (keys of ``_COMPILED``, in its order) of the checked mesh ``V`` ((n, 3) or (B, n, 3))
+    and ``F`` by ``_regularizers.c``, in one pass, each with its gradient (:func:`~meshmei.native.with_gradient`):
+    ``(k,)`` or ``(k, B)``. None where the kernels do not apply (not built, within
+    :func:`~meshmei.native.torch_reference`, not a CPU float32/float64 tensor) or leave the losses to the torch
+    code (a nonzero length at unit size beyond float64's normal range)."""
+    if not native.available(V):
+        return None
+    X, F = (V if V.ndim == 3 else V[None]), F.contiguous()
+    topo = mesh_topology(F, X.shape[1])
+    Xd, value, grad = native.kernel_buffers(X, len(names))
+    which = sum(_COMPILED[k] for k in names)
+    rc = native.library().reg_losses(X.shape[0], X.shape[1], F.shape[0], topo.n_edges, Xd.ctypes.data, F.data_ptr(),
+                                     topo.edges.data_ptr(), topo.nbr_ptr.data_ptr(), topo.nbr_idx.data_ptr(), which,
+                                     value.ctypes.data, None if grad is None else grad.ctypes.data)
+    if rc != 0:
+        return None
+    out = native.with_gradient(X, value, grad)
+    return out if V.ndim == 3 else out[:, 0]
+
+
+def regularizer_values(V, V0, F, names) -> dict:
+    """``{name: REGULARIZERS[name](V, V0, F)}`` for ``names``, each () or (B,): the uniform Laplacian, edge and
+    area losses among them in one compiled pass with one autograd node (:mod:`meshmei.native`), the others (or
+    all of them, where the kernels do not apply) one by one. What an optimisation step evaluates."""
+    names = list(names)
+    together = [k for k in _COMPILED if k in names]
+    values = {}
+    if len(together) > 1:
+        X, G = check_mesh(V, F, batched=None)
+        out = _compiled(X, G, together)
+        if out is not None:
+            values = dict(zip(together, out.unbind(0)))
+    return {k: values[k] if k in values else REGULARIZERS[k](V, V0, F) for k in names}
 
 
 def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) -> torch.Tensor:
@@ -97,6 +147,9 @@ def laplacian_loss(V, F, *, method: str = "uniform", eps: float | None = EPS) ->
     V, F = check_mesh(V, F, batched=None)
     topo = mesh_topology(F, V.shape[-2])
     if method == "uniform":
+        fast = _compiled(V, F, ["laplacian"])
+        if fast is not None:
+            return fast[0]
         d = uniform_laplacian_from_topology(V, topo)
         live = topo.degree > 0
         return (sum_xyz(d * d) * live).sum(-1) / live.sum().clamp_min(1)
@@ -130,6 +183,9 @@ def edge_loss(V, F) -> torch.Tensor:
     E = mesh_topology(F, V.shape[-2]).edges
     if E.shape[0] == 0:
         return V.sum((-1, -2)) * 0.0
+    fast = _compiled(V, F, ["edge"])
+    if fast is not None:
+        return fast[0]
     ln = safe_norm(gather(V, E[:, 1]) - gather(V, E[:, 0]))  # (..., E)
     return ((ln - ln.mean(-1, keepdim=True)) ** 2).mean(-1)
 
@@ -137,8 +193,15 @@ def edge_loss(V, F) -> torch.Tensor:
 def area_loss(V, F) -> torch.Tensor:
     """Triangle-area uniformity: ``mean_t (A_t - mean A)^2``. Returns () or (B,)."""
     V, F = check_mesh(V, F, batched=None)
-    A = 0.5 * doublearea_from_corners(corners(V, F))
-    return ((A - A.mean(-1, keepdim=True)) ** 2).mean(-1)
+    fast = _compiled(V, F, ["area"])
+    if fast is not None:
+        return fast[0]
+    # at unit scale and back (exact, as the cotangent Laplacian): the squared cross products of a mesh 1e-155
+    # across underflowed, and its gradient was NaN
+    s = _pow2_extent(V)
+    A = 0.5 * doublearea_from_corners(corners(V / s, F))
+    loss = ((A - A.mean(-1, keepdim=True)) ** 2).mean(-1)
+    return loss * s.reshape(loss.shape) ** 4
 
 
 def arap_direction_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:

@@ -1,11 +1,15 @@
 """Regularizers against slow loop references, libigl's ARAP, invariances, gradcheck and hard cases."""
 
+import contextlib
+import math
+
 import igl
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spl
 import torch
 
+from meshmei import native
 from meshmei import regularizers as reg
 from meshmei.errors import MeshError
 
@@ -146,11 +150,18 @@ CASES = {
 }
 
 
+@pytest.mark.parametrize("code", ["default", "torch"])
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_matches_slow_reference_values_and_gradients(name):
+def test_matches_slow_reference_values_and_gradients(name, code):
+    """Each loss and its gradient against the loops, as it runs (the uniform Laplacian, edge and area losses
+    by their compiled kernels where this machine builds them) and by its torch code."""
     fast, slow = CASES[name]
     V, V0, F = _small_mesh()
-    v1, g1 = _value_and_grad(lambda X: fast(X, V0, F), V)
+    if code == "torch":
+        with native.torch_reference():
+            v1, g1 = _value_and_grad(lambda X: fast(X, V0, F), V)
+    else:
+        v1, g1 = _value_and_grad(lambda X: fast(X, V0, F), V)
     v2, g2 = _value_and_grad(lambda X: slow(X, V0, F), V)
     assert v1 > 0
     torch.testing.assert_close(v1, v2, rtol=1e-10, atol=0)
@@ -188,6 +199,117 @@ def test_gradcheck(name):
     V0, F = perturbed_sphere(0, 0.05, seed=1)  # icosahedron
     V = (V0 + 0.1 * torch.randn(V0.shape, dtype=V0.dtype, generator=torch.Generator().manual_seed(3))).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda X: fast(X, V0, F), (V,), eps=1e-6, atol=1e-6)
+
+
+COMPILED = ("laplacian_uniform", "edge", "area")
+compiled_kernels = pytest.mark.skipif(not native.native_status()["compiled"], reason="no compiled kernels here")
+
+
+def _both_codes(fn, V, dtype):
+    """``fn``'s value and gradient at ``V`` in ``dtype``, as it runs, and by the torch code in float64 on the
+    same (rounded) coordinates."""
+    X = V.to(dtype).requires_grad_(True)
+    out = fn(X)
+    (g,) = torch.autograd.grad(out, X)
+    with native.torch_reference():
+        ref, gref = _value_and_grad(fn, V.to(dtype).double())
+    return out, g, ref, gref, X
+
+
+@compiled_kernels
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("name", COMPILED)
+def test_the_compiled_losses_are_the_torch_code_to_rounding(name, dtype):
+    """The kernels measure in float64 whatever the mesh's dtype: their float64 results are the torch code's to
+    rounding, and a float32 mesh's are the float64 ones on its coordinates, rounded once; the graph is the
+    kernels' (one node whose backward scales the kept gradient)."""
+    V, _, F = _small_mesh()
+    fn = {"laplacian_uniform": lambda X: reg.laplacian_loss(X, F), "edge": lambda X: reg.edge_loss(X, F),
+          "area": lambda X: reg.area_loss(X, F)}[name]
+    out, g, ref, gref, _ = _both_codes(fn, V, dtype)
+    assert out.dtype == dtype and g.dtype == dtype
+    node = out.grad_fn
+    while type(node).__name__ == "SelectBackward0":  # the function's and the item's rows
+        node = node.next_functions[0][0]
+    assert type(node).__name__ == "_WithGradientBackward"
+    tol = 1e-14 if dtype == torch.float64 else 2 ** -23
+    if dtype == torch.float32:
+        assert float(out.detach()) == float(ref.float())  # one rounding of the float64 value
+    torch.testing.assert_close(out.detach().double(), ref, rtol=tol, atol=0)
+    torch.testing.assert_close(g.double(), gref, rtol=tol, atol=tol * float(gref.abs().max()))
+    with torch.no_grad():  # no graph, the same value
+        assert float(fn(V.to(dtype))) == float(out.detach())
+
+
+@compiled_kernels
+@pytest.mark.parametrize("name,power,k", [("edge", 2, -530), ("area", 4, -270), ("edge", 2, 400), ("area", 4, 200)])
+def test_the_compiled_edge_and_area_losses_scale_exactly_far_from_unit_size(name, power, k):
+    """Scaled by 2^k, a mesh's edge (area) loss is scaled by 2^(2k) (2^(4k)) and its gradient by 2^k (2^(3k)),
+    exactly, also where the squared lengths (cross products) of the mesh leave float64's range: the kernels
+    measure at unit size and scale back once, so these far meshes stay compiled and right."""
+    fn = {"edge": reg.edge_loss, "area": reg.area_loss}[name]
+    V, _, F = _small_mesh()
+    v, g = _value_and_grad(lambda X: fn(X, F), V)
+    vk, gk = _value_and_grad(lambda X: fn(X, F), torch.ldexp(V, torch.tensor(k)))
+    assert float(v) > 0 and torch.isfinite(gk).all()
+    assert float(vk) == math.ldexp(float(v), power * k)
+    assert torch.equal(gk, torch.ldexp(g, torch.tensor((power - 1) * k)))
+
+
+@pytest.mark.parametrize("batch", [False, True])
+@pytest.mark.parametrize("code", ["default", "torch"])
+def test_regularizer_values_are_each_regularizer_as_the_registry_gives_it(code, batch):
+    """What a step evaluates, in one call (the compiled three in one pass and one node): each value is the
+    registry's bit for bit, and the gradient of a weighted sum is the sum of theirs to rounding."""
+    V, V0, F = _small_mesh()
+    if batch:
+        V = torch.stack([V, 1.3 * V0, V0 @ random_rotation(3).T])
+    weights = {"laplacian": 30.0, "edge": 30.0, "area": 1000.0, "arap": 2.0, "laplacian_cot": 0.5}
+    with native.torch_reference() if code == "torch" else contextlib.nullcontext():
+        X = V.clone().requires_grad_(True)
+        values = reg.regularizer_values(X, V0, F, weights)
+        (g,) = torch.autograd.grad(sum(weights[k] * r for k, r in values.items()).sum(), X)
+        Y = V.clone().requires_grad_(True)
+        one_by_one = {k: reg.REGULARIZERS[k](Y, V0, F) for k in weights}
+        (gref,) = torch.autograd.grad(sum(weights[k] * r for k, r in one_by_one.items()).sum(), Y)
+    assert list(values) == list(weights)
+    for k in weights:
+        assert torch.equal(values[k].detach(), one_by_one[k].detach()), k
+    torch.testing.assert_close(g, gref, rtol=1e-13, atol=1e-13 * float(gref.abs().max()))
+
+
+@pytest.mark.parametrize("scale", [1e-155, 1e-300])
+def test_the_torch_area_loss_is_finite_where_the_squared_cross_products_underflow(scale):
+    """The torch code measures at unit size too: a mesh 1e-155 across had a NaN gradient (its squared cross
+    products underflowed); now the loss and its gradient are finite (0, as the true ones round to)."""
+    V, _, F = _small_mesh()
+    with native.torch_reference():
+        v, g = _value_and_grad(lambda X: reg.area_loss(X, F), V * scale)
+    assert float(v) == 0.0 and torch.isfinite(g).all()
+
+
+@compiled_kernels
+@pytest.mark.parametrize("name", COMPILED)
+def test_a_length_beyond_float64s_range_at_unit_size_is_left_to_the_torch_code(name):
+    """An edge 1e-170 long in a mesh of unit size (at the origin, where coordinates can be that close) has a
+    squared length below float64's normal range, where the root's slope is wrong: the kernels hand such a mesh
+    to the torch code (whose safe norms rescale those vectors), whose result it then is exactly; the Laplacian
+    takes no root and stays compiled."""
+    V, _, F = _small_mesh()
+    V = V - V[0]
+    V = torch.cat([V, torch.tensor([[1e-170, 0.0, 0.0]], dtype=V.dtype)])
+    F = torch.cat([F, torch.tensor([[0, V.shape[0] - 1, int(F[0, 1])]])])
+    fn = {"laplacian_uniform": lambda X: reg.laplacian_loss(X, F), "edge": lambda X: reg.edge_loss(X, F),
+          "area": lambda X: reg.area_loss(X, F)}[name]
+    out, g = _value_and_grad(fn, V)
+    with native.torch_reference():
+        ref, gref = _value_and_grad(fn, V)
+    assert torch.isfinite(g).all()
+    if name == "laplacian_uniform":
+        torch.testing.assert_close(out, ref, rtol=1e-14, atol=0)
+        torch.testing.assert_close(g, gref, rtol=1e-14, atol=1e-14 * float(gref.abs().max()))
+    else:
+        assert torch.equal(out, ref) and torch.equal(g, gref)
 
 
 def test_arap_zero_for_rigid_motion_of_rest():

@@ -27,7 +27,7 @@ from meshmei.encoders import encoder_from_model, frozen_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.mei.optimize import initial
 from meshmei.mei.settings import make_deformer
-from meshmei.regularizers import REGULARIZERS, scale_weights
+from meshmei.regularizers import regularizer_values, scale_weights
 from meshmei.render import render
 from meshmei.render.native import native_status, torch_reference
 
@@ -139,7 +139,7 @@ def measure(steps: int = 40, repeats: int = 20, n_rounds: int = 5) -> dict:
 
     def regularize():
         V = rbf().detach().requires_grad_()
-        sum(w * REGULARIZERS[k](V, V0, F) for k, w in weights.items()).backward()
+        sum(weights[k] * r for k, r in regularizer_values(V, V0, F, weights).items()).backward()
 
     x = torch.rand(1, 1, 100, 100, requires_grad=True)
 

@@ -20,7 +20,7 @@ from ..deform.rbf import dense_map, dense_negatives
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
-from ..regularizers import REGULARIZERS
+from ..regularizers import regularizer_values
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
 from .optimize import (check_neuron, contact_barriers, guard_report, initial, objective_weights, optimize_mei,
@@ -113,10 +113,9 @@ class BatchScene:
         """The items' regularizer terms ``(B,)``, weighted, with the albedo's smoothness; each term's values
         go into ``record`` as lists."""
         total = torch.zeros(V.shape[0], dtype=V.dtype, device=V.device)
-        for k, w in active.items():
-            r = REGULARIZERS[k](V, self.V0, F)  # (B,)
+        for k, r in regularizer_values(V, self.V0, F, active).items():  # each (B,)
             record[k] = r.detach().tolist()
-            total = total + w * r
+            total = total + active[k] * r
         if settings.albedo:
             r = albedo_penalty(self.albedo(), self.seeds[0].uv, F)
             record["albedo_roughness"] = r.detach().tolist()

@@ -19,7 +19,7 @@ from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import load_mesh, remove_unreferenced
 from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
-from ..regularizers import REGULARIZERS, scale_weights
+from ..regularizers import regularizer_values, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
 from ..validity import StepGuard
 from .scene import SeedScene, sheet_uv
@@ -155,10 +155,9 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
         scene.widen(point.fraction)
         f = scene.expected(encoder(scene.views(V, F), neuron)[:, 0])  # one view, or the robust quadrature
         loss, record = -f, {"response": float(f.detach())}
-        for k, w in active.items():
-            r = REGULARIZERS[k](V, scene.rbf.V0, F)
+        for k, r in regularizer_values(V, scene.rbf.V0, F, active).items():
             record[k] = float(r.detach())
-            loss = loss + w * r
+            loss = loss + active[k] * r
         if settings.albedo:
             r = scene.albedo_roughness(F)
             record["albedo_roughness"] = float(r.detach())

@@ -24,7 +24,7 @@ from ..metrics import surface_metrics
 from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
 from ..mesh import numpy_mesh
 from ..quality import self_intersecting_pairs, topology, triangle_quality
-from ..regularizers import arap_direction_loss, edge_loss, laplacian_loss, scale_weights
+from ..regularizers import regularizer_values, scale_weights
 from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
 from ..validity import StepGuard
@@ -148,7 +148,7 @@ def _parameterisation(sk: ReconstructionSettings, V0, F):
 
 
 def _objective(param, vertices, F, sk, weights, chamfer, k, latest, contact):
-    w_lap, w_edge, w_arap = weights
+    active = {name: w for name, w in zip(("laplacian", "edge", "arap"), weights) if w > 0}
 
     def objective(point):
         Vc = vertices()
@@ -160,12 +160,9 @@ def _objective(param, vertices, F, sk, weights, chamfer, k, latest, contact):
         loss = cd
         if facing is not None:
             loss = loss + sk.w_facing * facing
-        if w_lap > 0:
-            loss = loss + wr * w_lap * laplacian_loss(Vc, F)
-        if w_edge > 0:
-            loss = loss + wr * w_edge * edge_loss(Vc, F)
-        if w_arap > 0:  # the rest pose is the shape at the start of the stage
-            loss = loss + wr * w_arap * arap_direction_loss(Vc, param.V0, F)
+        # the direction ARAP's rest pose is the shape at the start of the stage
+        for name, r in regularizer_values(Vc, param.V0, F, active).items():
+            loss = loss + wr * active[name] * r
         record = {"stage": k, "chamfer": float(cd.detach())}
         if facing is not None:
             record["facing"] = float(facing.detach())
