@@ -14,6 +14,7 @@ import torch
 
 from meshmei import operators as ops
 from meshmei.benchmarks._report import benchmark_parser, positive_int, machine_line, markdown_table, timeit, write_section
+from meshmei.native import native_status, torch_reference
 from meshmei.regularizers import REGULARIZER_LABELS, REGULARIZERS
 
 
@@ -35,6 +36,13 @@ def torus_grid(n_vertices: int, seed: int = 0):
 def _torch_cases(V0, F):
     cases = {label: (lambda V, loss=REGULARIZERS[name]: loss(V, V0, F)) for name, label in REGULARIZER_LABELS.items()}
     cases["cotmatrix assembly"] = lambda V: ops.cotmatrix(V, F).values()
+    for name in ("laplacian", "edge", "area"):  # compiled where this machine builds them: their torch code beside
+
+        def torch_code(V, loss=REGULARIZERS[name]):
+            with torch_reference():
+                return loss(V, V0, F)
+
+        cases[f"{REGULARIZER_LABELS[name]}, torch code"] = torch_code
     return cases
 
 
@@ -82,6 +90,9 @@ def _igl_cases(V0, F, V):
 
     return {
         "laplacian (uniform)": uniform,
+        "laplacian (uniform), torch code": uniform,
+        "edge, torch code": edge,
+        "area, torch code": area,
         "laplacian (cotangent)": cot,
         "edge": edge,
         "area": area,
@@ -138,13 +149,17 @@ Written by `python -m meshmei.benchmarks.regularizers`. Machine: {machine_line()
 Meshes: jittered closed torus grids. Each cell: torch float32 **forward + backward** (median of `--repeat` runs, of 3 at
 1M), and in parentheses the **forward only** cost of the same quantity with libigl + scipy + numpy
 (float64; libigl has no gradients). The exponent is the slope of log time against log vertex count for
-the torch column from the second size to the largest; the target is at most 1.1 (linear cost).
+the torch column from the second size to the largest; the target is at most 1.1 (linear cost). The uniform
+Laplacian, edge and area losses run as compiled kernels (`meshmei/_regularizers.c`: value and gradient in one
+float64 pass, one thread; compiled kernels {"in use" if native_status()["compiled"] else "NOT available: " + str(native_status()["reason"])}); their rows marked *torch code* are
+the same losses by their torch code (`meshmei.native.torch_reference`), the reference and fallback.
 
 {markdown_table(header, rows)}
 
 Cost model: every regularizer is a fixed number of gathers (`index_select`), `index_add` scatters and
 elementwise ops over faces, edges or half-edges, so time and memory grow linearly with the mesh (no n x n
-tensors). `arap (Sorkine-Alexa)` adds one batched 3x3 SVD per vertex (no gradient through it). The
+tensors); the compiled three are one pass over the vertices' 1-rings, the edges or the faces, plus a float64
+copy of the coordinates and their gradient (linear too). `arap (Sorkine-Alexa)` adds one batched 3x3 SVD per vertex (no gradient through it). The
 cotangent Laplacian is assembled into a sparsity pattern computed once per face array (cached with the
 topology), so each call is one `index_add` and no sort. Past about 100k vertices the working set leaves
 the cache and every op runs at memory bandwidth; that is where the slope steepens, for libigl too.
