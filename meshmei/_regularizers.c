@@ -3,7 +3,8 @@
  * float64 pass (the torch code is their reference, equal to rounding; tested). Each writes the loss of every
  * mesh into value (B) and, where grad is not NULL, its gradient into grad (B, n, 3), and returns 0; or 1 where
  * a nonzero vector's squared length leaves float64's normal range or a value is not finite (the caller then
- * runs the torch code, whose safe norms rescale such vectors), or -1 where its scratch memory cannot be had.
+ * runs the torch code, whose safe norms rescale such vectors); reg_losses returns -1 where the scratch memory
+ * they share cannot be had.
  * The edge and area losses, which take square roots, measure each mesh divided by a power of two near its
  * extent (exact) and bring the loss and its gradient back, as the torch code does. */
 
@@ -38,9 +39,7 @@ static int out_of_range(const double *u, double s) {
  * of i are idx[ptr[i]:ptr[i+1]], symmetric). With d_i that umbrella vector and L the number of such vertices,
  * the gradient at k is (2 / L) (d_k - sum_{i in N(k)} d_i / deg_i). */
 static int reg_uniform_laplacian(int64_t B, int64_t n, const double *V, const int64_t *ptr, const int64_t *idx,
-                                 double *value, double *grad) {
-    double *D = malloc((size_t)(3 * n > 0 ? 3 * n : 1) * sizeof(double));
-    if (!D) return -1;
+                                 double *value, double *grad, double *D /* scratch, 3 n */) {
     int64_t live = 0;
     for (int64_t i = 0; i < n; i++) live += ptr[i + 1] > ptr[i];
     const double scale = live > 0 ? 1.0 / (double)live : 0.0;
@@ -60,10 +59,7 @@ static int reg_uniform_laplacian(int64_t B, int64_t n, const double *V, const in
             e += d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
         }
         value[b] = e * scale;
-        if (!isfinite(value[b])) {
-            free(D);
-            return 1;
-        }
+        if (!isfinite(value[b])) return 1;
         if (!grad) continue;
         double *G = grad + 3 * n * b;
         for (int64_t i = 0; i < n; i++) {
@@ -79,35 +75,28 @@ static int reg_uniform_laplacian(int64_t B, int64_t n, const double *V, const in
             for (int k = 0; k < 3; k++) G[3 * i + k] = 2.0 * scale * g[k];
         }
     }
-    free(D);
     return 0;
 }
 
 /* mean_e (|e| - mean |e|)^2 over the unique edges E (nE, 2). The mean's own slope sums to zero over the edges,
  * so the gradient of edge e's length is 2 (|e| - mean) / nE; a zero-length edge passes none (safe_norm). */
-static int reg_edge(int64_t B, int64_t n, int64_t nE, const double *V, const int64_t *E, double *value, double *grad) {
-    double *Ln = malloc((size_t)(nE + 3 * n) * sizeof(double)), *X = Ln + nE;
-    if (!Ln) return -1;
+static int reg_edge(int64_t B, int64_t n, int64_t nE, const double *V, const int64_t *E, double *value, double *grad,
+                    double *Ln /* scratch, nE + 3 n */) {
+    double *X = Ln + nE;
     for (int64_t b = 0; b < B; b++) {
         const int k = unit_scale(n, V + 3 * n * b, X);
         double mean = 0.0, e = 0.0;
         for (int64_t q = 0; q < nE; q++) {
             const double *P = X + 3 * E[2 * q], *Q = X + 3 * E[2 * q + 1];
             const double u[3] = {Q[0] - P[0], Q[1] - P[1], Q[2] - P[2]}, s = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
-            if (out_of_range(u, s)) {
-                free(Ln);
-                return 1;
-            }
+            if (out_of_range(u, s)) return 1;
             Ln[q] = sqrt(s);
             mean += Ln[q];
         }
         mean = nE > 0 ? mean / (double)nE : 0.0;
         for (int64_t q = 0; q < nE; q++) e += (Ln[q] - mean) * (Ln[q] - mean);
         value[b] = ldexp(nE > 0 ? e / (double)nE : 0.0, 2 * k);  /* units of length^2 */
-        if (!isfinite(value[b])) {
-            free(Ln);
-            return 1;
-        }
+        if (!isfinite(value[b])) return 1;
         if (!grad) continue;
         double *G = grad + 3 * n * b;
         for (int64_t q = 0; q < nE; q++) {
@@ -122,16 +111,15 @@ static int reg_edge(int64_t B, int64_t n, int64_t nE, const double *V, const int
         }
         for (int64_t i = 0; i < 3 * n; i++) G[i] = ldexp(G[i], k);
     }
-    free(Ln);
     return 0;
 }
 
 /* mean_t (A_t - mean A)^2 over the faces F (m, 3), A_t = |(T1 - T0) x (T2 - T0)| / 2. The gradient of A_t at
  * corner c is u x d_c / 2, u the unit normal and d_c the edge opposite c (T2 - T1, T0 - T2, T1 - T0); a face
  * of zero area passes none (safe_norm). */
-static int reg_area(int64_t B, int64_t n, int64_t m, const double *V, const int64_t *F, double *value, double *grad) {
-    double *A = malloc((size_t)(4 * m + 3 * n) * sizeof(double)), *N = A + m, *X = A + 4 * m;
-    if (!A) return -1;
+static int reg_area(int64_t B, int64_t n, int64_t m, const double *V, const int64_t *F, double *value, double *grad,
+                    double *A /* scratch, 4 m + 3 n */) {
+    double *N = A + m, *X = A + 4 * m;
     for (int64_t b = 0; b < B; b++) {
         const int k = unit_scale(n, V + 3 * n * b, X);
         double mean = 0.0, e = 0.0;
@@ -143,10 +131,7 @@ static int reg_area(int64_t B, int64_t n, int64_t m, const double *V, const int6
             u[1] = a[2] * c[0] - a[0] * c[2];
             u[2] = a[0] * c[1] - a[1] * c[0];
             const double s = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
-            if (out_of_range(u, s)) {
-                free(A);
-                return 1;
-            }
+            if (out_of_range(u, s)) return 1;
             const double len = sqrt(s);
             A[f] = 0.5 * len;
             mean += A[f];
@@ -155,10 +140,7 @@ static int reg_area(int64_t B, int64_t n, int64_t m, const double *V, const int6
         mean /= (double)m;
         for (int64_t f = 0; f < m; f++) e += (A[f] - mean) * (A[f] - mean);
         value[b] = ldexp(e / (double)m, 4 * k);  /* units of length^4 */
-        if (!isfinite(value[b])) {
-            free(A);
-            return 1;
-        }
+        if (!isfinite(value[b])) return 1;
         if (!grad) continue;
         double *G = grad + 3 * n * b;
         for (int64_t f = 0; f < m; f++) {
@@ -175,26 +157,28 @@ static int reg_area(int64_t B, int64_t n, int64_t m, const double *V, const int6
         }
         for (int64_t i = 0; i < 3 * n; i++) G[i] = ldexp(G[i], 3 * k);
     }
-    free(A);
     return 0;
 }
 
 /* The losses picked by `which` (1: uniform Laplacian, 2: edge, 4: area), in that order, into value (k, B) and,
- * where grad is not NULL, grad (k, B, n, 3) (zeros on entry): the three in one call. Returns as they do. */
+ * where grad is not NULL, grad (k, B, n, 3) (zeros on entry): the three in one call, sharing one scratch
+ * buffer. Returns as they do, or -1 where the buffer cannot be had. */
 int reg_losses(int64_t B, int64_t n, int64_t m, int64_t nE, const double *V, const int64_t *F, const int64_t *E,
                const int64_t *ptr, const int64_t *idx, int which, double *value, double *grad) {
+    const int64_t size = (nE > 4 * m ? nE : 4 * m) + 3 * n;  /* the largest any of them takes */
+    double *scratch = malloc((size_t)size * sizeof(double));
+    if (!scratch) return -1;
     int64_t k = 0;
     int rc = 0;
     if (which & 1) {
-        rc = reg_uniform_laplacian(B, n, V, ptr, idx, value + k * B, grad ? grad + 3 * n * B * k : NULL);
-        if (rc) return rc;
+        rc = reg_uniform_laplacian(B, n, V, ptr, idx, value + k * B, grad ? grad + 3 * n * B * k : NULL, scratch);
         k++;
     }
-    if (which & 2) {
-        rc = reg_edge(B, n, nE, V, E, value + k * B, grad ? grad + 3 * n * B * k : NULL);
-        if (rc) return rc;
+    if (!rc && (which & 2)) {
+        rc = reg_edge(B, n, nE, V, E, value + k * B, grad ? grad + 3 * n * B * k : NULL, scratch);
         k++;
     }
-    if (which & 4) rc = reg_area(B, n, m, V, F, value + k * B, grad ? grad + 3 * n * B * k : NULL);
+    if (!rc && (which & 4)) rc = reg_area(B, n, m, V, F, value + k * B, grad ? grad + 3 * n * B * k : NULL, scratch);
+    free(scratch);
     return rc;
 }
