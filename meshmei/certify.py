@@ -81,18 +81,18 @@ class GraphCertificate:
 
     def __init__(self, F: torch.Tensor, direction: torch.Tensor, n_vertices: int):
         F = F.cpu()
-        d = torch.as_tensor(direction, dtype=torch.float64).cpu()
+        d = torch.as_tensor(direction, dtype=torch.float64, device="cpu")
         d = d / d.norm()
-        a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64)
+        a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64, device="cpu")
         u = a - (a @ d) * d
         u = u / u.norm()
         self.direction = d
         basis = torch.stack([u, torch.linalg.cross(d, u)])  # (2, 3): u x w = d, so n . d > 0 is counter-clockwise
         topo = mesh_topology(F, n_vertices)
-        used = torch.zeros(n_vertices, dtype=torch.bool)
+        used = torch.zeros(n_vertices, dtype=torch.bool, device="cpu")
         used[F.reshape(-1)] = True
         seg = _boundary_segments(F, topo)  # (b, 2)
-        i, j = torch.triu_indices(len(seg), len(seg), 1)
+        i, j = torch.triu_indices(len(seg), len(seg), 1, device="cpu")
         apart = (seg[i][:, :, None] != seg[j][:, None, :]).all(-1).all(-1)  # share no vertex
         i, j = i[apart], j[apart]
         # numpy arrays for holds()

@@ -462,7 +462,9 @@ def _add_population(sub) -> None:
     p.add_argument("--pixel-steps", type=int, default=200, help="steps of each pixel MEI (0: none; default 200)")
     p.add_argument("--cluster", default=None, metavar="ray|ray://HOST:PORT",
                    help="run batches as Ray tasks (pip install 'meshmei[cluster]'); default: in this process")
-    p.add_argument("--device", default="cpu", help="cpu (this version renders on the CPU)")
+    p.add_argument("--device", default="cpu",
+                   help="cpu, cuda or cuda:N: where the meshes are rendered and optimised and the model runs "
+                        "(with --cluster ray, each task asks Ray for a GPU for cuda)")
     _add_objective_options(p, d)
     p.add_argument("--figures", action="store_true", help="also write each run folder's figures")
     p.add_argument("--quiet", action="store_true")

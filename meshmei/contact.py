@@ -391,7 +391,7 @@ class ContactBarrier:
     def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
                  edges: bool = False):
         check_positive("distance", distance)
-        F = as_faces(F)
+        F = as_faces(F).cpu()  # the search and the energy run on the CPU (contact_energies)
         self.F = F
         self.Fn = np.ascontiguousarray(F.detach().cpu().numpy())
         self._least_vertices = int(self.Fn.max()) + 1  # the vertex count the faces need (checked every call)
@@ -522,10 +522,10 @@ class ContactBarrier:
         """(edge, edge) pairs, sharing no vertex, within ``reach`` now (indices into :attr:`E`, by first
         edge, then second), and their distances; empty without ``edges``. ``En``: the edges to pair instead
         (with :attr:`E` unset). ``compiled``: the broad phase by ``_contact.c``, as in :meth:`_candidates`."""
-        none = torch.zeros(0, dtype=torch.int64)
+        none = torch.zeros(0, dtype=torch.int64, device="cpu")
         En = self.En if En is None else En
         if En is None:
-            return none, none, torch.zeros(0, dtype=torch.float64)
+            return none, none, torch.zeros(0, dtype=torch.float64, device="cpu")
         A, B = Vn[En[:, 0]], Vn[En[:, 1]]
         mid, half = 0.5 * (A + B), 0.5 * np.sqrt(((B - A) ** 2).sum(1))
         typical = float(np.quantile(half, 0.98))
@@ -577,7 +577,7 @@ class ContactBarrier:
         on the same vertices, in the same order of calls. ``V`` must not be changed in place before it is
         taken."""
         self._take_pending()
-        Vd = V.detach()
+        Vd = V.detach().cpu()
         self._pending = (Vd, _worker().submit(self._search, Vd, native.enabled()))
 
     def _take_pending(self, V: torch.Tensor | None = None):
@@ -679,7 +679,12 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     coordinates): ``_contact.c`` measures every candidate in float64 and writes the energy and its gradient in
     one pass (:func:`_compiled_contact`); else (and within :func:`~meshmei.native.torch_reference`) torch
     measures them, then those within ``distance`` again with a gradient (:func:`_torch_contact`).
-    The two agree to rounding (float64 against ``V``'s dtype). Sets each barrier's ``active``."""
+    The two agree to rounding (float64 against ``V``'s dtype). Sets each barrier's ``active``.
+
+    ``V`` on another device (a CUDA run): measured on a copy on the CPU, where the search runs, and the
+    energies handed back on ``V``'s device with their gradient (a few thousand floats each way)."""
+    if V.device.type != "cpu":
+        return contact_energies(barriers, V.cpu()).to(V.device)
     B, n = V.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
@@ -708,7 +713,7 @@ def _torch_contact(V, Vf, kinds, dh):
     pairs within ``dh`` are picked without a graph (most steps of a smooth mesh have none), and only those are
     measured again with one."""
     B, n = V.shape[:2]
-    counts = torch.zeros(B, dtype=torch.long)
+    counts = torch.zeros(B, dtype=torch.long, device="cpu")
     total = V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient, where no pair is near
     for rows, item, dist in kinds:
         with torch.no_grad():

@@ -29,7 +29,7 @@ def _as_tensor(x, name):
         return torch.from_numpy(x if all(st >= 0 for st in x.strides) else np.ascontiguousarray(x))
     if isinstance(x, (list, tuple)):
         try:
-            return torch.as_tensor(np.asarray(x))
+            return torch.as_tensor(np.asarray(x), device="cpu")
         except (ValueError, TypeError) as err:
             raise MeshError(f"{name} must be a rectangular array, got a ragged {type(x).__name__}: {err}") from None
     raise MeshError(f"{name} must be a torch tensor or numpy array, got {type(x).__name__}")

@@ -334,7 +334,7 @@ def cot_laplacian(V: torch.Tensor, F: torch.Tensor, X: torch.Tensor | None = Non
 def _values_on(X, V: torch.Tensor) -> torch.Tensor:
     """Per-vertex values ``X`` (``(n, d)``, or ``(B, n, d)`` like a batched ``V``) as a tensor in ``V``'s
     dtype and on its device; MeshError naming ``X`` for another shape or non-finite values."""
-    X = torch.as_tensor(X) if not isinstance(X, torch.Tensor) else X
+    X = torch.as_tensor(X, device="cpu") if not isinstance(X, torch.Tensor) else X
     if X.is_complex() or X.dtype == torch.bool:
         raise MeshError(f"X must hold real numbers, got {X.dtype}")
     n = V.shape[-2]

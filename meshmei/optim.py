@@ -290,7 +290,7 @@ class _Best:
             return
         if self.saved is None:
             self.value = torch.full_like(values, math.inf)
-            self.step = torch.full(values.shape, step, dtype=torch.int64)
+            self.step = torch.full(values.shape, step, dtype=torch.int64, device="cpu")
             self.saved = [p.detach().clone() for p in self.params]
             self.saved_states = [s.snapshot() for s in self.states]
         better = values < self.value
@@ -350,10 +350,10 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
         for s, b in zip(states, before_states):
             s.restore(b)
         return 0.0
-    scale = torch.ones(items, dtype=torch.float64)
-    done = torch.zeros(items, dtype=torch.bool)
+    scale = torch.ones(items, dtype=torch.float64, device="cpu")  # the bookkeeping stays on the CPU
+    done = torch.zeros(items, dtype=torch.bool, device="cpu")
     for _ in range(max_halvings + 1):
-        done |= torch.as_tensor(accept(~done), dtype=torch.bool).cpu()
+        done |= torch.as_tensor(accept(~done), dtype=torch.bool, device="cpu")
         if bool(done.all()):
             return scale.tolist()
         scale = torch.where(done, scale, 0.5 * scale)

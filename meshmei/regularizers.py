@@ -298,7 +298,7 @@ def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
 def albedo_roughness(a, F) -> torch.Tensor:
     """Roughness of a per-vertex scalar field ``a`` (n,) or (B, n) such as an albedo: ``mean_i (a_i - mean of a
     over i's 1-ring)^2`` over vertices with neighbours. Returns () or (B,)."""
-    topo = mesh_topology(torch.as_tensor(F).long(), a.shape[-1])
+    topo = mesh_topology(torch.as_tensor(F, device=a.device).long(), a.shape[-1])
     d = uniform_laplacian_from_topology(a.unsqueeze(-1), topo).squeeze(-1)
     live = topo.degree > 0
     return ((d * d) * live).sum(-1) / live.sum().clamp_min(1)

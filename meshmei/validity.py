@@ -69,8 +69,8 @@ def _frame_rule() -> int | None:
     torch code then runs). Probed once, on a random mesh of 64 vertices and 512 faces."""
     if not _FRAME_RULE:
         g = torch.Generator().manual_seed(0)
-        V = torch.randn(64, 3, dtype=torch.float64, generator=g)
-        F = torch.randint(0, 64, (512, 3), generator=g)
+        V = torch.randn(64, 3, dtype=torch.float64, generator=g, device="cpu")
+        F = torch.randint(0, 64, (512, 3), generator=g, device="cpu")
         n, q = face_frame(V, F)
         rule = None
         for fused in (1, 0):
@@ -87,7 +87,7 @@ def _kernel_frame(Vd, F, fused, normals, cos_limit, turn_faces):
     lib = native.library()
     Vd, F = Vd.contiguous(), F.contiguous()
     m = F.shape[0]
-    f64 = dict(dtype=torch.float64)
+    f64 = dict(dtype=torch.float64, device="cpu")
     C, S, L2 = torch.empty(m, 3, **f64), torch.empty(m, **f64), torch.empty(m, **f64)
     rc = lib.guard_frame_parts(Vd.shape[0], m, Vd.data_ptr(), F.data_ptr(), fused, C.data_ptr(), S.data_ptr(),
                                L2.data_ptr())
@@ -245,6 +245,7 @@ class StepGuard:
 
     def __init__(self, V0: torch.Tensor, F: torch.Tensor, rules: ValidityRules = ValidityRules()):
         V0, F = check_mesh(V0, F)
+        V0, F = V0.detach().cpu(), F.cpu()  # the checks run on the CPU, whatever the run's device
         self.F, self.rules, self.n_vertices = F, rules, V0.shape[0]
         ref = V0.detach().double()
         self.normals, q = face_frame(ref, F)  # (m, 3) reference orientation
@@ -290,7 +291,7 @@ class StepGuard:
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] != self.n_vertices:
             raise MeshError(f"candidate vertices must have the start's shape ({self.n_vertices}, 3), got "
                             f"{tuple(V.shape)}")
-        Vd = V.detach().double()
+        Vd = V.detach().to("cpu", torch.float64)
         turn = self.rules.max_turn_degrees < 180
         # the frame, the smallest quality and the turned faces in one compiled pass where it applies
         checked = None if frame is not None else _compiled_frame(
@@ -392,7 +393,7 @@ class StepGuard:
             self.failures += 1
             self.reasons[rule] += 1
         else:
-            Vd = V.detach().double()
+            Vd = V.detach().to("cpu", torch.float64)
             self._accepted_frame = (Vd, *frame)
             self.accepted = Vd
             if self._candidate_pairs is not None:  # pairs that went away may not come back
@@ -434,6 +435,8 @@ class StepGuard:
         if V.ndim not in (2, 3) or V.shape[-2:] != (self.n_vertices, 3):
             raise MeshError(f"the barrier's vertices must have shape ({self.n_vertices}, 3) or (B, "
                             f"{self.n_vertices}, 3), got {tuple(V.shape)}")
+        if V.device.type != "cpu":  # a CUDA run's: on a copy on the CPU, with the guard's reference there
+            return self.barrier(V.cpu(), turn_band_degrees=turn_band_degrees, quality_band=quality_band).to(V.device)
         q_band = quality_band * self.quality_floor
         turn = self.rules.max_turn_degrees < 180
         if turn:

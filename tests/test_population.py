@@ -316,11 +316,18 @@ def test_the_cli_passes_the_objective_options_into_every_run(tmp_path):
     assert (s["robust_pose"], s["robust_light"], s["valid_steps"], s["albedo"]) == (10.0, 5.0, False, False)
 
 
-def test_devices_other_than_the_cpu_are_refused_clearly(tmp_path):
-    with pytest.raises(MEIError, match="cuda|CUDA"):
+@pytest.mark.parametrize("device", ["tpu", "cuda:x", "cpu:1", "meta", 3.5])
+def test_devices_that_are_not_cpu_or_cuda_are_refused_clearly(tmp_path, device):
+    with pytest.raises(MEIError, match="device must be cpu, cuda or cuda:N"):
+        run_population(cells(), [0], tmp_path / "p", device=device, settings=MEISettings(**SMALL), progress=False)
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device")
+def test_cuda_on_a_machine_without_it_is_refused_clearly(tmp_path):
+    with pytest.raises(MEIError, match="'cuda' asked for, but this machine has no CUDA device"):
         run_population(cells(), [0], tmp_path / "p", device="cuda", settings=MEISettings(**SMALL), progress=False)
-    with pytest.raises(MEIError, match="device must be"):
-        run_population(cells(), [0], tmp_path / "p", device="tpu", settings=MEISettings(**SMALL), progress=False)
+    assert not (tmp_path / "p").exists()
 
 
 def test_a_start_mesh_of_your_own_is_told_apart_by_its_values(tmp_path):
@@ -423,3 +430,15 @@ def test_an_encoder_that_cannot_reach_the_workers_is_refused_before_the_folder(t
         run_population(enc, [0, 1], tmp_path / "pop", settings=MEISettings(**SMALL), pixel_steps=0, cluster="ray",
                        progress=False)
     assert not (tmp_path / "pop").exists() and not ray.is_initialized()
+
+
+@one_ray_at_a_time
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the local Ray instance would have this machine's GPUs")
+def test_cuda_on_a_ray_cluster_without_gpus_is_refused_before_any_task(tmp_path):
+    """The driver checks the device's name only (a login node has no GPU; the workers do); the cluster's
+    resources decide, once Ray is up, before any task is sent."""
+    with pytest.raises(MEIError, match="'cuda' asked for, but the Ray cluster has no GPU"):
+        run_population(cells(), [0, 1], tmp_path / "pop", settings=MEISettings(**SMALL), pixel_steps=0,
+                       cluster="ray", device="cuda", progress=False)
+    assert not ray.is_initialized()
+    assert not list((tmp_path / "pop" / "neurons").glob("neuron_*"))

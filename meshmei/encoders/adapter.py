@@ -368,15 +368,6 @@ class ModelEncoder(Encoder):
     def n_neurons(self) -> int:
         return self._n
 
-    @property
-    def device(self) -> torch.device:
-        """The device of the models' parameters (CPU for a model without parameters)."""
-        for p in self.parameters():
-            return p.device
-        for b in self.buffers():
-            return b.device
-        return torch.device("cpu")
-
     def inputs(self, images: torch.Tensor, neurons=None, *, preprocessed: bool = False) -> tuple:
         check_images(images)  # before the resize, whose own errors come from deep inside torch
         if tuple(images.shape[-2:]) != self.image_size:

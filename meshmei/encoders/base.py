@@ -126,20 +126,32 @@ class Encoder(torch.nn.Module):
         self.preprocess = preprocess
 
     @property
+    def device(self) -> torch.device:
+        """Where the encoder computes: the device of its parameters, else of its buffers (``encoder.to(...)``
+        moves both). A 3D-MEI renders and optimises on this device."""
+        for p in self.parameters():
+            return p.device
+        for b in self.buffers():
+            return b.device
+        return torch.device("cpu")
+
+    @property
     def n_neurons(self) -> int:
         """How many neurons the encoder models."""
         raise NotImplementedError
 
     def neuron_index(self, neurons, device=None) -> torch.Tensor:
-        """Validate a neuron selection (None, an int, or a sequence / 1-D tensor of ints) as an int64 tensor."""
+        """Validate a neuron selection (None, an int, or a sequence / 1-D tensor of ints) as an int64 tensor on
+        ``device`` (the CPU when None; the checks run there, without a device synchronisation)."""
         n = self.n_neurons
+        device = torch.device("cpu") if device is None else device
         if neurons is None:
             return torch.arange(n, device=device)
         if isinstance(neurons, (bool, str, bytes)):
             raise EncoderError(f"a neuron must be an integer index (neurons: None, an int or a sequence of ints), "
                                f"got {neurons!r}")
         try:
-            idx = torch.as_tensor(neurons, device=device)
+            idx = torch.as_tensor(neurons, device="cpu")
         except (TypeError, ValueError, RuntimeError):  # strings in a list, objects, ragged nesting
             raise EncoderError(f"a neuron must be an integer index (neurons: None, an int or a sequence of ints), "
                                f"got {neurons!r}") from None
@@ -150,7 +162,7 @@ class Encoder(torch.nn.Module):
         idx = idx.reshape(-1).long()
         if int(idx.min()) < 0 or int(idx.max()) >= n:
             raise EncoderError(f"neuron index out of range for {n} neurons: got {idx.tolist()[:10]}")
-        return idx
+        return idx.to(device)
 
     def respond(self, z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """Responses ``(B, k)`` of the neurons ``idx`` ``(k,)`` to preprocessed images ``z`` ``(B, 1, H, W)``."""

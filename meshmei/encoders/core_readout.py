@@ -194,8 +194,9 @@ def load_demo_model(path=None) -> CoreReadoutModel:
     blob = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(blob, dict) or "state_dict" not in blob or "core" not in blob:
         raise EncoderError(f"{path} is not a meshmei demo model file")
-    core = DefaultCore(**json.loads(blob["core"]))
-    model = CoreReadoutModel.from_state_dict(blob["state_dict"], core)
+    with torch.device("cpu"):  # on the CPU whatever torch's default device; .to(device) moves it
+        core = DefaultCore(**json.loads(blob["core"]))
+        model = CoreReadoutModel.from_state_dict(blob["state_dict"], core)
     model._meshmei_demo = True  # read by is_demo_model: a run records such a model as kind "demo"
     return model
 

@@ -20,7 +20,7 @@ __all__ = ["gabor_filters", "GaborSimpleCell", "GaborComplexCell"]
 def _broadcast_params(**params):
     ts = {}
     for k, v in params.items():
-        t = torch.as_tensor(v, dtype=torch.float64).reshape(-1)
+        t = torch.as_tensor(v, dtype=torch.float64, device="cpu").reshape(-1)
         if t.numel() == 0 or not bool(torch.isfinite(t).all()):
             raise EncoderError(f"Gabor parameter {k} must be finite and non-empty, got {v!r}")
         ts[k] = t
@@ -85,7 +85,7 @@ class _GaborBank(Encoder):
     def _raw(self, H, W, phase_shift=0.0):
         p = dict(self.params)
         p["phase"] = p["phase"] + phase_shift
-        return gabor_filters(H, W, **p)  # float64
+        return gabor_filters(H, W, **p, device="cpu")  # float64, moved to the images' device by filters()
 
     def filters(self, height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
         """The unit-norm, zero-mean filters ``(N, k, height, width)`` (k = 1 simple, 2 complex); cached."""

@@ -68,8 +68,8 @@ class BatchScene:
             self.albedo_logit = torch.nn.Parameter(torch.stack([s.albedo_logit.detach() for s in self.seeds]))
             self.groups.append({"params": [self.albedo_logit], "lr": settings.lr_albedo})
         B = len(self.seeds)
-        self.rotation = torch.zeros(B, 3, dtype=V0.dtype)
-        self.translation = torch.zeros(B, 3, dtype=V0.dtype)
+        self.rotation = V0.new_zeros(B, 3)
+        self.translation = V0.new_zeros(B, 3)
         self.pose = settings.optimize_pose
         if self.pose:
             self.rotation, self.translation = torch.nn.Parameter(self.rotation), torch.nn.Parameter(self.translation)
@@ -132,10 +132,10 @@ class BatchScene:
 
         def accept(pending: torch.Tensor) -> torch.Tensor:
             with torch.no_grad():
-                V = self.vertices.candidate().double()
+                V = self.vertices.candidate().to("cpu", torch.float64)  # the guards check on the CPU
                 n, q = face_frame(V, self.guards[0].F)  # every item's frame in one pass
             return torch.tensor([not p or g.accept(V[b], (n[b], q[b]))
-                                 for b, (g, p) in enumerate(zip(self.guards, pending.tolist()))])
+                                 for b, (g, p) in enumerate(zip(self.guards, pending.tolist()))], device="cpu")
 
         return accept
 
@@ -170,8 +170,8 @@ class BatchScene:
 
 def _responses(encoder, images, neurons) -> torch.Tensor:
     """Each item's own neuron's response, ``(B,)``, from one model call over the distinct neurons."""
-    unique, cols = torch.unique(torch.as_tensor(neurons), return_inverse=True)
-    return encoder(images, unique.tolist()).gather(1, cols.view(-1, 1)).squeeze(1)
+    unique, cols = torch.unique(torch.as_tensor(neurons, device="cpu"), return_inverse=True)
+    return encoder(images, unique.tolist()).gather(1, cols.view(-1, 1).to(images.device)).squeeze(1)
 
 
 def _objective(encoder, neurons, F, scene: BatchScene, active: dict, settings: MEISettings):
@@ -227,7 +227,7 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
         for n in neurons:  # K views per item: each neuron alone
             yield n, optimize_mei(encoder, n, init, settings)
         return
-    V0, F, init_name = initial(init, settings)
+    V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
     items = [(n, s) for n in neurons for s in settings.seeds]

@@ -45,13 +45,8 @@ def check_neuron(encoder, neuron, error: type[ValueError] = MEIError) -> int:
 def settings_for_encoder(settings: MEISettings, encoder) -> MEISettings:
     """The settings a run uses with ``encoder``: a lab's model (:class:`~meshmei.encoders.ModelEncoder`) is
     rendered at the longer side of its input (its own size when square; a 36 x 64 model gets a 64 x 64
-    render whose middle 36 rows it sees, :func:`~meshmei.encoders.fit_to_size`); one on another device
-    than the renderer is refused here, before the first step."""
+    render whose middle 36 rows it sees, :func:`~meshmei.encoders.fit_to_size`)."""
     size = getattr(encoder, "image_size", None)
-    device = getattr(encoder, "device", None)
-    if device is not None and torch.device(device).type != "cpu":
-        raise MEIError(f"the model is on {device}; meshmei renders on the CPU in this version: move the model "
-                       f"to the CPU (model.cpu()) before wrapping it")
     if size is not None and settings.image_size != max(size):
         settings = replace(settings, image_size=int(max(size)))
     return settings
@@ -63,22 +58,24 @@ def start_name(init) -> str:
     return init if isinstance(init, str) else "custom"
 
 
-def initial(init, settings: MEISettings):
-    """``(V0, F, name)``: a built-in starting mesh by name (``settings.n_vertices``) or a given ``(V, F)``
-    (vertices no face uses are dropped: they would only widen the RBF kernels' spacing)."""
+def initial(init, settings: MEISettings, device="cpu"):
+    """``(V0, F, name)`` on ``device``: a built-in starting mesh by name (``settings.n_vertices``) or a given
+    ``(V, F)`` (vertices no face uses are dropped: they would only widen the RBF kernels' spacing). A run
+    passes its model's device (:attr:`meshmei.encoders.Encoder.device`): the mesh, its deformation and its
+    render live where the model computes."""
     if isinstance(init, str):
         if init not in INITIAL_KINDS:
             raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {init!r}")
         try:
-            V0, F = initial_mesh(init, n_vertices=settings.n_vertices, dtype=settings.torch_dtype)
+            V0, F = initial_mesh(init, n_vertices=settings.n_vertices, dtype=settings.torch_dtype, device="cpu")
         except ValueError as err:  # a vertex count the start cannot have
             raise MEIError(f"{init} start: {err}") from None
-        return V0, F, init
+        return V0.to(device), F.to(device), init
     try:
         V0, F = init
     except (TypeError, ValueError):
         raise MEIError(f"init must be one of {INITIAL_KINDS} or a (V, F) pair, got {type(init).__name__}") from None
-    V0, F = remove_unreferenced(torch.as_tensor(V0).detach(), torch.as_tensor(F))
+    V0, F = remove_unreferenced(torch.as_tensor(V0, device="cpu").detach(), torch.as_tensor(F, device="cpu"))
     side = float((V0.amax(0) - V0.amin(0)).max())
     if not 0.25 <= side <= 4.0:
         # lr and the initial noise are lengths sized for the built-in starts (largest side 1): a start 50
@@ -86,7 +83,7 @@ def initial(init, settings: MEISettings):
         warnings.warn(f"the start's largest side is {side:.3g}; lr ({settings.lr}) and the initial noise are "
                       "world lengths sized for starts of about 1 (the built-in ones, and files given to "
                       "meshmei mei --init, are scaled to 1): scale the start, or lr with it", stacklevel=3)
-    return V0.to(settings.torch_dtype), F, "custom"
+    return V0.to(device=device, dtype=settings.torch_dtype), F.to(device), "custom"
 
 
 def start_from_file(path, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,7 +256,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     settings = MEISettings.with_overrides(settings, overrides)
     neuron = check_neuron(encoder, neuron)
     settings = settings_for_encoder(settings, encoder)
-    V0, F, init_name = initial(init, settings)
+    V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]  # the count weights scale to
     bar = Progress(settings.steps * len(settings.seeds), f"3D-MEI neuron {neuron}", enabled=progress,
@@ -278,17 +275,30 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     return result_from_seeds(runs, V0, F, settings, neuron, encoder, init_name, wall)
 
 
+def _on_cpu(x):
+    """``x`` with every tensor in it (in dicts, lists and tuples too) moved to the CPU."""
+    if isinstance(x, torch.Tensor):
+        return x.cpu()
+    if isinstance(x, dict):
+        return {k: _on_cpu(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_on_cpu(v) for v in x)
+    return x
+
+
 def result_from_seeds(runs: dict, V0, F, settings: MEISettings, neuron: int, encoder, init_name: str,
                       wall: float) -> MEIResult:
     """The :class:`MEIResult` of one neuron from its seeds' runs (``seed -> run dict``): the lowest loss wins,
-    among the seeds whose loss and response are finite (``MEIError`` if none is)."""
+    among the seeds whose loss and response are finite (``MEIError`` if none is). Its tensors are on the CPU,
+    whatever device the run used: a result is a record to save, plot and compare (a few hundred vertices and
+    one image), not a state to keep on a GPU."""
     finite = [s for s in runs if math.isfinite(runs[s]["loss"]) and math.isfinite(runs[s]["activation"])]
     if not finite:
         ends = {s: (runs[s]["loss"], runs[s]["activation"]) for s in runs}
         raise MEIError(f"no seed of neuron {neuron} ended with a finite loss and response ((loss, response) by "
                        f"seed: {ends})")
     seed = min(finite, key=lambda s: runs[s]["loss"])
-    r = runs[seed]
+    r, V0, F = _on_cpu(runs[seed]), V0.cpu(), F.cpu()
     return MEIResult(
         V=r["V"], F=F, V0=V0, image=r["image"], activation=r["activation"], history=r["history"],
         loss_history=r["loss_history"], reg_history=r["reg_history"], seed=seed, time_history=r["time_history"],

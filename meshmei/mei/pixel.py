@@ -58,7 +58,7 @@ class PixelMEIResult:
 
     Attributes
     ----------
-    image : (1, 1, H, W) tensor
+    image : (1, 1, H, W) tensor (on the CPU, whatever device the run used)
         The best preprocessed image (L2 norm ``encoder.preprocess.norm``; for a model with ``norm=None``,
         every pixel within the renderable range, see the module docstring); ``encoder.preprocess.to_image``
         maps it to pixel values.
@@ -215,7 +215,8 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
         One run per seed (distinct), from white noise with that seed; the highest final response wins.
     init_std : float
         Standard deviation of the initial noise before projection (finite, > 0; only its direction matters).
-    dtype, device : torch dtype (``torch.float32`` or ``torch.float64``) and device of the image.
+    dtype, device : torch dtype (``torch.float32`` or ``torch.float64``) and device of the image (the encoder's
+        device when None).
     progress : bool
         Show a tqdm progress bar.
 
@@ -232,12 +233,14 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
         image_size = getattr(encoder, "image_size", 64)
     neuron, H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma,
                                              init_std, dtype, device)
+    device = encoder.device if device is None else torch.device(device)
     pre = encoder.preprocess
     norm = pre.norm
     box = None
     if not getattr(pre, "renorm", True):  # norm=None: the box of renderable images (module docstring)
         with torch.no_grad():
-            ends = pre.standardise(torch.tensor([0.0, 1.0], dtype=torch.float64).view(1, 1, 1, 2)).flatten()
+            ends = pre.standardise(torch.tensor([0.0, 1.0], dtype=torch.float64, device=device).view(1, 1, 1, 2))
+            ends = ends.flatten()
         box = (float(ends.min()), float(ends.max()))
     best, per_seed = None, {}
     bar = Progress(len(seeds) * steps, f"pixel MEI neuron {neuron}", enabled=progress,
@@ -245,7 +248,7 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
     with frozen_encoder(encoder):
         for seed in seeds:
             g = torch.Generator().manual_seed(seed)
-            z = (init_std * torch.randn(1, 1, H, W, generator=g, dtype=dtype)).to(device)
+            z = (init_std * torch.randn(1, 1, H, W, generator=g, dtype=dtype, device="cpu")).to(device)  # as on the CPU
             if box is None:
                 z = _on_sphere(z, norm).requires_grad_(True)
             else:  # the box's centre plus the noise, its largest pixel a quarter of the box's width out
@@ -267,7 +270,7 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
                                    f"step_size (step_size={step_size:g})")
             per_seed[seed] = final
             if best is None or final > best[1]:
-                best = (z.detach(), final, tuple(r["response"] for r in trace.history) + (final,), seed)
+                best = (z.detach().cpu(), final, tuple(r["response"] for r in trace.history) + (final,), seed)
     bar.close()
     settings = dict(image_size=[H, W], steps=steps, step_size=float(step_size), blur_sigma=float(blur_sigma),
                     seeds=seeds, init_std=float(init_std), dtype=str(dtype).replace("torch.", ""),

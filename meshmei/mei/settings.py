@@ -374,7 +374,8 @@ class MEISettings:
 
 @dataclass(frozen=True)
 class MEIResult:
-    """Outcome of :func:`optimize_mei` (or of :func:`load_run`).
+    """Outcome of :func:`optimize_mei` (or of :func:`load_run`). Its tensors are on the CPU, whatever device
+    the run used (the model's).
 
     Attributes
     ----------

@@ -25,12 +25,16 @@ def neuron_groups(neurons: list[int], batch_size: int, n_seeds: int) -> list[lis
     return [neurons[i:i + per] for i in range(0, len(neurons), per)]
 
 
-def _task(encoder, spec, neurons, init, settings: dict, batch_size, pixel_steps):
+def _task(encoder, spec, neurons, init, settings: dict, batch_size, pixel_steps, device=None):
     """``(results, error)``: the group's finished neurons, and the error that stopped the rest (None when
-    none did) as one line: a failure on one neuron does not take the group's finished ones with it."""
+    none did) as one line: a failure on one neuron does not take the group's finished ones with it.
+    ``device``: where the task runs its copy of the encoder (a CUDA task sees the GPU Ray gave it as
+    ``cuda``); the results come back on the CPU."""
     done = []
     try:
         enc = encoder if encoder is not None else encoder_from_spec(spec)
+        if device is not None:
+            enc = enc.to(device)
         for item in neuron_results(enc, neurons, init, MEISettings.from_dict(settings), batch_size=batch_size,
                                    pixel_steps=pixel_steps):
             done.append(item)
@@ -81,7 +85,7 @@ def check_cluster(cluster: str):
 
 
 def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettings, *, batch_size: int,
-                       pixel_steps: int, max_retries: int = 3):
+                       pixel_steps: int, max_retries: int = 3, device=None):
     """Yield ``(neuron, result, seconds)`` as Ray tasks finish (see :func:`~meshmei.population.run_population`).
 
     ``cluster``: ``"ray"`` (the cluster ``RAY_ADDRESS`` names, else a local instance started here and stopped
@@ -89,6 +93,9 @@ def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettin
     exception raised by the optimisation itself, or a task that still fails, ends the run with MEIError
     after every neuron that finished has been handed out: the failed task's own finished neurons and the
     other tasks' that had finished by then (the tasks still running are cancelled).
+
+    ``device`` (a torch device or None: the encoder's): a CUDA device makes each task ask Ray for one GPU
+    (``num_gpus=1``) and run on it; a cluster without GPUs is refused before any task starts.
     """
     ray = check_cluster(cluster)
     started = not ray.is_initialized()
@@ -104,8 +111,14 @@ def ray_neuron_results(cluster: str, encoder, neurons, init, settings: MEISettin
             payload, spec = ray.put(encoder), None
         except Exception:
             payload, spec = None, encoder_spec(encoder)
-        task = ray.remote(num_cpus=1, max_retries=max_retries)(_task)
-        pending = {task.remote(payload, spec, group, init, settings.to_dict(), batch_size, pixel_steps): group
+        gpus = 1 if device is not None and device.type == "cuda" else 0
+        if gpus and ray.cluster_resources().get("GPU", 0) < 1:
+            raise MEIError(f"device {str(device)!r} asked for, but the Ray cluster has no GPU "
+                           f"({ray.cluster_resources().get('CPU', 0):g} CPUs); run with --device cpu")
+        # Ray sets each GPU task's CUDA_VISIBLE_DEVICES: the task's "cuda" is the GPU it was given
+        where = None if device is None else ("cuda" if gpus else str(device))
+        task = ray.remote(num_cpus=1, num_gpus=gpus, max_retries=max_retries)(_task)
+        pending = {task.remote(payload, spec, group, init, settings.to_dict(), batch_size, pixel_steps, where): group
                    for group in neuron_groups(list(neurons), batch_size, len(settings.seeds))}
         failure = None
         while pending and failure is None:

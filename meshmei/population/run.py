@@ -45,20 +45,33 @@ def start_identity(init, settings: MEISettings) -> str:
     return f"mesh: {V0.shape[0]} vertices, {F.shape[0]} faces, sha256 {h.hexdigest()[:16]}"
 
 
-def check_device(device) -> torch.device:
-    """``cpu``, ``cuda`` or ``cuda:N`` as a torch device; a clear error for what cannot run here."""
+def check_device(device, *, here: bool = True) -> torch.device | None:
+    """``cpu``, ``cuda`` or ``cuda:N`` as a torch device (None stays None: the encoder's own device); a clear
+    error for anything else, and, with ``here``, for a CUDA device this machine does not have. A cluster's
+    driver checks the name only (``here=False``): its workers have the GPUs."""
+    if device is None:
+        return None
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
         raise MEIError(f"device must be cpu, cuda or cuda:N, got {device!r}") from None
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise MEIError(f"device {device!r} asked for, but this machine has no CUDA device")
-        raise MEIError("this version renders and optimises on the CPU; --device cuda is not supported yet "
-                       "(a model on the GPU is refused before the first step)")
-    if dev.type != "cpu":
+    if dev.type not in ("cpu", "cuda") or (dev.type == "cpu" and dev.index not in (None, 0)):
         raise MEIError(f"device must be cpu, cuda or cuda:N, got {device!r}")
+    if dev.type == "cuda" and here:
+        if not torch.cuda.is_available():
+            raise MEIError(f"device {device!r} asked for, but this machine has no CUDA device (torch "
+                           f"{torch.__version__}{', a CPU-only build' if torch.version.cuda is None else ''})")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise MEIError(f"device {device!r} asked for, but this machine has {torch.cuda.device_count()} CUDA "
+                           f"device(s): cuda:0 to cuda:{torch.cuda.device_count() - 1}")
     return dev
+
+
+def _on_device(encoder: Encoder, device: torch.device | None) -> Encoder:
+    """``encoder`` moved to ``device`` (in place, as ``Module.to`` does; None: where it is)."""
+    if device is None or encoder.device == device or (device.index is None and encoder.device.type == device.type):
+        return encoder
+    return encoder.to(device)
 
 
 def neuron_results(encoder: Encoder, neurons, init, settings: MEISettings, *, batch_size: int,
@@ -112,7 +125,7 @@ def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures
 
 
 def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", settings: MEISettings | None = None,
-                   batch_size: int = 8, pixel_steps: int = 200, cluster: str | None = None, device="cpu",
+                   batch_size: int = 8, pixel_steps: int = 200, cluster: str | None = None, device=None,
                    figures: bool = False, progress: bool = True, **overrides) -> list[dict]:
     """3D-MEIs (and pixel MEIs) of ``neurons``, one run folder each under ``out``, and a table of them.
 
@@ -135,8 +148,13 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
     cluster : None, ``"ray"`` or ``"ray://HOST:PORT"``
         None: in this process. ``"ray"``: a local Ray instance (or the cluster ``RAY_ADDRESS`` names);
         ``"ray://..."``: that cluster. Needs ``pip install "meshmei[cluster]"``.
-    device : str
-        ``"cpu"`` (this version renders on the CPU).
+    device : None, ``"cpu"``, ``"cuda"`` or ``"cuda:N"``
+        Where the meshes are rendered and optimised and the model runs. None: the encoder's own device
+        (:attr:`~meshmei.encoders.Encoder.device`). Given, the encoder is moved there (in place, as
+        ``Module.to`` moves a module); with ``cluster``, each Ray task moves its copy there and asks Ray
+        for one GPU for a CUDA device. The results (run folders, table) are on the CPU either way, and a
+        folder's results may come from different devices (they agree to float rounding; the device is not
+        part of the configuration hash).
     figures : bool
         Also write each run folder's PNG figures (about a second per neuron).
     progress : bool
@@ -149,7 +167,11 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
     list of dict
         The table's rows (``population.csv``), by neuron, finished ones from earlier runs included.
     """
-    check_device(device)
+    dev = check_device(device, here=cluster is None)
+    if cluster is None:
+        encoder = _on_device(encoder, dev)
+    elif dev is None:  # Ray's tasks run where the encoder is (and ask for a GPU when that is one)
+        dev = encoder.device
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder).for_start(start_name(init))
     if isinstance(neurons, (str, bytes)) or not hasattr(neurons, "__iter__"):
         raise MEIError(f"neurons must be a sequence of neuron indices, e.g. [0, 1, 2] (parse_neurons reads '0-99'), "
@@ -163,8 +185,8 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
     initial(init, settings)  # a start that cannot be built fails here, before anything is written
     if neurons:  # and an encoder that cannot take images of this size (a Gabor cell at 2 px)
         with frozen_encoder(encoder), torch.no_grad():
-            encoder(torch.full((1, 1, settings.image_size, settings.image_size), 0.5, dtype=settings.torch_dtype),
-                    neurons[:1])
+            encoder(torch.full((1, 1, settings.image_size, settings.image_size), 0.5, dtype=settings.torch_dtype,
+                               device=encoder.device), neurons[:1])
     if cluster is not None:
         from .cluster import check_cluster, check_shippable
 
@@ -185,7 +207,7 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
                 from .cluster import ray_neuron_results
 
                 results = ray_neuron_results(cluster, encoder, todo, init, settings, batch_size=batch_size,
-                                             pixel_steps=pixel_steps)
+                                             pixel_steps=pixel_steps, device=dev)
             for n, res, seconds in results:
                 done[n] = _save_neuron(out, digest, res, seconds, figures)
                 done = {**finished_neurons(out, digest), **done}  # with what other jobs on this folder finished

@@ -53,15 +53,15 @@ def front(U, Vv, Z, ok, F, edge_table, S: int, margin: float, eps: float) -> dic
     m, P = F.shape[0], S * S
     BM, BP = B * m, B * P
     i64 = torch.int64
-    keep, front_ = torch.empty(BM, dtype=torch.uint8), torch.empty(BM, dtype=torch.uint8)
-    slot_of, kept, seg = torch.empty(BM, dtype=i64), torch.empty(BM, dtype=i64), torch.empty(9 * BM, dtype=i64)
-    zkey, skey = torch.empty(BP, dtype=i64), torch.empty(BP, dtype=i64)
-    box = torch.empty(BM * 4, dtype=dt)
-    integral = torch.empty(B * (S + 1) ** 2, dtype=torch.int32)
-    face_id = torch.empty(BP, dtype=i64)
-    pix = torch.empty(9, BP, dtype=i64)  # in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_k, fr_slot
-    used, corner_index = torch.empty(BM, dtype=i64), torch.empty(3, BM, dtype=i64)
-    counts = torch.zeros(4, dtype=i64)
+    keep, front_ = torch.empty(BM, dtype=torch.uint8, device="cpu"), torch.empty(BM, dtype=torch.uint8, device="cpu")
+    slot_of, kept, seg = torch.empty(BM, dtype=i64, device="cpu"), torch.empty(BM, dtype=i64, device="cpu"), torch.empty(9 * BM, dtype=i64, device="cpu")
+    zkey, skey = torch.empty(BP, dtype=i64, device="cpu"), torch.empty(BP, dtype=i64, device="cpu")
+    box = torch.empty(BM * 4, dtype=dt, device="cpu")
+    integral = torch.empty(B * (S + 1) ** 2, dtype=torch.int32, device="cpu")
+    face_id = torch.empty(BP, dtype=i64, device="cpu")
+    pix = torch.empty(9, BP, dtype=i64, device="cpu")  # in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_k, fr_slot
+    used, corner_index = torch.empty(BM, dtype=i64, device="cpu"), torch.empty(3, BM, dtype=i64, device="cpu")
+    counts = torch.zeros(4, dtype=i64, device="cpu")
     getattr(lib, f"front_{_suffix(dt)}")(
         B, n, m, _ptr(U, dt), _ptr(Vv, dt), _ptr(Z, dt), ok.data_ptr(), _ptr(F, i64), _ptr(et, i64), int(S),
         float(margin), float(eps), keep.data_ptr(), front_.data_ptr(), _ptr(slot_of, i64), _ptr(kept, i64),
@@ -88,7 +88,8 @@ def _c(*ts):
 def _shaded_columns(out, Q: int):
     """``(Q,)``: each fringe sample's column among the shaded samples after the covered ones, -1 for a fringe
     pixel inside the surface (not shaded)."""
-    return torch.full((Q,), -1, dtype=torch.int64).index_put_((out,), torch.arange(out.shape[0]))
+    return torch.full((Q,), -1, dtype=torch.int64, device="cpu").index_put_((out,),
+                                                                         torch.arange(out.shape[0], device="cpu"))
 
 
 def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, out, S, sigma, eps):
@@ -100,9 +101,9 @@ def sample_forward(u, v, z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k
                                                                            fr_pix, fr_slot, fr_k, fr_sign, out)
     U, Ni, Q, No = ci.shape[1], in_pix.shape[0], fr_pix.shape[0], out.shape[0]
     pos = _shaded_columns(out, Q)
-    table = torch.empty(U, 21, dtype=dt)
-    l, iz = torch.empty(3, Ni + No, dtype=dt), torch.empty(3, Ni + No, dtype=dt)
-    cov = torch.empty(Q, dtype=dt)
+    table = torch.empty(U, 21, dtype=dt, device="cpu")
+    l, iz = torch.empty(3, Ni + No, dtype=dt, device="cpu"), torch.empty(3, Ni + No, dtype=dt, device="cpu")
+    cov = torch.empty(Q, dtype=dt, device="cpu")
     i64 = torch.int64
     getattr(lib, f"sample_fwd_{_suffix(dt)}")(
         U, _ptr(u, dt), _ptr(v, dt), _ptr(z, dt), _ptr(ci, i64), Ni, _ptr(in_pix, i64), _ptr(in_slot, i64), Q,
@@ -120,7 +121,7 @@ def sample_backward(z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_
         z, corner_index, in_pix, in_slot, fr_pix, fr_slot, fr_k, fr_sign, g_l, g_iz, g_cov)
     U, Ni, Q = ci.shape[1], in_pix.shape[0], fr_pix.shape[0]
     No = g_l.shape[1] - Ni
-    g = torch.zeros(3, z.numel(), dtype=dt)
+    g = torch.zeros(3, z.numel(), dtype=dt, device="cpu")
     i64 = torch.int64
     getattr(lib, f"sample_bwd_{_suffix(dt)}")(
         U, _ptr(z, dt), _ptr(ci, i64), z.numel(), Ni, _ptr(in_pix, i64), _ptr(in_slot, i64), Q, _ptr(fr_pix, i64),
@@ -135,7 +136,7 @@ def shade_forward(l, iz, corners, light, ambient, intensity, albedo, eps):
     lib, dt = _lib(), l.dtype
     l, iz, corners, light = _c(l, iz, corners, light)
     N, C = l.shape[1], corners.shape[1]
-    shade = torch.empty(N, dtype=dt)
+    shade = torch.empty(N, dtype=dt, device="cpu")
     getattr(lib, f"shade_fwd_{_suffix(dt)}")(N, C, _ptr(l, dt), _ptr(iz, dt), _ptr(corners, dt), _ptr(light, dt),
                                               float(ambient), float(intensity), float(albedo), float(eps),
                                               _ptr(shade, dt))
@@ -165,7 +166,7 @@ class _VertexNormals(torch.autograd.Function):
         lib, dt = _lib(), V.dtype
         Vc, Fc = V.detach().contiguous(), F.contiguous()
         B, n, m = Vc.shape[0], Vc.shape[1], Fc.shape[0]
-        acc, out = torch.empty(B, n, 4, dtype=dt), torch.empty(B, n, 3, dtype=dt)
+        acc, out = torch.empty(B, n, 4, dtype=dt, device="cpu"), torch.empty(B, n, 3, dtype=dt, device="cpu")
         getattr(lib, f"normals_fwd_{_suffix(dt)}")(B, n, m, _ptr(Vc, dt), _ptr(Fc, torch.int64), float(eps),
                                                     _ptr(acc, dt), _ptr(out, dt))
         ctx.save_for_backward(Vc, Fc, acc)
@@ -180,7 +181,7 @@ class _VertexNormals(torch.autograd.Function):
         dt = Vc.dtype
         B, n, m = Vc.shape[0], Vc.shape[1], Fc.shape[0]
         g = g.contiguous()
-        work, gV = torch.empty(B, n, 4, dtype=dt), torch.zeros(B, n, 3, dtype=dt)
+        work, gV = torch.empty(B, n, 4, dtype=dt, device="cpu"), torch.zeros(B, n, 3, dtype=dt, device="cpu")
         getattr(lib, f"normals_bwd_{_suffix(dt)}")(B, n, m, _ptr(Vc, dt), _ptr(Fc, torch.int64), float(ctx.eps),
                                                     _ptr(acc, dt), _ptr(g, dt), _ptr(work, dt), _ptr(gV, dt))
         return gV, None, None

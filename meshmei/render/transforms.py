@@ -60,7 +60,7 @@ def real_numbers(name: str, x, dtype=None) -> torch.Tensor:
         raise RenderError(f"{name} must be a tensor or a rectangular sequence of numbers: {err}") from None
     if a.dtype.kind not in "fiu":
         raise RenderError(f"{name} must hold real numbers, got {a.dtype} values")
-    return torch.as_tensor(a, dtype=dtype)
+    return torch.as_tensor(a, dtype=dtype, device="cpu")  # then moved to the mesh's device by the caller
 
 
 def _rotation(rotation, dtype, device):
