@@ -192,13 +192,22 @@ def mesh_quality(V, F, *, self_intersections: bool = True) -> dict:
 def edge_use(F) -> tuple[int, int]:
     """``(boundary_edges, nonmanifold_edges)``: undirected edges used by one face, and by more than two."""
     F = as_faces(F)
-    E = torch.sort(torch.cat([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), dim=1).values  # (3m, 2)
-    face = torch.arange(F.shape[0], device=F.device).repeat(3)
+    if not F.shape[0]:
+        return 0, 0
+    # the sides face by face: (3m, 2), row 3f + k the side k of face f
+    E = torch.sort(torch.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], 1).reshape(-1, 2), dim=1).values
+    face = torch.arange(F.shape[0], device=F.device).repeat_interleave(3)
     keep = E[:, 0] != E[:, 1]  # a face repeating an index has no edge there (as MeshTopology counts edges)
     # and its other two sides are one edge of that one face, not an edge two faces share ([0, 0, 1] alone was
-    # 'watertight')
-    pairs = torch.unique(torch.cat([face[keep, None], E[keep]], 1), dim=0)
-    _, counts = torch.unique(pairs[:, 1:], dim=0, return_counts=True)
+    # 'watertight'). Each edge as one int64 key (i * n + j), sorted stably: a key's rows keep the faces'
+    # order, so one face's repeated side is the same (key, face) twice in a row. (torch.unique over rows,
+    # which this replaces, took 0.1 s on a 10k-vertex mesh; each coarse-to-fine stage called it four times.)
+    key = E[keep, 0] * (int(F.max()) + 1) + E[keep, 1]
+    key, order = torch.sort(key, stable=True)
+    face = face[keep][order]
+    first = torch.ones_like(key, dtype=torch.bool)
+    first[1:] = (key[1:] != key[:-1]) | (face[1:] != face[:-1])
+    _, counts = torch.unique_consecutive(key[first], return_counts=True)
     return int((counts == 1).sum()), int((counts > 2).sum())
 
 

@@ -103,6 +103,30 @@ def test_health_report_counts_boundary_and_nonmanifold_edges_and_reports_waterti
     assert not health_report(torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), torch.tensor([[0, 0, 1]]))["watertight"]
 
 
+def _edge_use_by_sets(F):
+    """edge_use's definition, written out: each face's set of undirected edges, then faces per edge."""
+    faces_of = {}
+    for f, (a, b, c) in enumerate(F.tolist()):
+        for e in {tuple(sorted(p)) for p in ((a, b), (b, c), (c, a)) if p[0] != p[1]}:
+            faces_of.setdefault(e, set()).add(f)
+    counts = [len(s) for s in faces_of.values()]
+    return sum(c == 1 for c in counts), sum(c > 2 for c in counts)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_edge_use_counts_as_its_definition_on_random_faces_with_repeats(seed):
+    """Faces over few vertices (shared edges, fins, faces repeating an index, the same face twice) and a real
+    mesh; the definition's count, face by face."""
+    from meshmei.quality import edge_use
+    from meshmei.shapes import initial_mesh
+
+    g = torch.Generator().manual_seed(seed)
+    F = torch.randint(0, 4 + 3 * seed, (5 + 40 * seed, 3), generator=g)
+    assert edge_use(F) == _edge_use_by_sets(F)
+    _, Fs = initial_mesh("sheet", n_vertices=60 + 20 * seed)
+    assert edge_use(Fs) == _edge_use_by_sets(Fs) and edge_use(Fs)[1] == 0 and edge_use(Fs)[0] > 0
+
+
 @pytest.mark.parametrize("form", ["numpy", "list"])
 def test_health_report_and_mesh_quality_take_arrays_and_lists_as_their_siblings_do(form):
     from meshmei.quality import health_report, mesh_quality
