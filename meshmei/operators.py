@@ -362,7 +362,7 @@ def cotmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> t
     # rounding, so it adds nothing, as in exact arithmetic
     C = torch.where(F.roll(-1, 1) != F.roll(-2, 1), C, torch.zeros_like(C)).reshape(-1)  # (3m,)
     vals = torch.zeros(indices.shape[1], dtype=V.dtype, device=V.device).index_add(0, slot, torch.cat([C, C, -C, -C]))
-    return torch.sparse_coo_tensor(indices, vals, (n, n), is_coalesced=True, check_invariants=False)
+    return torch.sparse_coo_tensor(indices, vals, (n, n), is_coalesced=True, check_invariants=False, device=V.device)
 
 
 def massmatrix(V: torch.Tensor, F: torch.Tensor, *, eps: float | None = EPS) -> torch.Tensor:

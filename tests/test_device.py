@@ -113,6 +113,37 @@ def test_a_population_with_pixel_meis_makes_no_tensor_off_its_inputs_device(tmp_
             assert a[k] == b[k], k
 
 
+@pytest.mark.parametrize("method", ["rbf", "largesteps", "vertex"])
+def test_a_reconstruction_makes_no_tensor_off_its_inputs_device(method):
+    """Guarded (the default), coarse to fine; in the torch code, as on a GPU."""
+    from meshmei.reconstruct import reconstruct
+    from meshmei.shapes import initial_mesh, target_mesh
+
+    target, src = target_mesh("bunny"), initial_mesh("sphere", n_vertices=300)
+    kw = dict(steps=6, stages=(100, 300), n_samples=500, target_pool=2000, eval_samples=500)
+    with native.torch_reference():
+        with stray_tensors_on_meta():
+            probed = reconstruct(src, target, method, **kw)
+        plain = reconstruct(src, target, method, **kw)
+    assert torch.equal(probed.V, plain.V) and torch.equal(probed.F, plain.F)
+    assert probed.final.chamfer_l2 == plain.final.chamfer_l2
+
+
+def test_tuning_sweeps_make_no_tensor_off_their_inputs_device():
+    from meshmei.tuning import light_sweep, pose_sweep
+
+    enc = cells()
+    res = optimize_mei(enc, 0, "sheet", **SMALL)
+    with native.torch_reference():
+        with stray_tensors_on_meta():
+            probed = (pose_sweep(res, enc, elevation=[-30, 0, 30], azimuth=[0, 45], batch_size=4),
+                      light_sweep(res, enc, elevation=[10, 60], azimuth=[0, 90, 180], batch_size=4))
+        plain = (pose_sweep(res, enc, elevation=[-30, 0, 30], azimuth=[0, 45], batch_size=4),
+                 light_sweep(res, enc, elevation=[10, 60], azimuth=[0, 90, 180], batch_size=4))
+    for a, b in zip(probed, plain):
+        assert (a.responses == b.responses).all() and a.reference == b.reference
+
+
 def test_no_code_moves_tensors_to_a_fixed_gpu():
     """Devices come from the inputs (the model's), or from a user's --device: no ``.cuda()`` anywhere, and
     "cuda" is named only where a user's device is read (the population's check and its Ray tasks)."""

@@ -95,7 +95,7 @@ def _csr(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: tu
     with warnings.catch_warnings():  # torch flags every CSR tensor as a beta feature
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
-        return torch.sparse_csr_tensor(crow, cols[order], values[order], shape)
+        return torch.sparse_csr_tensor(crow, cols[order], values[order], shape, device=rows.device)
 
 
 class _FixedMap(torch.autograd.Function):
@@ -422,7 +422,7 @@ class RBFDeformer(torch.nn.Module):
         w = self._pair_weights()
         n = self.V0.shape[0]
         return torch.sparse_coo_tensor(torch.stack([self._rows, self._cols]), w, (n, self.n_kernels),
-                                       check_invariants=False)
+                                       check_invariants=False, device=w.device)
 
     def _pair_weights(self) -> torch.Tensor:
         inv = 0.5 * torch.exp(-2.0 * self.log_sigma)  # (K,) 1 / (2 sigma^2)

@@ -38,13 +38,13 @@ def check_angles(name, values, lo=None, hi=None) -> np.ndarray:
     return a
 
 
-def _rot(axis, deg, dtype):
-    aa = torch.zeros(len(deg), 3, dtype=dtype)
-    aa[:, axis] = torch.as_tensor(np.radians(deg), dtype=dtype)
+def _rot(axis, deg, dtype, device):
+    aa = torch.zeros(len(deg), 3, dtype=dtype, device=device)
+    aa[:, axis] = torch.as_tensor(np.radians(deg), dtype=dtype, device=device)
     return axis_angle_to_matrix(aa)
 
 
-def pose_rotations(elevation, azimuth, roll=None, *, dtype=torch.float32) -> torch.Tensor:
+def pose_rotations(elevation, azimuth, roll=None, *, dtype=torch.float32, device="cpu") -> torch.Tensor:
     """Rotation matrices ``(E, A[, R], 3, 3)`` for a grid of elevation x azimuth (x roll), degrees.
 
     ``R = R_roll(z) @ R_elevation(-x) @ R_azimuth(y)``: azimuth first, then elevation, then roll.
@@ -52,14 +52,14 @@ def pose_rotations(elevation, azimuth, roll=None, *, dtype=torch.float32) -> tor
     el, az = check_angles("elevation", elevation), check_angles("azimuth", azimuth)
     rl = np.zeros(1) if roll is None else check_angles("roll", roll)
     check_grid_size(len(el), len(az), len(rl))
-    Ry = _rot(1, az, dtype)  # (A, 3, 3)
-    Rx = _rot(0, -el, dtype)  # (E, 3, 3)
-    Rz = _rot(2, rl, dtype)  # (R, 3, 3)
+    Ry = _rot(1, az, dtype, device)  # (A, 3, 3)
+    Rx = _rot(0, -el, dtype, device)  # (E, 3, 3)
+    Rz = _rot(2, rl, dtype, device)  # (R, 3, 3)
     R = Rz[None, None] @ Rx[:, None, None] @ Ry[None, :, None]  # (E, A, R, 3, 3)
     return R if roll is not None else R[:, :, 0]
 
 
-def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32) -> torch.Tensor:
+def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32, device="cpu") -> torch.Tensor:
     """Light positions ``(E, A, 3)`` on the camera-facing hemisphere (see the module docstring)."""
     el = np.radians(check_angles("elevation", elevation, 0.0, 90.0))
     az = np.radians(check_angles("azimuth", azimuth))
@@ -68,7 +68,7 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32)
     check_grid_size(len(el), len(az))
     E, A = np.meshgrid(el, az, indexing="ij")
     P = distance * np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
-    return torch.as_tensor(P, dtype=dtype)
+    return torch.as_tensor(P, dtype=dtype, device=device)
 
 
 # the most conditions (renders per neuron) of one grid: two full axes at a tenth of a degree

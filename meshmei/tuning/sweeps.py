@@ -82,7 +82,14 @@ def _scene(result):
 def camera_distance(scene: dict) -> float:
     """Distance of the scene's camera from the origin (the default camera's without one)."""
     cam = scene.get("camera")
-    return float(torch.as_tensor(cam.eye).reshape(-1, 3)[0].norm()) if cam is not None else DEFAULT_DISTANCE
+    return float(torch.as_tensor(cam.eye, device="cpu").reshape(-1, 3)[0].norm()) if cam is not None else DEFAULT_DISTANCE
+
+
+def _on_encoder(encoder, V, F, scene):
+    """The mesh and the scene's tensors on the encoder's device, where the sweep renders (a result is on the
+    CPU; its model may be on a GPU)."""
+    dev = encoder.device
+    return V.to(dev), F.to(dev), {k: v.to(dev) if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
 
 
 def _neurons(encoder, neurons, result):
@@ -136,10 +143,10 @@ def pose_sweep(result, encoder, *, neurons=None, elevation=np.linspace(-90, 90, 
     -------
     Sweep with ``responses`` of shape ``(k, E, A)`` or ``(k, E, A, R)``.
     """
-    V, F, scene = _scene(result)
+    V, F, scene = _on_encoder(encoder, *_scene(result))
     neurons = _neurons(encoder, neurons, result)
     base = scene.pop("rotation", None)
-    R = pose_rotations(elevation, azimuth, roll, dtype=V.dtype)
+    R = pose_rotations(elevation, azimuth, roll, dtype=V.dtype, device=V.device)
     grid = R.shape[:-2]
     Rf = R.reshape(-1, 3, 3)
     if base is not None:
@@ -147,7 +154,7 @@ def pose_sweep(result, encoder, *, neurons=None, elevation=np.linspace(-90, 90, 
     t = time.perf_counter()
     resp = _respond(encoder, V, F, neurons, scene, batch_size, rotation=Rf)
     seconds = time.perf_counter() - t
-    own = base if base is not None else torch.eye(3, dtype=V.dtype)  # the run's own pose
+    own = base if base is not None else torch.eye(3, dtype=V.dtype, device=V.device)  # the run's own pose
     ref = _respond(encoder, V, F, neurons, scene, 1, rotation=own[None])
     axes = [("elevation", check_angles("elevation", elevation)), ("azimuth", check_angles("azimuth", azimuth))]
     if roll is not None:
@@ -163,11 +170,11 @@ def light_sweep(result, encoder, *, neurons=None, elevation=np.linspace(0, 90, 1
     ``distance`` defaults to the camera's distance from the origin. Returns a Sweep with ``responses``
     of shape ``(k, E, A)``; see :func:`response_groups` for the high / mid / low split.
     """
-    V, F, scene = _scene(result)
+    V, F, scene = _on_encoder(encoder, *_scene(result))
     neurons = _neurons(encoder, neurons, result)
     if distance is None:
         distance = camera_distance(scene)
-    P = light_positions(elevation, azimuth, distance, dtype=V.dtype)
+    P = light_positions(elevation, azimuth, distance, dtype=V.dtype, device=V.device)
     orig = scene.pop("light", None)  # the reference keeps the scene's own light: a run's, or a bare scene's
     if orig is None and hasattr(result, "light"):
         orig = result.light

@@ -51,10 +51,10 @@ def turned_views(run, views=((45, 20), (90, 0), (-45, -30))) -> list:
     half = math.radians(cam.fov_degrees) / 2
     dist = max(camera_distance(scene), 1.15 * radius / math.sin(half))
     view_cam = Camera(eye=(0.0, 0.0, dist), fov_degrees=cam.fov_degrees, znear=cam.znear, zfar=max(cam.zfar, 4 * dist))
-    light = torch.tensor([0.0, 0.0, dist], dtype=run.V.dtype)
+    light = torch.tensor([0.0, 0.0, dist], dtype=run.V.dtype, device=run.V.device)
     out = []
     for azi, ele in views:
-        R = pose_rotations([ele], [azi], dtype=run.V.dtype).reshape(3, 3) @ base.to(run.V.dtype)
+        R = pose_rotations([ele], [azi], dtype=run.V.dtype, device=run.V.device).reshape(3, 3) @ base.to(run.V)
         with torch.no_grad():
             img = run.render(rotation=R[None], camera=view_cam, light=light, translation=-(run.V.mean(0) @ R.T))
         out.append((azi, ele, img[0, 0].cpu().numpy()))
