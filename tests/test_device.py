@@ -113,6 +113,23 @@ def test_a_population_with_pixel_meis_makes_no_tensor_off_its_inputs_device(tmp_
             assert a[k] == b[k], k
 
 
+def test_diverse_meis_and_the_random_baseline_make_no_tensor_off_their_inputs_device():
+    from meshmei.mei import diverse_meis, random_mesh_responses
+
+    enc = cells()
+    kw = dict(steps=4, seeds=(0,), image_size=20, n_vertices=50)
+    with native.torch_reference():
+        with stray_tensors_on_meta():
+            probed = (diverse_meis(enc, 1, k=2, **kw), random_mesh_responses(enc, 1, "sphere", n=6, batch=4,
+                                                                             settings=MEISettings(**kw)))
+        plain = (diverse_meis(enc, 1, k=2, **kw), random_mesh_responses(enc, 1, "sphere", n=6, batch=4,
+                                                                        settings=MEISettings(**kw)))
+    for a, b in zip(probed[0].results, plain[0].results):
+        _same(a, b)
+    assert torch.equal(probed[0].dissimilarity, plain[0].dissimilarity)
+    assert torch.equal(probed[1], plain[1])
+
+
 @pytest.mark.parametrize("method", ["rbf", "largesteps", "vertex"])
 def test_a_reconstruction_makes_no_tensor_off_its_inputs_device(method):
     """Guarded (the default), coarse to fine; in the torch code, as on a GPU."""

@@ -72,10 +72,10 @@ def random_deformations(V0: torch.Tensor, n: int, *, generator: torch.Generator 
     (n, V0.shape[0], 3) tensor of deformed vertex positions (dtype and device of ``V0``).
     """
     g = generator if generator is not None else torch.Generator().manual_seed(0)
-    dt = V0.dtype
-    c = V0[torch.randint(V0.shape[0], (n, n_bumps), generator=g)]  # (n, k, 3)
-    w = width[0] + (width[1] - width[0]) * torch.rand(n, 1, n_bumps, generator=g, dtype=dt)
-    d = amplitude * torch.randn(n, n_bumps, 3, generator=g, dtype=dt)
+    dt, cpu = V0.dtype, dict(generator=g, device="cpu")  # drawn on the CPU (the generator's), then moved
+    c = V0[torch.randint(V0.shape[0], (n, n_bumps), **cpu).to(V0.device)]  # (n, k, 3)
+    w = (width[0] + (width[1] - width[0]) * torch.rand(n, 1, n_bumps, dtype=dt, **cpu)).to(V0.device)
+    d = (amplitude * torch.randn(n, n_bumps, 3, dtype=dt, **cpu)).to(V0.device)
     K = torch.exp(-torch.cdist(V0.unsqueeze(0).expand(n, -1, -1), c) ** 2 / (2 * w * w))  # (n, nv, k)
     return V0 + K @ d
 
@@ -94,14 +94,15 @@ def random_mesh_responses(encoder: Encoder, neuron: int, init="sphere", n: int =
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:  # 0 failed in torch.cat, 2.5 in range
         raise MEIError(f"n must be a positive integer (deformations to draw), got {n!r}")
     settings = settings_for_encoder(MEISettings.with_overrides(settings, {}), encoder)  # the MEI's image size
-    V0, F, _ = initial(init, settings)
+    V0, F, _ = initial(init, settings, encoder.device)
     g = torch.Generator().manual_seed(int(seed))
     out = []
     with eval_mode(encoder):
         for start in range(0, n, batch):
             Vb = random_deformations(V0, min(batch, n - start), generator=g, **deform_kw)
             I = render(Vb, F, camera=settings.camera(),
-                       light=None if settings.light is None else torch.tensor(settings.light, dtype=V0.dtype),
+                       light=None if settings.light is None else torch.tensor(settings.light, dtype=V0.dtype,
+                                                                              device=V0.device),
                        settings=settings.render_settings())
             out.append(encoder(I, neuron)[:, 0])
     return torch.cat(out)

@@ -107,7 +107,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     if settings.robust_pose > 0 or settings.robust_light > 0:  # the batch renders one view per member
         raise MEIError("diverse 3D-MEIs take no robust objective (robust_pose, robust_light); make them "
                        "without it, or make robust 3D-MEIs one seed at a time")
-    V0, F, init_name = initial(init, settings)
+    V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
     seeds = [settings.seeds[0] + i for i in range(k)]
@@ -126,7 +126,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
             images = scene.image(V, F, pose=True)
             z, idx = encoder.inputs(images, [neuron])
             acts = encoder.respond(z, idx)[:, 0].tolist()
-            dissimilarity = image_distances(encoder, z)
+            dissimilarity = image_distances(encoder, z).cpu()  # on the CPU, as the results
     wall = (time.perf_counter() - t0) / k
     runs = scene.item_runs(V, images, acts, trace.history, trace.history[-1]["loss"], [trace.step] * k, settings)
     # each member as it ran: its own seed, kept at the last iterate, and the set it belongs to (its run alone
