@@ -19,7 +19,8 @@ import time
 
 import torch
 
-from meshmei.benchmarks._report import benchmark_parser, int_list, machine_line, markdown_table, median, step_intervals, write_section
+from meshmei.benchmarks._report import (benchmark_parser, int_list, machine_line, markdown_table, median, step_intervals,
+                                        write_section)
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei, optimize_mei_batch
 
