@@ -83,7 +83,8 @@ class GraphCertificate:
         F = F.cpu()
         d = torch.as_tensor(direction, dtype=torch.float64, device="cpu")
         d = d / d.norm()
-        a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64, device="cpu")
+        a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64,
+                         device="cpu")
         u = a - (a @ d) * d
         u = u / u.norm()
         self.direction = d

@@ -393,7 +393,7 @@ class ContactBarrier:
         check_positive("distance", distance)
         F = as_faces(F).cpu()  # the search and the energy run on the CPU (contact_energies)
         self.F = F
-        self.Fn = np.ascontiguousarray(F.detach().cpu().numpy())
+        self.Fn = np.ascontiguousarray(F.numpy())
         self._least_vertices = int(self.Fn.max()) + 1  # the vertex count the faces need (checked every call)
         self.distance = float(distance)
         if margin is not None:

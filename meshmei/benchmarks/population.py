@@ -42,7 +42,7 @@ def _one(enc, B: int, steps: int, valid_steps: bool = True) -> tuple[float, floa
     return step / B, wall / (steps * B)
 
 
-def measure(steps: int = 60, rounds: int = 3, device="cpu", sizes=SIZES) -> dict:
+def measure(steps: int = 60, rounds: int = 5, device="cpu", sizes=SIZES) -> dict:
     """``{(B, valid_steps): (step s per item, wall s per item-step)}``: every batch size with valid steps
     (the default), and B = 1 and the largest size up to 8 without, all alternated; on ``device``."""
     enc = make_encoder("demo").to(device)
@@ -54,16 +54,22 @@ def measure(steps: int = 60, rounds: int = 3, device="cpu", sizes=SIZES) -> dict
     return {k: (median([a for a, _ in v]), median([b for _, b in v])) for k, v in res.items()}
 
 
-def run(steps: int, device="cpu", sizes=None, rounds: int = 5) -> str:
-    if torch.device(device).type != "cpu":
-        return _run_gpu(steps, device, tuple(sizes or GPU_SIZES), rounds)
-    load = os.getloadavg()[0]
-    r = measure(steps, rounds)
+def _table(r: dict) -> str:
+    """The table of :func:`measure`'s results, each speed-up against B = 1 in the same mode."""
     rows = []
     for (B, valid), (a, b) in r.items():
         step1, wall1 = r[1, valid]
         rows.append([B, "on" if valid else "off", f"{1000 * a:.2f}", f"{step1 / a:.2f}", f"{1000 * b:.2f}",
                      f"{wall1 / b:.2f}", f"{1 / a:.0f}"])
+    return markdown_table(["B", "valid steps", "step ms / item", "speed-up", "wall ms / item-step", "speed-up",
+                           "item-steps / s"], rows)
+
+
+def run(steps: int, device="cpu", sizes=None, rounds: int = 5) -> str:
+    if torch.device(device).type != "cpu":
+        return _run_gpu(steps, device, tuple(sizes or GPU_SIZES), rounds)
+    load = os.getloadavg()[0]
+    r = measure(steps, rounds)
     step1, wall1 = r[1, True]
     at8 = step1 / r[8, True][0]
     off8 = r[1, False][0] / r[8, False][0]
@@ -80,8 +86,7 @@ def run(steps: int, device="cpu", sizes=None, rounds: int = 5) -> str:
         "its contact barrier run item by item: libigl's test alone is about 1.3 ms per item); off is "
         "`--no-valid-steps`. Speed-ups are against B = 1 in the same mode.",
         "",
-        markdown_table(["B", "valid steps", "step ms / item", "speed-up", "wall ms / item-step", "speed-up",
-                        "item-steps / s"], rows),
+        _table(r),
         "",
         f"Target (issue 18): at least 2x throughput per item at B = 8 on 2 CPU cores: with valid steps "
         f"(the default) {'met' if at8 >= 2 else 'not met'} ({at8:.2f}x per step, "
@@ -98,11 +103,6 @@ def _run_gpu(steps: int, device, sizes: tuple, rounds: int) -> str:
     load = os.getloadavg()[0]
     sizes = tuple(sorted({1, *sizes}))  # the speed-ups are against B = 1
     r = measure(steps, rounds, device=device, sizes=sizes)
-    rows = []
-    for (B, valid), (a, b) in r.items():
-        step1, wall1 = r[1, valid]
-        rows.append([B, "on" if valid else "off", f"{1000 * a:.2f}", f"{step1 / a:.2f}", f"{1000 * b:.2f}",
-                     f"{wall1 / b:.2f}", f"{1 / a:.0f}"])
     body = "\n".join([
         "## Batched 3D-MEIs on a GPU (`python -m meshmei.benchmarks.population --device cuda`)",
         "",
@@ -115,8 +115,7 @@ def _run_gpu(steps: int, device, sizes: tuple, rounds: int) -> str:
         "and the model run on the GPU (torch code: the compiled kernels are CPU-only); the step guard's checks "
         "and the barriers run on a CPU copy of the vertices (libigl's exact predicates), item by item.",
         "",
-        markdown_table(["B", "valid steps", "step ms / item", "speed-up", "wall ms / item-step", "speed-up",
-                        "item-steps / s"], rows),
+        _table(r),
     ])
     return write_section("population-gpu", body)
 

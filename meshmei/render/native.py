@@ -53,15 +53,16 @@ def front(U, Vv, Z, ok, F, edge_table, S: int, margin: float, eps: float) -> dic
     m, P = F.shape[0], S * S
     BM, BP = B * m, B * P
     i64 = torch.int64
-    keep, front_ = torch.empty(BM, dtype=torch.uint8, device="cpu"), torch.empty(BM, dtype=torch.uint8, device="cpu")
-    slot_of, kept, seg = torch.empty(BM, dtype=i64, device="cpu"), torch.empty(BM, dtype=i64, device="cpu"), torch.empty(9 * BM, dtype=i64, device="cpu")
-    zkey, skey = torch.empty(BP, dtype=i64, device="cpu"), torch.empty(BP, dtype=i64, device="cpu")
+    byte, long = dict(dtype=torch.uint8, device="cpu"), dict(dtype=i64, device="cpu")  # the kernel's CPU buffers
+    keep, front_ = torch.empty(BM, **byte), torch.empty(BM, **byte)
+    slot_of, kept, seg = torch.empty(BM, **long), torch.empty(BM, **long), torch.empty(9 * BM, **long)
+    zkey, skey = torch.empty(BP, **long), torch.empty(BP, **long)
     box = torch.empty(BM * 4, dtype=dt, device="cpu")
     integral = torch.empty(B * (S + 1) ** 2, dtype=torch.int32, device="cpu")
-    face_id = torch.empty(BP, dtype=i64, device="cpu")
-    pix = torch.empty(9, BP, dtype=i64, device="cpu")  # in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_k, fr_slot
-    used, corner_index = torch.empty(BM, dtype=i64, device="cpu"), torch.empty(3, BM, dtype=i64, device="cpu")
-    counts = torch.zeros(4, dtype=i64, device="cpu")
+    face_id = torch.empty(BP, **long)
+    pix = torch.empty(9, BP, **long)  # in_pix, in_b, in_f, in_slot, fr_pix, fr_b, fr_f, fr_k, fr_slot
+    used, corner_index = torch.empty(BM, **long), torch.empty(3, BM, **long)
+    counts = torch.zeros(4, **long)
     getattr(lib, f"front_{_suffix(dt)}")(
         B, n, m, _ptr(U, dt), _ptr(Vv, dt), _ptr(Z, dt), ok.data_ptr(), _ptr(F, i64), _ptr(et, i64), int(S),
         float(margin), float(eps), keep.data_ptr(), front_.data_ptr(), _ptr(slot_of, i64), _ptr(kept, i64),

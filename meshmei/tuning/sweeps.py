@@ -82,7 +82,9 @@ def _scene(result):
 def camera_distance(scene: dict) -> float:
     """Distance of the scene's camera from the origin (the default camera's without one)."""
     cam = scene.get("camera")
-    return float(torch.as_tensor(cam.eye, device="cpu").reshape(-1, 3)[0].norm()) if cam is not None else DEFAULT_DISTANCE
+    if cam is None:
+        return DEFAULT_DISTANCE
+    return float(torch.as_tensor(cam.eye, device="cpu").reshape(-1, 3)[0].norm())
 
 
 def _on_encoder(encoder, V, F, scene):
