@@ -684,6 +684,60 @@ def test_final_metrics_describe_the_returned_mesh_after_a_remesh(sphere, bunny, 
     assert res.final == surface_metrics(res.V, res.F, *bunny, n_samples=2000, seed=0, health=True)
 
 
+def _slow_remeshes(monkeypatch, seconds: float, tick: float = 0.005) -> list:
+    """A fake clock, and a remesh that takes ``seconds`` on it; returns the list of counts remeshed to."""
+    import importlib
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    remesh, clock, calls = fit._remesh_clean, _fake_clock(monkeypatch, tick), []
+
+    def slow_remesh(V, F, n, *args, **kwargs):
+        clock.sleep(seconds)
+        calls.append(n)
+        return remesh(V, F, n, *args, **kwargs)
+
+    monkeypatch.setattr(fit, "_remesh_clean", slow_remesh)
+    return calls
+
+
+@pytest.mark.parametrize("remesh_seconds, merged", [(0.2, True), (0.1, False)])
+def test_a_restart_that_cannot_pay_for_its_set_up_is_merged(sphere, bunny, monkeypatch, remesh_seconds, merged):
+    # stage 2 restarts at stage 1's count with a share of 0.3 s: a set-up of over 0.15 s (half of it) would
+    # leave it fewer steps than it spent setting up, so stage 1 runs on through its share instead
+    from meshmei.reconstruct.fit import RESTART_SETUP_MULTIPLE
+
+    assert RESTART_SETUP_MULTIPLE == 2.0
+    calls = _slow_remeshes(monkeypatch, remesh_seconds)
+    res = reconstruct(sphere, bunny, "rbf", time_budget=1.0, stages=(100, 300, 300), stage_fractions=(0.4, 0.3, 0.3),
+                      **SMALL)
+    stages = res.info["stages"]
+    setup = stages[1]["setup_seconds"]
+    assert remesh_seconds < setup < remesh_seconds + 0.1  # the remesh, and the rest of the set-up on the fake clock
+    assert (0.3 < RESTART_SETUP_MULTIPLE * setup) == merged
+    assert len(stages) == 3 and all(st["steps"] > 0 for st in stages[:2])
+    assert res.history[-1]["time"] >= 1.0  # the budget is used either way
+    if merged:
+        assert calls == [100, 300]
+        assert stages[2] == {"n_vertices": res.V.shape[0], "end_step": stages[1]["end_step"], "steps": 0,
+                             "merged_into": 1}
+        assert {h["stage"] for h in res.history} == {0, 1} and stages[1]["end_step"] == len(res.history)
+    else:
+        assert calls == [100, 300, 300]
+        assert stages[2]["steps"] > 0 and "merged_into" not in stages[2]
+        assert [h["stage"] for h in res.history].count(2) == stages[2]["steps"]
+
+
+def test_a_restart_is_not_merged_under_a_step_budget_or_with_its_own_settings(sphere, bunny, monkeypatch):
+    calls = _slow_remeshes(monkeypatch, 5.0)  # longer than any budget here
+    res = reconstruct(sphere, bunny, "rbf", steps=30, stages=(100, 300, 300), stage_fractions=(0.2, 0.5, 0.3),
+                      **SMALL)
+    assert calls == [100, 300, 300] and [st["end_step"] for st in res.info["stages"]] == [6, 21, 30]
+    calls.clear()
+    res = reconstruct(sphere, bunny, "rbf", time_budget=20.0, stages=(100, 300, 300),
+                      stage_fractions=(0.2, 0.5, 0.3), stage_overrides=(None, None, {"w_laplacian": 1.0}), **SMALL)
+    assert calls == [100, 300, 300] and res.info["stages"][2]["steps"] > 0
+
+
 def test_a_target_far_from_the_origin_is_normalised_in_float64(tmp_path):
     V, F = icosphere(3)
     near = target_surface(_write_obj(tmp_path / "near.obj", V, F))[0]

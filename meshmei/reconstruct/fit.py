@@ -377,12 +377,38 @@ def _remesh_clean(V, F, n: int, clean: bool):
     return V, F, {"remesh_iterations": None, "remesh_refused_pairs": added, "remesh_refused_topology": changed}
 
 
+# A restart stage (the count of the stage before, the same settings) is run as part of the stage before it when
+# its share of a time budget is under this many times the set-up that stage took (measured): a restart at
+# 10k vertices sets up in about 2.7 s (a remesh of 1.1-1.6 s, the guard, the contact pairs, the RBF lists),
+# and a 10 s budget gives it 2.5 s, so it took 2-4 steps and ran over the budget (docs/reconstruction.md,
+# *Restarts that cannot pay for themselves*).
+RESTART_SETUP_MULTIPLE = 2.0
+
+
+def _merged_restarts(k: int, stages, per_stage, bounds, budget, setup: float, merged_into: dict) -> int:
+    """The last stage that stage ``k``, which took ``setup`` seconds to set up, runs through: ``k`` itself, or
+    the restarts after it whose time share is under :data:`RESTART_SETUP_MULTIPLE` times ``setup``, which are
+    marked in ``merged_into``. Only a time budget merges (a step budget is not spent by set-ups)."""
+    end = k
+    if budget.seconds is None:
+        return end
+    same = (lambda j: per_stage[j] == per_stage[k]) if per_stage else (lambda j: True)
+    while (end + 1 < len(stages) and stages[end + 1] == stages[k] and same(end + 1)
+           and (bounds[end + 2] - bounds[end + 1]) * budget.seconds < RESTART_SETUP_MULTIPLE * setup):
+        end += 1
+        merged_into[end] = k
+    return end
+
+
 def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):
     stages = s.stages or (None,)
     bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
     schedule = Schedule("geometric", s.lr_decay)
     n_source = V.shape[0]
+    merged_into = {}  # a restart stage run as part of the stage before it (_merged_restarts)
     for k, n_stage in enumerate(stages):
+        if k in merged_into:  # run, and recorded, with the stage it was merged into
+            continue
         t0 = time.perf_counter()
         remeshed = {}
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
@@ -421,7 +447,9 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
             # its edge pairs, searched for that alone (not in the energy) unless the run pairs edges anyway
             contact.track_edges()
             guard.use_contact(contact)
-        trace.seconds += time.perf_counter() - t0
+        setup = time.perf_counter() - t0
+        trace.seconds += setup
+        end = _merged_restarts(k, stages, per_stage, bounds, budget, setup, merged_into)
         latest, edges_from = [None], [trace.step if s.contact_edges is True else None]
 
         def after_step(rec, param=param, F=F, latest=latest, contact=contact, guard=guard):
@@ -440,7 +468,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         vertices = Lookahead(param.vertices, [p for g in param.groups for p in g["params"]])
         outcome = minimize(_objective(param, vertices, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
-                           stop_at=1.0 if k == len(stages) - 1 else bounds[k + 1], progress=bar,
+                           stop_at=1.0 if end == len(stages) - 1 else bounds[end + 1], progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(vertices.candidate),
                            max_halvings=0 if guard is None else guard.rules.max_halvings, states=param.states())
         with torch.no_grad():
@@ -448,9 +476,11 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         stage = {"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
                  "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
                  **_guard_info(guard, trace.history[n_before:]), **_contact_info(contact, edges_from[0]),
-                 "contact_left_out": left_out, **remeshed,
+                 "contact_left_out": left_out, "setup_seconds": setup, **remeshed,
                  **param.info()}
         info["stages"].append(stage)
+        info["stages"] += [{"n_vertices": stage["n_vertices"], "end_step": trace.step, "steps": 0, "merged_into": k}
+                           for j in range(k + 1, end + 1)]
         if guard is not None and stage["steps"] and not stage["accepted_steps"]:
             info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
         if outcome.budget_spent:
