@@ -170,10 +170,11 @@ class ValidityRules:
         How often a rejected step is halved before it is given up (the parameters then stay where they
         were for this step).
     max_step : float or None
-        Farthest any vertex may move from the last accepted mesh in one step (None: no bound). A bound at
-        half a contact barrier's reach means no two surface points close by more than that reach in one
-        step, so the barrier sees every approach; refusing a long step by this rule costs no intersection
-        test.
+        Farthest any vertex may move from the last accepted mesh in one step (None: no bound). Refusing a
+        long step by this rule costs no intersection test; the guarantee rests on that test, not on this
+        bound. Reconstruction passes one mean edge, four contact-barrier reaches
+        (:data:`meshmei.reconstruct.fit.MAX_STEP_REACHES`): a diverging learning rate is refused cheaply,
+        and a step may still close a gap wider than the barrier's reach, which the exact test then checks.
     """
 
     self_intersections: bool = True

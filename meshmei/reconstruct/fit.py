@@ -281,9 +281,18 @@ def _guard_info(guard, records) -> dict:
             "accepted_steps": sum(1 for rec in records if rec["step_scale"] > 0)}
 
 
+# The guard's step bound (ValidityRules.max_step) in barrier reaches: 4, one mean edge at the default reach of a
+# quarter edge (contact_distance). A cheap refusal of runaway steps, before the exact test; the guarantee is
+# the test's, not the bound's. It was 2 (half an edge) until 2026-11-29: the first Adam steps of a stage move
+# vertices by up to about an edge, so a short run halved nearly every step of its coarse stages (a 10 s run
+# at 10k vertices through the teapot's handle: 19 of 19 and 21 of 21 steps in its first two stages), and
+# those runs ended near 5e-3 where runs with one edge ended at 1.9e-5 and 5.3e-5 (docs/reconstruction.md,
+# *The step bound*).
+MAX_STEP_REACHES = 4.0
+
 # Why a guard refuses every step of a stage, by the rule that refused most candidates.
 _STALL_CAUSES = {
-    "step": "every step moved a vertex farther than the guard allows ({max_step:.3g}, half an edge, which "
+    "step": "every step moved a vertex farther than the guard allows ({max_step:.3g}, one edge, which "
             "scales with the mesh), while lr={lr:g} is absolute; the stage's start is {size:.3g} across (the target: "
             "1): scale the source toward the target's size, or lower lr",
     "turn": "every step turned a face over; the start likely holds a sliver (a near-collinear face, minimum "
@@ -440,7 +449,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 f"{IN_CONTACT:g} of the contact distance {contact.distance:.3g}): a T-junction (an edge split on one "
                 "side only) or parts that touch; the contact barrier leaves them out (the step guard still refuses "
                 "an intersection)")
-        max_step = None if contact is None else 2.0 * contact.distance  # half an edge: a cheap bound on runaway steps
+        max_step = None if contact is None else MAX_STEP_REACHES * contact.distance  # one edge
         guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
         if guard is not None and contact is not None:
             # the barrier's distances at each accepted mesh clear most candidates of libigl's test; they need

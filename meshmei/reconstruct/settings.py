@@ -245,7 +245,8 @@ class ReconstructionSettings:
     def validity_rules(self, max_step: float | None = None) -> ValidityRules:
         """The rules of ``valid_steps``: no new self-intersections, no face turned over in one step, and
         with the contact barrier no vertex moved farther than ``max_step`` in one step (reconstruction passes
-        twice the barrier's ``d_hat``, which is the whole reach of its candidate search and half a mean edge)."""
+        four times the barrier's ``d_hat``, the whole reach of its candidate search: one mean edge,
+        :data:`~meshmei.reconstruct.fit.MAX_STEP_REACHES`)."""
         return ValidityRules(turn_from="step", min_quality=self.min_quality, max_step=max_step)
 
     def without_method_defaults(self) -> "ReconstructionSettings":
