@@ -704,16 +704,17 @@ def _slow_remeshes(monkeypatch, seconds: float, tick: float = 0.005) -> list:
 def test_a_restart_that_cannot_pay_for_its_set_up_is_merged(sphere, bunny, monkeypatch, remesh_seconds, merged):
     # stage 2 restarts at stage 1's count with a share of 0.3 s: a set-up of over 0.15 s (half of it) would
     # leave it fewer steps than it spent setting up, so stage 1 runs on through its share instead
-    from meshmei.reconstruct.fit import RESTART_SETUP_MULTIPLE
+    import importlib
 
-    assert RESTART_SETUP_MULTIPLE == 2.0
+    multiple = 2.0  # the module's RESTART_SETUP_MULTIPLE, set here: the remesh times above assume it
+    monkeypatch.setattr(importlib.import_module("meshmei.reconstruct.fit"), "RESTART_SETUP_MULTIPLE", multiple)
     calls = _slow_remeshes(monkeypatch, remesh_seconds)
     res = reconstruct(sphere, bunny, "rbf", time_budget=1.0, stages=(100, 300, 300), stage_fractions=(0.4, 0.3, 0.3),
                       **SMALL)
     stages = res.info["stages"]
     setup = stages[1]["setup_seconds"]
     assert remesh_seconds < setup < remesh_seconds + 0.1  # the remesh, and the rest of the set-up on the fake clock
-    assert (0.3 < RESTART_SETUP_MULTIPLE * setup) == merged
+    assert (0.3 < multiple * setup) == merged
     assert len(stages) == 3 and all(st["steps"] > 0 for st in stages[:2])
     assert res.history[-1]["time"] >= 1.0  # the budget is used either way
     if merged:
@@ -736,6 +737,27 @@ def test_a_restart_is_not_merged_under_a_step_budget_or_with_its_own_settings(sp
     res = reconstruct(sphere, bunny, "rbf", time_budget=20.0, stages=(100, 300, 300),
                       stage_fractions=(0.2, 0.5, 0.3), stage_overrides=(None, None, {"w_laplacian": 1.0}), **SMALL)
     assert calls == [100, 300, 300] and res.info["stages"][2]["steps"] > 0
+
+
+def test_a_guarded_stage_bounds_a_step_to_one_mean_edge(sphere, bunny, monkeypatch):
+    # the step bound is four barrier reaches, one mean edge of the stage's start at the default reach (a
+    # quarter edge); half an edge halved nearly every step of a short run's coarse stages
+    import importlib
+
+    from meshmei.contact import mean_edge_length
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    seen = []
+
+    class Spy(fit.StepGuard):
+        def __init__(self, V, F, rules, *args, **kwargs):
+            seen.append((mean_edge_length(V, F), rules.max_step))
+            super().__init__(V, F, rules, *args, **kwargs)
+
+    monkeypatch.setattr(fit, "StepGuard", Spy)
+    reconstruct(sphere, bunny, "rbf", steps=4, stages=(100, 300), **SMALL)
+    assert len(seen) == 2 and all(step == pytest.approx(edge, rel=1e-12) for edge, step in seen)
+    assert seen[0][0] > 1.5 * seen[1][0]  # each stage's own edge: 100 vertices, then 300
 
 
 def test_a_target_far_from_the_origin_is_normalised_in_float64(tmp_path):

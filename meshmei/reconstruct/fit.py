@@ -389,7 +389,7 @@ def _remesh_clean(V, F, n: int, clean: bool):
 # A restart stage (the count of the stage before, the same settings) is run as part of the stage before it when
 # its share of a time budget is under this many times the set-up that stage took (measured): a restart at
 # 10k vertices sets up in about 2.7 s (a remesh of 1.1-1.6 s, the guard, the contact pairs, the RBF lists),
-# and a 10 s budget gives it 2.5 s, so it took 2-4 steps and ran over the budget (docs/reconstruction.md,
+# and a 10 s budget gives it 2.5 s, so it took 0-4 steps and ran over the budget (docs/reconstruction.md,
 # *Restarts that cannot pay for themselves*).
 RESTART_SETUP_MULTIPLE = 2.0
 
@@ -489,7 +489,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                  **param.info()}
         info["stages"].append(stage)
         info["stages"] += [{"n_vertices": stage["n_vertices"], "end_step": trace.step, "steps": 0, "merged_into": k}
-                           for j in range(k + 1, end + 1)]
+                           for _ in range(k + 1, end + 1)]
         if guard is not None and stage["steps"] and not stage["accepted_steps"]:
             info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
         if outcome.budget_spent:
