@@ -388,7 +388,7 @@ def _remesh_clean(V, F, n: int, clean: bool):
 
 # A restart stage (the count of the stage before, the same settings) is run as part of the stage before it when
 # its share of a time budget is under this many times the set-up that stage took (measured): a restart at
-# 10k vertices sets up in about 2.7 s (a remesh of 1.1-1.6 s, the guard, the contact pairs, the RBF lists),
+# 10k vertices sets up in 2.3-2.7 s (a remesh of 1.1-1.6 s, the guard, the contact pairs, the RBF lists),
 # and a 10 s budget gives it 2.5 s, so it took 0-4 steps and ran over the budget (docs/reconstruction.md,
 # *Restarts that cannot pay for themselves*).
 RESTART_SETUP_MULTIPLE = 2.0
@@ -401,8 +401,8 @@ def _merged_restarts(k: int, stages, per_stage, bounds, budget, setup: float, me
     end = k
     if budget.seconds is None:
         return end
-    same = (lambda j: per_stage[j] == per_stage[k]) if per_stage else (lambda j: True)
-    while (end + 1 < len(stages) and stages[end + 1] == stages[k] and same(end + 1)
+    while (end + 1 < len(stages) and stages[end + 1] == stages[k]
+           and (per_stage is None or per_stage[end + 1] == per_stage[k])
            and (bounds[end + 2] - bounds[end + 1]) * budget.seconds < RESTART_SETUP_MULTIPLE * setup):
         end += 1
         merged_into[end] = k

@@ -128,8 +128,8 @@ class ReconstructionSettings:
         Vertex counts of coarse-to-fine stages; the source is remeshed to ``stages[0]`` at the start and the
         current shape to each next count between stages. None: one stage at the source's resolution.
         Under a time budget, a restart (a stage at the count of the one before, with the same settings)
-        whose share is under twice the set-up time that stage took (remesh, guard, contact pairs: about
-        2.7 s at 10k vertices) is not set up: the stage before runs on through its share, and its record in
+        whose share is under twice the set-up time that stage took (remesh, guard, contact pairs: 2.3-2.7 s
+        at 10k vertices) is not set up: the stage before runs on through its share, and its record in
         ``info["stages"]`` says ``merged_into``.
     stage_fractions : tuple of float or None
         Share of the steps / budget of each stage (default equal shares).
