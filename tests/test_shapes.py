@@ -385,27 +385,31 @@ def test_remesh_keeps_dtype_and_device_and_gives_a_clean_closed_mesh(sphere):
     assert igl.euler_characteristic(F.numpy()) == 2 and len(_boundary_edges(F.numpy())) == 0
 
 
-def test_a_strong_coarsening_skips_the_distance_check_and_stays_on_the_input(monkeypatch):
-    """The first stage of a coarse-to-fine schedule remeshes the start to n/4 or n/16 of its count; pymeshlab's
-    check of each collapse against the input was 70 % of that remesh's time. A remesh to at most half the
-    input's count goes without it; refinements and remeshes to more than half keep it."""
+def test_a_strong_coarsening_of_a_large_mesh_skips_the_distance_check_and_stays_on_the_input(monkeypatch):
+    """The first stage of a coarse-to-fine schedule remeshes the start to n/4 or n/16 of its count; at 10k,
+    pymeshlab's check of each collapse against the input was 70 % of that remesh's time. A remesh of a mesh of
+    at least UNCHECKED_FROM vertices to at most half its count goes without it; a smaller mesh, a refinement
+    and a remesh to more than half keep it."""
     from meshmei.shapes import remeshing
 
-    big = initial_mesh("sphere", n_vertices=2500)
+    big = initial_mesh("sphere", n_vertices=int(1.2 * remeshing.UNCHECKED_FROM))
     n = big[0].shape[0]
+    assert n >= remeshing.UNCHECKED_FROM
+    small = initial_mesh("sphere", n_vertices=2500)
     checked = []
     real = remeshing.isotropic_remesh
     monkeypatch.setattr(remeshing, "isotropic_remesh",
                         lambda *a, **k: checked.append(k["check_distance"]) or real(*a, **k))
-    V, F = remesh(*big, 156)  # the 625-vertex stage of three levels at 10k, scaled to this start
-    remesh(V, F, 600)  # a refinement
+    V, F = remesh(*big, n // 16)  # the first stage of three levels
+    remesh(V, F, n // 4)  # a refinement
     remesh(*big, n // 2)
     remesh(*big, n // 2 + 1)
-    assert checked == [False, True, False, True]
-    assert abs(V.shape[0] - 156) <= 0.1 * 156
+    remesh(*small, 156)  # a smaller input keeps it
+    assert checked == [False, True, False, True, True]
+    assert abs(V.shape[0] - n // 16) <= 0.1 * n // 16
     _check_clean(*_np(V, F))
     assert igl.euler_characteristic(F.numpy()) == 2 and len(_boundary_edges(F.numpy())) == 0
-    # reprojected onto the input: every vertex on the 2,500-vertex sphere's faces, within their sagitta of it
+    # reprojected onto the input: every vertex on the fine sphere's faces, within their sagitta of it
     assert float((V.norm(dim=1) - 0.5).abs().max()) < 1e-3
 
 

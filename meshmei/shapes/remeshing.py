@@ -98,14 +98,16 @@ def isotropic_remesh(ms, h, *, iterations, feature_degrees, check_distance=True)
     return mesh_arrays(ms.current_mesh())
 
 
-# A remesh to at most 1/COARSENING of the input's vertex count (the first stage of a coarse-to-fine schedule,
-# n/4 or n/16 of the start) does not check its collapses against the input (pymeshlab's ``checksurfdist``).
-# The check is most of the cost of a strong coarsening: the 10k sphere start to 625 vertices took 0.30 s with
-# it and 0.08 s without, and it refuses collapses that any mesh at the coarse count must make (the
-# 2,500-vertex bunny start went to 171 vertices for 156 asked). The output is still reprojected onto the input.
-# Refinements and remeshes at about the same count (every stage after the first) keep the check, which keeps
-# the fitted shape's thin parts (docs/reconstruction.md, *The first remesh*).
+# A remesh of a mesh of at least UNCHECKED_FROM vertices to at most 1/COARSENING of its count (the first stage of a
+# coarse-to-fine schedule at 10k: n/16 or n/4 of the start) does not check its collapses against the input
+# (pymeshlab's ``checksurfdist``), whose cost grows with the input: the 10k sphere and torus starts to 625
+# vertices took 0.29-0.32 s with it and 0.08 s without, the same sphere mesh either way. Smaller inputs keep it
+# (0.07 s at 2,500): there it refuses collapses (the 2,500-vertex sphere start went to 159-171 vertices for 156
+# asked, 149-152 without it), and without it the held-out dumbbell's default runs ended at 1.1e-6 to 1.0e-5
+# with up to 1,460 inverted faces instead of 1.2-1.5e-7 (docs/reconstruction.md, *The first remesh*).
+# The output is reprojected onto the input either way; refinements and restarts always keep the check.
 COARSENING = 2
+UNCHECKED_FROM = 8000
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):
@@ -113,8 +115,8 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
 
     The target edge length is ``sqrt(2 A / (sqrt(3) n))`` for total area ``A`` (a near-equilateral closed
     mesh has two triangles per vertex). Returns float tensors in the dtype of ``V`` and int64 faces. Collapses
-    are checked against the input's surface unless ``n_vertices`` is at most 1/:data:`COARSENING` of the
-    input's count.
+    are checked against the input's surface unless the input has at least :data:`UNCHECKED_FROM` vertices and
+    ``n_vertices`` is at most 1/:data:`COARSENING` of them.
 
     Parameters
     ----------
@@ -158,6 +160,7 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
         raise MeshError(f"cannot remesh a mesh of zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=Vn, face_matrix=Fn))
+    unchecked = V.shape[0] >= UNCHECKED_FROM and COARSENING * n_vertices <= V.shape[0]
     V2, F2 = isotropic_remesh(ms, edge_length_for_count(area, n_vertices), iterations=iterations,
-                              feature_degrees=180.0, check_distance=COARSENING * n_vertices > V.shape[0])
+                              feature_degrees=180.0, check_distance=not unchecked)
     return check_mesh(torch.as_tensor(V2, dtype=V.dtype, device=V.device), torch.as_tensor(F2, device=V.device))
