@@ -101,11 +101,12 @@ def isotropic_remesh(ms, h, *, iterations, feature_degrees, check_distance=True)
 # A remesh of a mesh of at least UNCHECKED_FROM vertices to at most 1/COARSENING of its count (the first stage of a
 # coarse-to-fine schedule at 10k: n/16 or n/4 of the start) does not check its collapses against the input
 # (pymeshlab's ``checksurfdist``), whose cost grows with the input: the 10k sphere and torus starts to 625
-# vertices took 0.29-0.32 s with it and 0.08 s without, the same sphere mesh either way. Smaller inputs keep it
-# (0.07 s at 2,500): there it refuses collapses (the 2,500-vertex sphere start went to 159-171 vertices for 156
-# asked, 149-152 without it), and without it the held-out dumbbell's default runs ended at 1.1e-6 to 1.0e-5
-# with up to 1,460 inverted faces instead of 1.2-1.5e-7 (docs/reconstruction.md, *The first remesh*).
-# The output is reprojected onto the input either way; refinements and restarts always keep the check.
+# vertices took 0.29-0.32 s with it and 0.08 s without, the sphere giving the same mesh either way. Smaller inputs
+# keep it (0.07 s at 2,500): there it changes the coarse start (the 2,500-vertex sphere went to 159-171 vertices
+# for 156 asked, 149-152 without), and so every default run, which stay as they were measured (without it the
+# held-out dumbbell's default run failed, an outcome that turns on the start mesh: docs/reconstruction.md,
+# *The first remesh*). The output is reprojected onto the input either way; refinements and restarts always
+# keep the check.
 COARSENING = 2
 UNCHECKED_FROM = 8000
 
