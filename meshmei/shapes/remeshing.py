@@ -60,7 +60,8 @@ def isotropic_parameters(targetlen, *, iterations: int, feature_degrees: float, 
     import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
 
     return dict(iterations=int(iterations), adaptive=False, selectedonly=False, targetlen=targetlen,
-                featuredeg=float(feature_degrees), checksurfdist=bool(check_distance), maxsurfdist=pymeshlab.PercentageValue(1.0),
+                featuredeg=float(feature_degrees), checksurfdist=bool(check_distance),
+                maxsurfdist=pymeshlab.PercentageValue(1.0),
                 splitflag=True, collapseflag=True, swapflag=True, smoothflag=True, reprojectflag=True)
 
 
