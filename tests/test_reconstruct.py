@@ -399,35 +399,6 @@ def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
     assert rc == 2 and "no through-hole" in out.err and not (tmp_path / "b" / "mesh.obj").exists()
 
 
-def test_the_sphere_start_is_the_ellipsoid_through_the_corners_of_the_targets_box():
-    """From the sphere of diameter 1, the dumbbell's default run lost one ball (one start size in two); the
-    sphere start now takes the target's proportions."""
-    from meshmei.reconstruct import source_mesh
-    from meshmei.reconstruct.sources import MIN_AXIS_FRACTION, box_ellipsoid
-
-    sphere = initial_mesh("sphere", n_vertices=300)
-    assert torch.equal(source_mesh("sphere", n_vertices=300)[0], sphere[0])  # no target: the sphere
-    for name in ("bunny", "teapot", "dumbbell"):
-        Vt = target_surface(name)[0]
-        V, F = source_mesh("sphere", n_vertices=300, target=target_surface(name))
-        assert torch.equal(F, sphere[1])
-        lo, hi = Vt.amin(0), Vt.amax(0)
-        c, axes = 0.5 * (lo + hi), 3**0.5 * 0.5 * (hi - lo)
-        # every vertex on the ellipsoid of half axes sqrt(3) times the box's half extents, centred on the box
-        torch.testing.assert_close(((V - c) / axes).square().sum(1), torch.ones(V.shape[0]), atol=1e-5, rtol=0)
-        # ... which passes through the box's corners
-        corner = hi - c
-        assert abs(float((corner / axes).square().sum()) - 1.0) < 1e-5
-    # a cube of unit diagonal: the sphere itself
-    cube = torch.tensor([[-1.0, -1, -1], [1, 1, 1]]) / (2 * 3**0.5)
-    torch.testing.assert_close(box_ellipsoid(sphere[0], cube), sphere[0], atol=1e-6, rtol=0)
-    # a flat target: no half axis below MIN_AXIS_FRACTION of the longest
-    flat = torch.tensor([[-0.5, -0.3, 0.0], [0.5, 0.3, 0.0]])
-    V = box_ellipsoid(sphere[0], flat)
-    extent = V.amax(0) - V.amin(0)
-    assert float(extent[2]) == pytest.approx(MIN_AXIS_FRACTION * float(extent[0]), rel=1e-3)
-
-
 def test_source_mesh_places_the_torus_for_its_target():
     from meshmei.reconstruct import SOURCE_NAMES, source_mesh
     from meshmei.reconstruct.openings import torus_through_opening
@@ -439,8 +410,9 @@ def test_source_mesh_places_the_torus_for_its_target():
                                ("torus-centred", teapot, centred), ("torus-through-opening", teapot, threaded)]:
         V, F = source_mesh(spec, n_vertices=300, target=target)
         assert torch.equal(V, want[0]) and torch.equal(F, want[1]), (spec, target is None)
-    V, F = source_mesh("sheet", n_vertices=300, target=teapot)  # the sheet does not depend on the target
-    assert torch.equal(V, initial_mesh("sheet", n_vertices=300)[0])
+    for name in ("sphere", "sheet"):  # the others do not depend on the target
+        V, F = source_mesh(name, n_vertices=300, target=teapot)
+        assert torch.equal(V, initial_mesh(name, n_vertices=300)[0])
     assert set(SOURCE_NAMES) == {"sheet", "sphere", "torus", "torus-centred", "torus-through-opening"}
     with pytest.raises(ValueError, match="needs the target"):
         source_mesh("torus-through-opening", n_vertices=300)

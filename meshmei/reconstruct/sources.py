@@ -65,8 +65,6 @@ def source_mesh(spec, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float
     unused vertex would take part in the deformation (an RBF kernel of its own, which sets the kernel
     scale) without being part of the surface.
 
-    ``"sphere"`` with a ``target`` ``(V, F)`` is the ellipsoid through the corners of the target's bounding
-    box (:func:`box_ellipsoid`; the sphere of diameter 1 for a cube of unit diagonal, or with no target).
     ``"torus"`` is placed for the ``target`` ``(V, F)`` when one is given: with its hole through the
     target's most open through-hole (:func:`meshmei.reconstruct.openings.torus_through_opening`) when
     :func:`~meshmei.reconstruct.openings.find_opening` sees one, as the teapot's handle, and centred otherwise (no
@@ -79,24 +77,6 @@ def source_mesh(spec, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float
     """
     V, F, _ = resolve_source(spec, n_vertices, dtype, target)
     return V, F
-
-
-# A half axis of the start's ellipsoid is at least this fraction of its longest (a flat or thin target's box).
-MIN_AXIS_FRACTION = 0.25
-
-
-def box_ellipsoid(V, target_vertices):
-    """The unit-diameter sphere ``V`` (``initial_mesh("sphere")``) stretched along x, y and z into the ellipsoid
-    through the corners of the target's axis-aligned bounding box: half axes sqrt(3) times the box's half extents
-    (at least :data:`MIN_AXIS_FRACTION` of the longest), centred on the box. For a cube of unit diagonal this is
-    the sphere itself; for an elongated target it is elongated too. From the sphere, a start far wider than the
-    dumbbell (0.33 wide, 0.89 long) contracted past both its balls in the first steps and one stayed outside,
-    the surface fitting it facing inwards (docs/reconstruction.md, *The first remesh*)."""
-    Vt = torch.as_tensor(target_vertices).to(dtype=V.dtype, device=V.device)
-    lo, hi = Vt.amin(0), Vt.amax(0)
-    axes = 3.0**0.5 * 0.5 * (hi - lo)
-    axes = torch.maximum(axes, MIN_AXIS_FRACTION * axes.max())
-    return 0.5 * (lo + hi) + V * (axes / 0.5)
 
 
 def resolve_source(spec, n_vertices, dtype, target):
@@ -117,8 +97,6 @@ def resolve_source(spec, n_vertices, dtype, target):
         else:
             kind = "torus" if spec.startswith("torus") else spec
             V, F = initial_mesh(kind, n_vertices=n_vertices, dtype=dtype)
-            if kind == "sphere" and target is not None:
-                V = box_ellipsoid(V, target[0])
             if kind == "torus":
                 placement = "centred" + (" (the target has no through-hole that find_opening sees)"
                                          if spec == "torus" and target is not None else "")
