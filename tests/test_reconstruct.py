@@ -724,14 +724,16 @@ def test_a_restart_is_not_merged_under_a_step_budget_or_with_its_own_settings(sp
                       **SMALL)
     assert calls == [100, 300, 300] and [st["end_step"] for st in res.info["stages"]] == [6, 21, 30]
     # the run that merges its restart above (a 0.2 s remesh, a 0.3 s share), the restart with its own weight
+    import importlib
+
     monkeypatch.undo()
+    multiple = 2.0  # the module's RESTART_SETUP_MULTIPLE, set here as in the test above
+    monkeypatch.setattr(importlib.import_module("meshmei.reconstruct.fit"), "RESTART_SETUP_MULTIPLE", multiple)
     calls = _slow_remeshes(monkeypatch, 0.2)
     res = reconstruct(sphere, bunny, "rbf", time_budget=1.0, stages=(100, 300, 300), stage_fractions=(0.4, 0.3, 0.3),
                       stage_overrides=(None, None, {"w_laplacian": 1.0}), **SMALL)
     assert calls == [100, 300, 300] and res.info["stages"][2]["steps"] > 0
-    from meshmei.reconstruct.fit import RESTART_SETUP_MULTIPLE
-
-    assert 0.3 < RESTART_SETUP_MULTIPLE * res.info["stages"][1]["setup_seconds"]  # would merge with equal settings
+    assert 0.3 < multiple * res.info["stages"][1]["setup_seconds"]  # would merge with equal settings
 
 
 def test_a_guarded_stage_bounds_a_step_to_one_mean_edge(sphere, bunny, monkeypatch):
