@@ -41,13 +41,15 @@ __all__ = ["reconstruct"]
 CONTACT_QUERY_WORKERS = 2
 # ReconstructionSettings.normal_match: scipy's eps for the 6-d queries (an answer at most 1 + eps times as
 # far as the nearest). Exact 6-d queries of 5,000 samples of the cup into 5,000 of a sphere around it took
-# 120 ms, approximate 41 ms; they serve the coarse stage, where the shape travels far
+# 120 ms, approximate 41 ms (all of them; only those whose nearest sample faces away are queried); they
+# serve the coarse stage, where the shape travels far
 NORMAL_MATCH_EPS = 1.0
 # ... and only in a stage whose start encloses the target: at least this share of NORMAL_MATCH_PROBES target
 # samples inside it (winding number above one half). A start around the target has surface facing the way
 # of each target sample on the side its normal points to; one that is not around it (the torus through
 # the teapot's handle) has that surface across the target, and pairing by normal pulled it over (the
-# teapot's default run, seeds 0-2: 2.18e-6, 3.37e-6, 2.29e-6 against 1.96e-6, 2.05e-6, 1.78e-6)
+# teapot's default run, seeds 0-2, with every target sample paired by normal: 2.18e-6, 3.37e-6, 2.29e-6
+# against 1.96e-6, 2.05e-6, 1.78e-6; seed 1 with only those facing away paired again, 3.23e-6)
 NORMAL_MATCH_ENCLOSED = 0.99
 NORMAL_MATCH_PROBES = 2000
 
@@ -74,8 +76,8 @@ class _SampledChamfer:
     def __call__(self, Vc, F, n_samples: int, step: int, lr: float, normal_match: float = 0.0):
         """``(chamfer, facing)``: the sampled Chamfer term and, with target normals, the facing term (the
         mean of ``max(0, -n . n_t)`` over the mesh samples, ``n_t`` the normal of the nearest target sample;
-        None without them or when not asked for). ``normal_match`` > 0 pairs each target sample with a mesh
-        sample by position and normal (:attr:`ReconstructionSettings.normal_match`; it needs the normals)."""
+        None without them or when not asked for). ``normal_match`` > 0 pairs again the target samples whose
+        nearest mesh sample faces away (:attr:`ReconstructionSettings.normal_match`; it needs the normals)."""
         try:
             normals = self.pool_normals is not None
             drawn = sample_points(Vc, F, n_samples, generator=self.generator, return_normals=normals)
@@ -89,12 +91,11 @@ class _SampledChamfer:
         sub = torch.randint(0, self.pool.shape[0], (n_samples,), generator=self.generator, device=Vc.device)
         Q = self.pool[sub]
         i_pq = torch.from_numpy(self.index.query(P, workers=self.workers))
+        samples_index = PointIndex(P)
+        i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5, workers=self.workers))
+        self.far_share = samples_index.far_share
         if normal_match > 0:
-            i_qp = self._match_by_normal(P, N, sub, normal_match)
-        else:
-            samples_index = PointIndex(P)
-            i_qp = torch.from_numpy(samples_index.query(Q, near_first=self.far_share < 0.5, workers=self.workers))
-            self.far_share = samples_index.far_share
+            self._pair_by_normal(P, N, sub, i_qp, normal_match)
         # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
         cd = (((P - self.pool.index_select(0, i_pq)) ** 2).sum(-1).mean()
               + ((Q - P.index_select(0, i_qp)) ** 2).sum(-1).mean())
@@ -109,14 +110,19 @@ class _SampledChamfer:
         inside = np.abs(igl.fast_winding_number(Vn, Fn, probes)) > 0.5
         return bool(inside.mean() >= NORMAL_MATCH_ENCLOSED)
 
-    def _match_by_normal(self, P, N, sub, normal_match: float):
-        """Index into the mesh samples ``P`` of the (near-)nearest one to each drawn target sample
-        ``pool[sub]`` by ``|q - p|^2 + (normal_match D)^2 |n_q - n_p|^2`` (:data:`NORMAL_MATCH_EPS`)."""
+    def _pair_by_normal(self, P, N, sub, i_qp, normal_match: float):
+        """Re-pair, in place, each drawn target sample ``pool[sub]`` whose nearest mesh sample ``P[i_qp]`` faces
+        away from it with the (near-)nearest mesh sample by ``|q - p|^2 + (normal_match D)^2 |n_q - n_p|^2``
+        (:data:`NORMAL_MATCH_EPS`)."""
+        n_q = self.pool_normals[sub]
+        away = torch.nonzero((n_q * N.index_select(0, i_qp)).sum(-1) < 0).flatten()
+        if len(away) == 0:
+            return
         scale = normal_match * self.diagonal
         P6 = np.hstack([_numpy(P), scale * _numpy(N)])
-        Q6 = np.hstack([_numpy(self.pool[sub]), scale * _numpy(self.pool_normals[sub])])
-        _, i_qp = cKDTree(P6).query(Q6, eps=NORMAL_MATCH_EPS, workers=self.workers)
-        return torch.from_numpy(np.asarray(i_qp, dtype=np.int64))
+        Q6 = np.hstack([_numpy(self.pool[sub[away]]), scale * _numpy(n_q[away])])
+        _, i = cKDTree(P6).query(Q6, eps=NORMAL_MATCH_EPS, workers=self.workers)
+        i_qp[away] = torch.from_numpy(np.asarray(i, dtype=np.int64))
 
 
 def _numpy(x: torch.Tensor) -> np.ndarray:

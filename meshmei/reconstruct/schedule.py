@@ -20,10 +20,10 @@ __all__ = ["RBF_THREE_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES", "default_sta
 # default Laplacian weight (2.5, that is 40 at 10k vertices against 160). Measured at 10k on three problems;
 # 2.5 was the first value tried (*Coarse-to-fine*).
 #
-# In the coarsest stage each target sample pulls on the mesh by position and normal (normal_match, 0.3 of
-# the target's diagonal): a sphere then enters a cavity (the cup: 6.0e-7 against 1.6e-3), where by position
-# alone the cavity's floor pulls on the outside of the surface across the wall (docs/reconstruction.md,
-# *Pairing by normal*).
+# In the coarsest stage a target sample whose nearest mesh sample faces away is paired by position and
+# normal (normal_match, 0.3 of the target's diagonal): a sphere then enters a cavity (the cup: 5.8e-7
+# against 1.6e-3), where by position alone the cavity's floor pulls on the outside of the surface across the
+# wall (docs/reconstruction.md, *Pairing by normal*).
 RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3}, None, {"w_laplacian": 2.5},
                              {"w_laplacian": 2.5})
 

@@ -181,17 +181,18 @@ class ReconstructionSettings:
         Chamfer term almost nothing, and the guard will not let it pass through itself; this term unfolds
         it. 0 (default) leaves it out (docs/reconstruction.md, *Folds lying on the target*).
     normal_match : float
-        Pair each drawn target sample with a mesh sample by position and normal: the one that minimises
-        ``|q - p|^2 + (normal_match * D)^2 |n_q - n_p|^2``, ``D`` the target's bounding-box diagonal
-        (approximate neighbours, scipy's ``eps=1``); the mesh samples keep their nearest target samples, and
-        the loss is the squared distance of the paired positions either way. By position alone the floor and
-        walls of a cavity pull on the outside of the surface, across the wall, instead of on the surface over
-        the opening, and a sphere never enters a cup; paired by normal, they pull on surface that faces the
-        same way. Only in a stage whose start encloses the target (99 % of 2,000 target samples inside it;
-        the stage's record says ``start_encloses_target``): from a start that is not around the target,
-        pairing by normal pulls surface over from the far side; such a stage runs on plain pairs. 0 (default)
-        is plain nearest neighbours; ``default_schedule`` sets 0.3 in rbf's first stage of three
-        (docs/reconstruction.md, *Pairing by normal*). A stage setting.
+        Pair again each drawn target sample whose nearest mesh sample faces away from it (normals at more than
+        90 degrees), with the mesh sample that minimises ``|q - p|^2 + (normal_match * D)^2 |n_q - n_p|^2``,
+        ``D`` the target's bounding-box diagonal (approximate neighbours, scipy's ``eps=1``); the other pairs,
+        and the mesh samples' nearest target samples, stay as they are, and the loss is the squared distance
+        of the paired positions either way. By position alone the floor and walls of a cavity pull on the
+        outside of the surface, across the wall, instead of on the surface over the opening, and a sphere
+        never enters a cup; paired again, they pull on surface that faces their way. Only in a stage whose
+        start encloses the target (99 % of 2,000 target samples inside it; the stage's record says
+        ``start_encloses_target``): from a start that is not around the target, such pairs pull surface over
+        from the far side, and the stage runs on plain pairs. 0 (default) is plain nearest neighbours;
+        ``default_schedule`` sets 0.3 in rbf's first stage of three (docs/reconstruction.md, *Pairing by
+        normal*). A stage setting.
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
