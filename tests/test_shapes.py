@@ -188,7 +188,7 @@ def test_sheet_square_boundary_and_up_normals(default_meshes):
 # --- targets -----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["bunny", "teapot", "dumbbell", "fin", "cup"])
+@pytest.mark.parametrize("name", ["bunny", "teapot", "dumbbell", "fin", "cup", "bowl"])
 def test_target_normalised(name):
     V, F = target_mesh(name, dtype=torch.float64)
     lo, hi = V.min(0).values, V.max(0).values
@@ -198,7 +198,7 @@ def test_target_normalised(name):
     assert target_mesh(name)[0].dtype == torch.float32
 
 
-@pytest.mark.parametrize("name, thickness", [("dumbbell", 0.10), ("fin", 0.06), ("cup", 0.05)])
+@pytest.mark.parametrize("name, thickness", [("dumbbell", 0.10), ("fin", 0.06), ("cup", 0.05), ("bowl", 0.05)])
 def test_thin_targets_are_clean_closed_outward_and_thin(name, thickness):
     from meshmei.quality import count_self_intersections
 
