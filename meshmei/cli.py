@@ -303,7 +303,9 @@ def _add_reconstruct(sub) -> None:
                         "it has one (a teapot's handle; meshmei.reconstruct.openings.torus_through_opening), else "
                         "centred; 'torus-centred' is always centred; 'torus-through-opening' fails without an "
                         "opening")
-    p.add_argument("--target", required=True, help="bunny, teapot, dumbbell, fin, cup (thin parts), or a mesh file (normalised to unit diagonal)")
+    p.add_argument("--target", required=True,
+                   help="bunny, teapot, dumbbell, fin, cup, bowl (thin parts), or a mesh file (normalised to "
+                        "unit diagonal)")
     p.add_argument("--out", required=True, help="output folder (must not exist unless --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--method", choices=METHODS, default=d.method)

@@ -13,9 +13,9 @@ from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
 from meshmei.quality import count_self_intersections, health_report
-from meshmei.sampling import PointIndex, sample_points
 from meshmei.reconstruct import (DEFAULT_STEPS, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
                                  reconstruct, resolve_source, source_mesh, target_surface)
+from meshmei.sampling import PointIndex, sample_points
 from meshmei.shapes import initial_mesh, target_mesh
 
 from conftest import icosphere
@@ -320,7 +320,8 @@ def test_cli_stage_schedules(tmp_path, capsys):
         assert tuple(settings["stage_fractions"]) == pytest.approx(shares)
         # three levels with rbf: the benchmark's rbf-3levels (half the samples in the first stage, lighter
         # smoothing in the fine stages), with the first stage's samples following --samples
-        want = [{**RBF_THREE_LEVEL_OVERRIDES[0], "n_samples": 150}, *RBF_THREE_LEVEL_OVERRIDES[1:]] if levels == 3 else None
+        first = {**RBF_THREE_LEVEL_OVERRIDES[0], "n_samples": 150}
+        want = [first, *RBF_THREE_LEVEL_OVERRIDES[1:]] if levels == 3 else None
         assert settings["stage_overrides"] == want
     out_dir = tmp_path / "ls3"
     rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 4,
@@ -1263,12 +1264,13 @@ def test_pairing_by_normal_pulls_on_surface_that_faces_the_same_way():
         top = nq[flat, 2] > 0
         if weight:
             assert torch.all(agree > 0.99)
-            assert torch.allclose(z[top], torch.tensor(0.3, dtype=z.dtype)) and torch.allclose(z[~top], torch.tensor(0.03, dtype=z.dtype))
+            assert torch.allclose(z[top], torch.full_like(z[top], 0.3))
+            assert torch.allclose(z[~top], torch.full_like(z[~top], 0.03))
         else:
-            assert torch.all(agree[top] < -0.99) and torch.allclose(z, torch.tensor(0.03, dtype=z.dtype))
+            assert torch.all(agree[top] < -0.99) and torch.allclose(z, torch.full_like(z, 0.03))
     # in the term: the mesh samples' pairs are the same, the target samples' are farther
-    terms = {w: fit._SampledChamfer(Vt, Ft, 20_000, torch.Generator().manual_seed(1), normals=True)(V, F, 2000, 0, 1e-3, w)
-             for w in (0.0, 0.3)}
+    terms = {w: fit._SampledChamfer(Vt, Ft, 20_000, torch.Generator().manual_seed(1), normals=True)(
+        V, F, 2000, 0, 1e-3, w) for w in (0.0, 0.3)}
     assert terms[0.3][1].item() == terms[0.0][1].item()  # the facing term reads the mesh samples' pairs
     assert terms[0.3][0].item() > terms[0.0][0].item()
 
@@ -1285,7 +1287,8 @@ def test_pairing_by_normal_runs_only_where_the_stage_start_encloses_the_target()
     torus = initial_mesh("torus", n_vertices=300)
     paired = reconstruct(torus, "teapot", "rbf", stage_overrides=over, **kw)
     plain = reconstruct(torus, "teapot", "rbf", stage_overrides=(None, None), **kw)
-    assert paired.info["stages"][0]["normal_match"] == 0.0 and paired.info["stages"][0]["start_encloses_target"] is False
+    first = paired.info["stages"][0]
+    assert first["normal_match"] == 0.0 and first["start_encloses_target"] is False
     assert torch.equal(paired.V, plain.V) and torch.equal(paired.F, plain.F)
 
 

@@ -183,7 +183,8 @@ def mei_outcomes(n_cells: int, steps: int) -> list:
 
 
 def thin_outcomes(names=("dumbbell", "fin", "cup", "bowl"), seed: int = 0) -> list:
-    """The thin-part targets (the fin and the bowl used for no tuning): meshmei's default run (sphere start, 2,500 vertices,
+    """The thin-part targets (the fin and the bowl used for no tuning): meshmei's default run (sphere start,
+    2,500 vertices,
     ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as published given the
     default run's time."""
     rows = []
