@@ -35,6 +35,7 @@ from .reconstruct import (
     target_surface,
 )
 from .shapes import DEFAULT_N_VERTICES, INITIAL_KINDS
+from .shapes.targets import THIN_TARGETS
 from .story import FULL, QUICK, run_story
 from .tuning import parse_range, run_tuning
 
@@ -304,7 +305,7 @@ def _add_reconstruct(sub) -> None:
                         "centred; 'torus-centred' is always centred; 'torus-through-opening' fails without an "
                         "opening")
     p.add_argument("--target", required=True,
-                   help="bunny, teapot, dumbbell, fin, cup, bowl (thin parts), or a mesh file (normalised to "
+                   help=f"bunny, teapot, {', '.join(THIN_TARGETS)} (thin parts), or a mesh file (normalised to "
                         "unit diagonal)")
     p.add_argument("--out", required=True, help="output folder (must not exist unless --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")

@@ -1294,9 +1294,9 @@ def test_pairing_by_normal_runs_only_where_the_stage_start_encloses_the_target()
 
 @pytest.mark.slow
 def test_the_default_run_enters_a_cup_and_stays_clean():
-    """The cup (walls 0.05 thick, a thin target no default was tuned on) from the CLI's 2,500-vertex sphere: by
-    position alone the run covers the opening and ends near 1.6e-3; paired by normal in its first stage it
-    lines the inside (5.8e-7 when measured), with no intersecting pair."""
+    """The cup (walls 0.05 thick, one of the two thin targets normal_match was chosen on) from the CLI's
+    2,500-vertex sphere: by position alone the run covers the opening and ends near 1.6e-3; paired by normal in
+    its first stage it lines the inside (5.8e-7 when measured), with no intersecting pair."""
     from meshmei.reconstruct import default_schedule
 
     V, F = initial_mesh("sphere", n_vertices=2500)

@@ -34,6 +34,7 @@ from meshmei.quality import health_report
 from meshmei.reconstruct import DEFAULT_STEPS, default_schedule, reconstruct
 from meshmei.reconstruct.sources import resolve_source, target_surface
 from meshmei.shapes import initial_mesh
+from meshmei.shapes.targets import THIN_TARGETS
 
 
 def mei_cost(steps: int = 60) -> list:
@@ -182,11 +183,10 @@ def mei_outcomes(n_cells: int, steps: int) -> list:
     return rows
 
 
-def thin_outcomes(names=("dumbbell", "fin", "cup", "bowl"), seed: int = 0) -> list:
+def thin_outcomes(names=tuple(THIN_TARGETS), seed: int = 0) -> list:
     """The thin-part targets (the fin and the bowl used for no tuning): meshmei's default run (sphere start,
-    2,500 vertices,
-    ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as published given the
-    default run's time."""
+    2,500 vertices, ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as published
+    given the default run's time."""
     rows = []
     for name in names:
         target = target_surface(name)
