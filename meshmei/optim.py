@@ -174,7 +174,7 @@ class Outcome:
     step : int, or list of ints for a batched objective
         Steps done before the kept iterate (``trace.step`` when it is the final one).
     budget_spent : bool
-        The whole budget is used (False when the call stopped at ``stop_at < 1``).
+        The whole budget is used (False when the call stopped at ``stop_at < 1`` or at ``stop_step``).
     """
 
     loss: float | list
@@ -369,7 +369,8 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
 
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
              schedule: Schedule = Schedule(), keep: str = "last", keep_from: float = 0.0,
-             trace: Trace | None = None, stop_at: float = 1.0, progress: Progress | None = None, callbacks=(),
+             trace: Trace | None = None, stop_at: float = 1.0, stop_step: int | None = None,
+             progress: Progress | None = None, callbacks=(),
              evaluate_last: bool = False, accept: Callable[[], bool] | None = None, max_halvings: int = 6,
              states=(), error: type[Exception] = FloatingPointError, where: str = "") -> Outcome:
     """Minimise ``objective`` with ``optimizer`` until ``budget`` (or ``stop_at`` of it) is used.
@@ -412,6 +413,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         Continue a run (steps, time and history go on from it).
     stop_at : float
         Stop when this share of the budget is used (a stage of a longer run).
+    stop_step : int, optional
+        Also stop once ``trace.step`` reaches this many steps (a stage's own limit), whichever comes first.
     progress : Progress, optional
     callbacks : sequence of callables
     accept : callable, optional
@@ -447,13 +450,16 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
                              f"got {value!r}")
     if isinstance(max_halvings, bool) or not isinstance(max_halvings, numbers.Integral) or max_halvings < 0:
         raise ValueError(f"max_halvings must be a non-negative integer, got {max_halvings!r}")
+    if stop_step is not None and (isinstance(stop_step, bool) or not isinstance(stop_step, numbers.Integral)):
+        raise ValueError(f"stop_step must be an integer or None, got {stop_step!r}")
     trace = trace if trace is not None else Trace()
     params = _parameters(optimizer)
     for g in optimizer.param_groups:
         g.setdefault("lr0", g["lr"])
     states = list(states)
     best = _Best(params, trace.step, states)
-    while (f := budget.fraction(trace.step, trace.seconds)) < stop_at:
+    while ((f := budget.fraction(trace.step, trace.seconds)) < stop_at
+           and (stop_step is None or trace.step < stop_step)):
         t0 = time.perf_counter()
         c = schedule.factor(budget.schedule_fraction(trace.step, trace.seconds, schedule.endpoint))
         for g in optimizer.param_groups:

@@ -146,6 +146,22 @@ def test_stages_share_a_trace_and_stop_at_their_share():
     assert trace.step == 10 and second.budget_spent and [r["step"] for r in seen] == list(range(4, 11))
 
 
+def test_a_stage_stops_at_its_own_step_limit_before_its_share():
+    x = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+    trace = Trace(step=2)
+    out = minimize(quadratic(x, torch.ones(2, dtype=torch.float64)), torch.optim.Adam([x], lr=0.1), Budget(steps=10),
+                   trace=trace, stop_at=0.8, stop_step=5)
+    assert trace.step == 5 and len(trace.history) == 3 and not out.budget_spent
+    # the share comes first when it is reached first
+    out = minimize(quadratic(x, torch.ones(2, dtype=torch.float64)), torch.optim.Adam([x], lr=0.1), Budget(steps=10),
+                   trace=trace, stop_at=0.7, stop_step=9)
+    assert trace.step == 7 and not out.budget_spent
+    for bad in (2.5, True, "3"):
+        with pytest.raises(ValueError, match="stop_step must be an integer or None"):
+            minimize(quadratic(x, torch.ones(2, dtype=torch.float64)), torch.optim.Adam([x], lr=0.1),
+                     Budget(steps=10), stop_step=bad)
+
+
 def test_parameterisations_start_at_the_rest_shape_and_list_their_groups():
     from meshmei.shapes import initial_mesh
 

@@ -353,10 +353,16 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices():
     assert default_schedule("largesteps", 2500, 3) == (*default_stages(2500, 3), None)
     # the first stage draws half the run's samples: 5,000 of the default 10,000, or half of what is asked,
     # and matches them by normal (the only stage that does)
-    assert RBF_THREE_LEVEL_OVERRIDES[0] == {"n_samples": ReconstructionSettings().n_samples // 2, "normal_match": 0.3}
+    assert RBF_THREE_LEVEL_OVERRIDES[0] == {"n_samples": ReconstructionSettings().n_samples // 2, "normal_match": 0.3,
+                                            "max_steps": 150}
     assert all("normal_match" not in (o or {}) for o in RBF_THREE_LEVEL_OVERRIDES[1:])
-    assert default_schedule("rbf", 10_000, n_samples=3001)[2] == ({"n_samples": 1500, "normal_match": 0.3},
-                                                                  *RBF_THREE_LEVEL_OVERRIDES[1:])
+    assert default_schedule("rbf", 10_000, n_samples=3001)[2] == ({"n_samples": 1500, "normal_match": 0.3,
+                                                                   "max_steps": 150}, *RBF_THREE_LEVEL_OVERRIDES[1:])
+    # the coarse stages' limits are the steps a default run gives them: they cut only longer budgets, and the
+    # fine stages have none
+    shares = default_stages(10_000, 3)[1]
+    assert [o["max_steps"] for o in RBF_THREE_LEVEL_OVERRIDES[:2]] == [round(f * DEFAULT_STEPS) for f in shares[:2]]
+    assert all("max_steps" not in (o or {}) for o in RBF_THREE_LEVEL_OVERRIDES[2:])
     assert default_schedule("largesteps", 10_000, 3, n_samples=3000)[2] is None
     with pytest.raises(ValueError, match="method"):
         default_schedule("bogus", 10_000)
@@ -694,6 +700,43 @@ def test_final_metrics_describe_the_returned_mesh_after_a_remesh(sphere, bunny, 
     assert res.info["stages"][1]["steps"] == 0
     assert res.metrics[-1]["n_vertices"] == res.V.shape[0]
     assert res.final == surface_metrics(res.V, res.F, *bunny, n_samples=2000, seed=0, health=True)
+
+
+def test_a_stage_at_its_step_limit_passes_the_rest_of_its_share_on(sphere, bunny):
+    from meshmei.errors import ReconstructionError
+
+    # steps: stage 0's share is 12 of 40 steps and its limit 5; the 35 left go to stages 1 and 2 as 3 : 4
+    # (their shares 0.3 : 0.4), 15 and 20 (bounds 5/40 + 0.3/0.7 * 35/40 = 0.5, then 1)
+    ov = ({"max_steps": 5}, None, None)
+    res = reconstruct(sphere, bunny, "rbf", steps=40, stages=(100, 300, 300), stage_fractions=(0.3, 0.3, 0.4),
+                      stage_overrides=ov, **SMALL)
+    stages = res.info["stages"]
+    assert [st["end_step"] for st in stages] == [5, 20, 40] and len(res.history) == 40
+    assert stages[0]["max_steps"] == 5 and stages[0]["ended_at_max_steps"] is True
+    assert "max_steps" not in stages[1] and "max_steps" not in stages[2]
+    # a limit the share does not reach changes nothing, bit for bit
+    a = reconstruct(sphere, bunny, "rbf", steps=40, stages=(100, 300), stage_fractions=(0.25, 0.75), seed=2, **SMALL)
+    b = reconstruct(sphere, bunny, "rbf", steps=40, stages=(100, 300), stage_fractions=(0.25, 0.75), seed=2,
+                    stage_overrides=({"max_steps": 10}, None), **SMALL)
+    assert torch.equal(a.V, b.V) and [h["loss"] for h in a.history] == [h["loss"] for h in b.history]
+    assert b.info["stages"][0]["end_step"] == 10 and b.info["stages"][0]["ended_at_max_steps"] is False
+    # a time budget: the stage after takes the time, and the run still uses the whole budget
+    res = reconstruct(sphere, bunny, "rbf", time_budget=1.0, stages=(100, 300), stage_fractions=(0.9, 0.1),
+                      stage_overrides=({"max_steps": 3}, None), **SMALL)
+    stages = res.info["stages"]
+    assert stages[0]["end_step"] == 3 and stages[0]["ended_at_max_steps"] is True
+    assert stages[1]["steps"] > 0 and res.history[-1]["time"] >= 1.0
+    # on the last stage, or a run without stages, the limit ends the run
+    res = reconstruct(sphere, bunny, "rbf", steps=40, stages=(100, 300), stage_overrides=(None, {"max_steps": 4}),
+                      **SMALL)
+    assert [st["end_step"] for st in res.info["stages"]] == [20, 24] and len(res.history) == 24
+    assert len(reconstruct(sphere, bunny, "rbf", steps=40, max_steps=7, **SMALL).history) == 7
+    for bad in (0, -1, 2.5, True, "10"):
+        with pytest.raises(ReconstructionError, match="max_steps must be a positive integer or None"):
+            ReconstructionSettings(max_steps=bad).resolved()
+        with pytest.raises(ReconstructionError, match="stage 0: max_steps must be a positive integer or None"):
+            reconstruct(sphere, bunny, "rbf", steps=4, stages=(100, 300), stage_overrides=({"max_steps": bad}, None),
+                        **SMALL)
 
 
 @pytest.mark.parametrize("remesh_seconds, merged", [(0.2, True), (0.1, False)])

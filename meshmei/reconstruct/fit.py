@@ -454,6 +454,12 @@ def _merged_restarts(k: int, stages, per_stage, bounds, budget, setup: float, me
     return end
 
 
+def _pass_on_share(bounds, k: int, f: float) -> None:
+    """Stage ``k - 1`` ended at budget fraction ``f``, before its bound ``bounds[k]`` (its ``max_steps``): the
+    stages from ``k`` on share what is left, ``[f, 1]``, in the proportions they had (``bounds`` in place)."""
+    bounds[k:] = f + (bounds[k:] - bounds[k]) * (1.0 - f) / (1.0 - bounds[k])
+
+
 def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):
     stages = s.stages or (None,)
     bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
@@ -522,17 +528,26 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                     evaluation(param.vertices().detach(), F, health=True)
 
         n_before = len(trace.history)
+        stop_step = None if sk.max_steps is None else trace.step + sk.max_steps
         # a guarded step's check of the candidate and the next objective share one map of the parameters
         vertices = Lookahead(param.vertices, [p for g in param.groups for p in g["params"]])
         outcome = minimize(_objective(param, vertices, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
-                           stop_at=1.0 if end == len(stages) - 1 else bounds[end + 1], progress=bar,
+                           stop_at=1.0 if end == len(stages) - 1 else bounds[end + 1], stop_step=stop_step,
+                           progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(vertices.candidate),
                            max_halvings=0 if guard is None else guard.rules.max_halvings, states=param.states())
         with torch.no_grad():
             V_start, V = V, param.vertices().detach()
+        # ended by its max_steps before its share (a limit that the share reaches too cut nothing)
+        f = budget.fraction(trace.step, trace.seconds)
+        capped = stop_step is not None and trace.step >= stop_step and f < (1.0 if end == len(stages) - 1
+                                                                             else float(bounds[end + 1]))
+        if capped and end + 1 < len(stages):
+            _pass_on_share(bounds, end + 1, f)
         stage = {"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
                  **({} if pairing is None else {"normal_match": sk.normal_match, "start_encloses_target": pairing}),
+                 **({} if sk.max_steps is None else {"max_steps": sk.max_steps, "ended_at_max_steps": capped}),
                  "w_laplacian": weights[0], "w_edge": weights[1], "w_arap": weights[2],
                  **_guard_info(guard, trace.history[n_before:]), **_contact_info(contact, edges_from[0]),
                  "contact_left_out": left_out, "setup_seconds": setup, **remeshed,

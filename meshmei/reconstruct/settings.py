@@ -41,7 +41,8 @@ MIN_STAGE_VERTICES = 32
 AUTO_EDGE_REFUSALS = 5
 # The settings ReconstructionSettings.stage_overrides may change from one stage to the next.
 STAGE_FIELDS = ("method", "lr", "lr_scale", "reg_decay", "w_laplacian", "w_edge", "w_arap", "optimizer", "lam",
-                "sigma_factor", "r_cut", "centers", "coarse_ratio", "coarse_lr", "n_samples", "normal_match")
+                "sigma_factor", "r_cut", "centers", "coarse_ratio", "coarse_lr", "n_samples", "normal_match",
+                "max_steps")
 
 # Per-method defaults, tuned on sphere -> bunny and torus -> teapot at 2.5k and 10k vertices
 # (see docs/reconstruction.md). Regularizer weights multiply losses in the units of a unit-diagonal
@@ -193,6 +194,13 @@ class ReconstructionSettings:
         from the far side, and the stage runs on plain pairs. 0 (default) is plain nearest neighbours;
         ``default_schedule`` sets 0.3 in rbf's first stage of three (docs/reconstruction.md, *Pairing by
         normal*). A stage setting.
+    max_steps : int or None
+        The most steps a stage takes (a stage setting; None, the default: no limit but its share). A stage
+        that reaches it ends there, and what is left of its share of the budget goes to the stages after it,
+        in their proportions (the stage's record says ``max_steps`` and ``ended_at_max_steps``); set for
+        the last stage, or for a run without stages, the run ends there. ``default_schedule`` limits rbf's
+        two coarse stages of three to the steps a default run of 1,000 gives them (150 and 250), so that a
+        long time budget goes to the final resolution (docs/reconstruction.md, *Long budgets*).
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
@@ -231,6 +239,7 @@ class ReconstructionSettings:
     contact_edges: bool | str = "auto"
     w_facing: float = 0.0
     normal_match: float = 0.0
+    max_steps: int | None = None
 
     def resolved(self) -> "ReconstructionSettings":
         """A copy with the per-method defaults filled in and every value checked.
@@ -334,6 +343,9 @@ def _check_values(s: ReconstructionSettings) -> None:
         n = getattr(s, name)
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise ReconstructionError(f"{name} must be a positive integer, got {n!r}")
+    m = s.max_steps
+    if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1):
+        raise ReconstructionError(f"max_steps must be a positive integer or None, got {m!r}")
     seed = s.seed
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not SEED_MIN <= seed <= SEED_MAX:
         raise ReconstructionError(f"seed must be an integer from {SEED_MIN} to {SEED_MAX}, got {seed!r}")
