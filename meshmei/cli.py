@@ -318,9 +318,10 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--samples", type=int, default=d.n_samples, help="Chamfer samples per step")
     p.add_argument("--stages", default="auto",
                    help="comma-separated vertex counts, e.g. 600,2500,2500 (equal shares); 'auto2': n/4,n,n; "
-                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also half the --samples in "
-                        "the first stage and a quarter of the Laplacian weight in the two fine stages, as the "
-                        "benchmark's rbf-3levels); 'auto' (default): auto3 for rbf from 2,000 vertices, else auto2 "
+                        "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also half the --samples and "
+                        "pairing by normal in the first stage, at most 150 and 250 steps in the two coarse stages "
+                        "and a quarter of the Laplacian weight in the two fine stages: RBF_THREE_LEVEL_OVERRIDES); "
+                        "'auto' (default): auto3 for rbf from 2,000 vertices, else auto2 "
                         "(default_schedule); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=d.eval_every)
     p.add_argument("--eval-samples", type=int, default=d.eval_samples)
