@@ -27,9 +27,10 @@ __all__ = ["RBF_THREE_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES", "default_sta
 #
 # The two coarse stages take at most the steps that the CLI's default run of 1,000 steps gives them (150 and
 # 250, its shares 0.15 and 0.25), whatever the budget: the settings were chosen on runs of that length and the
-# coarse shapes settle within them, so a longer budget goes to the final resolution. At 10k vertices on the
-# bunny, 100 s: 4.1e-5 at 10 s and 1.7e-6 at 30 s where the shares alone gave 3.0e-4 and 8.2e-6 (the 625-vertex
-# stage held 15 s, 394 steps); a 1,000-step run, and every 10 s and 30 s run, is as before
+# coarse shapes settle within them, so a longer budget goes to the final resolution. The bunny's 100 s run at
+# 10k vertices in the reconstruction benchmark: 1.4e-5 at 10 s and 1.7e-6 at 30 s, where the shares alone gave
+# 2.7e-4 and 8.3e-6 (the 625-vertex stage held 15 s, 560 steps), against large steps' 1.7e-4 and 3.8e-6. A
+# 1,000-step run (the CLI's default), every 10 s run and the 30 s runs at 10k are as before
 # (docs/reconstruction.md, *Long budgets*).
 RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps": 150}, {"max_steps": 250},
                              {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
