@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from meshmei.benchmarks.reconstruct import best_of_runs, on_checkpoints, slower_levels, time_to_reach
@@ -229,3 +231,13 @@ def test_surface_health_reads_a_reconstruction_result_as_the_health_columns():
     assert cells[1] == F.shape[0]  # every face of the reversed sphere points against the target, none of the others
     assert float(cells[2]) == pytest.approx(closed.min_quality, abs=5e-4)
     assert cells[3:] == ["2/3", "3/3"]  # the holed sphere is open, and all three are manifold
+
+
+def test_each_run_is_labelled_with_its_start_and_the_load_average_then(monkeypatch, tmp_path):
+    """The machine is shared: a table's times mean little without the load they were measured under."""
+    from meshmei.benchmarks.reconstruct import run
+    from meshmei.benchmarks.reconstruct.records import Records
+
+    monkeypatch.setattr(run.os, "getloadavg", lambda: (1.26, 0.5, 0.25))
+    label = run._Benchmark(None, Records(), tmp_path, skip_existing=False).run_label
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d \(load 1\.3\)", label)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from dataclasses import dataclass
 
@@ -134,7 +135,8 @@ class _Benchmark:
     def __init__(self, plan: _Plan, records: Records, out, *, skip_existing: bool):
         self.plan, self.records, self.out, self.skip_existing = plan, records, out, skip_existing
         self.floors_done, self.membrane_done = set(), set()  # measured again in every run (records gain fields)
-        self.run_label = time.strftime("%Y-%m-%d %H:%M")  # which run wrote an entry (--merge keeps older ones)
+        # which run wrote an entry (--merge keeps older ones), with the 1-minute load average at its start
+        self.run_label = f"{time.strftime('%Y-%m-%d %H:%M')} (load {os.getloadavg()[0]:.1f})"
         self.t_all = time.perf_counter()
 
     def problem(self, prob):
