@@ -528,21 +528,20 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                     evaluation(param.vertices().detach(), F, health=True)
 
         n_before = len(trace.history)
+        share_end = 1.0 if end == len(stages) - 1 else float(bounds[end + 1])  # where the stage's share ends
         stop_step = None if sk.max_steps is None else trace.step + sk.max_steps
         # a guarded step's check of the candidate and the next objective share one map of the parameters
         vertices = Lookahead(param.vertices, [p for g in param.groups for p in g["params"]])
         outcome = minimize(_objective(param, vertices, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
-                           stop_at=1.0 if end == len(stages) - 1 else bounds[end + 1], stop_step=stop_step,
-                           progress=bar,
+                           stop_at=share_end, stop_step=stop_step, progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(vertices.candidate),
                            max_halvings=0 if guard is None else guard.rules.max_halvings, states=param.states())
         with torch.no_grad():
             V_start, V = V, param.vertices().detach()
         # ended by its max_steps before its share (a limit that the share reaches too cut nothing)
         f = budget.fraction(trace.step, trace.seconds)
-        capped = stop_step is not None and trace.step >= stop_step and f < (1.0 if end == len(stages) - 1
-                                                                             else float(bounds[end + 1]))
+        capped = stop_step is not None and trace.step >= stop_step and f < share_end
         if capped and end + 1 < len(stages):
             _pass_on_share(bounds, end + 1, f)
         stage = {"n_vertices": int(V.shape[0]), "end_step": trace.step, "method": sk.method, "lr": sk.lr,
