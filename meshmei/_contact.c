@@ -289,13 +289,27 @@ static void edge_pair(const double *V, const int64_t *E, const uint8_t *first, i
     emit(found, cap, out_a, out_b, out_d, a, b, d);
 }
 
+typedef struct {
+    double x; /* the lower x of the edge's box */
+    int64_t e;
+} sweep_t;
+
+static int by_x(const void *a, const void *b) {
+    double x = ((const sweep_t *)a)->x, y = ((const sweep_t *)b)->x;
+    if (x != y) return x < y ? -1 : 1;
+    int64_t i = ((const sweep_t *)a)->e, j = ((const sweep_t *)b)->e;
+    return (i > j) - (i < j);
+}
+
 /* (edge, edge) pairs: out_a, out_b and their squared distances out_d (room for `cap`; the order within a pair
- * as edge_pair writes it, the distance as measured from edge i to edge j). The
+ * as edge_pair writes it, the distance as measured from edge i to edge j: from the short edge of a short and a
+ * long one, else from the one the search below starts from). The
  * short edges' midpoints in a grid; a short edge looks for the short edges after it in the grid's order
  * whose midpoints lie within its half-extent, the largest short half-extent and reach (the cells that box
  * overlaps; two edges within reach of each other each lie in the other's box, so the pair is found from the
- * one the grid holds first), and tests every long edge (half-extent above twice the mean: stretched ones, not
- * in the grid); a long edge tests the long edges after it. Each pair once. */
+ * one the grid holds first). A long edge (half-extent above twice the mean: stretched ones, not in the grid)
+ * looks in the grid the same way for every short edge (a box about its own length: the cost of a long edge is
+ * its length, not the edge count); pairs of long edges come from a sweep along x. Each pair once. */
 int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *E, const uint8_t *first,
                           double lim, int64_t cap, int64_t *out_a, int64_t *out_b, double *out_d) {
     if (!all_finite(n, V)) return -1;
@@ -304,11 +318,12 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
     double *box = malloc(room * 6 * sizeof(double)); /* per edge: midpoint, half-extents */
     double *P = calloc(room * 3, sizeof(double)), *packed = malloc(room * 6 * sizeof(double));
     int64_t *longs = malloc(room * sizeof(int64_t)), *slot = malloc(room * sizeof(int64_t));
+    sweep_t *sweep = malloc(room * sizeof(sweep_t));
     int64_t *ids = malloc(room * sizeof(int64_t)), *pos = malloc(room * sizeof(int64_t)); /* grid order <-> edge */
     double *size = malloc(room * sizeof(double)); /* the largest half-extent */
     grid_t g = {0};
     int64_t found = -2, nlong = 0, nshort = 0;
-    if (!box || !P || !packed || !longs || !slot || !ids || !pos || !size) goto done;
+    if (!box || !P || !packed || !longs || !sweep || !slot || !ids || !pos || !size) goto done;
     for (int64_t e = 0; e < k; e++) {
         box_of(V, E + 2 * e, 2, 0.0, lo, hi);
         size[e] = 0.0;
@@ -344,31 +359,50 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
         const double *bi = box + 6 * i;
         box_of(V, E + 2 * i, 2, widen, lo, hi);
         int long_i = size[i] > 2.0 * mean;
-        if (!long_i) {
-            double qlo[3], qhi[3];
-            for (int a = 0; a < 3; a++) {
-                double r = bi[3 + a] + largest[a] + widen;
-                qlo[a] = bi[a] - r, qhi[a] = bi[a] + r;
-            }
-            boxcells_t bc = box_cells(&g, qlo, qhi);
-            for (int64_t row = 0, from, to; row < bc.nx * bc.ny; row++) {
-                cell_row(&g, &bc, row, &from, &to);
-                if (from <= pos[i]) from = pos[i] + 1; /* the grid's earlier edges found their pairs with i */
-                for (int64_t q = from; q < to; q++) {
-                    const double *bj = packed + 6 * q;
-                    if (fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
-                        fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen || fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen)
-                        continue;
+        double qlo[3], qhi[3], jlo[3], jhi[3];
+        for (int a = 0; a < 3; a++) {
+            double r = bi[3 + a] + largest[a] + widen;
+            qlo[a] = bi[a] - r, qhi[a] = bi[a] + r;
+        }
+        boxcells_t bc = box_cells(&g, qlo, qhi);
+        for (int64_t row = 0, from, to; row < bc.nx * bc.ny; row++) {
+            cell_row(&g, &bc, row, &from, &to);
+            if (!long_i && from <= pos[i]) from = pos[i] + 1; /* the grid's earlier edges found their pairs with i */
+            for (int64_t q = from; q < to; q++) {
+                const double *bj = packed + 6 * q;
+                if (fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
+                    fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen || fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen)
+                    continue;
+                if (!long_i) {
                     edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b, out_d);
+                } else { /* a short and a long edge: measured from the short one */
+                    box_of(V, E + 2 * ids[q], 2, widen, jlo, jhi);
+                    edge_pair(V, E, first, ids[q], i, jlo, jhi, lim, &found, cap, out_a, out_b, out_d);
                 }
             }
         }
-        for (int64_t t = 0; t < nlong; t++)
-            if (!long_i || longs[t] > i)
-                edge_pair(V, E, first, i, longs[t], lo, hi, lim, &found, cap, out_a, out_b, out_d);
+    }
+    /* two long edges: swept in the order of their boxes' lower x, each against those that start before its box
+     * (widened twice: generous, edge_pair decides) ends; measured from the lower index */
+    for (int64_t t = 0; t < nlong; t++) sweep[t].x = box[6 * longs[t]] - box[6 * longs[t] + 3], sweep[t].e = longs[t];
+    qsort(sweep, (size_t)nlong, sizeof(sweep_t), by_x);
+    for (int64_t p = 0; p < nlong; p++) {
+        int64_t i = sweep[p].e;
+        double ilo[3], ihi[3], jlo[3], jhi[3];
+        box_of(V, E + 2 * i, 2, widen, ilo, ihi);
+        for (int64_t s = p + 1; s < nlong && sweep[s].x <= ihi[0] + widen; s++) {
+            int64_t j = sweep[s].e;
+            if (i < j) {
+                edge_pair(V, E, first, i, j, ilo, ihi, lim, &found, cap, out_a, out_b, out_d);
+            } else {
+                box_of(V, E + 2 * j, 2, widen, jlo, jhi);
+                edge_pair(V, E, first, j, i, jlo, jhi, lim, &found, cap, out_a, out_b, out_d);
+            }
+        }
     }
 done:
-    grid_free(&g), free(box), free(P), free(packed), free(longs), free(slot), free(ids), free(pos), free(size);
+    grid_free(&g), free(box), free(P), free(packed), free(longs), free(sweep), free(slot), free(ids), free(pos),
+        free(size);
     return found;
 }
 
