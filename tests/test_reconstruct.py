@@ -1160,8 +1160,49 @@ def test_a_remesh_that_welds_pieces_is_refused_between_stages():
                       eval_samples=500)
     st = res.info["stages"][0]
     assert st["remesh_iterations"] is None and "nonmanifold_vertices" in st["remesh_refused_topology"]
+    assert st["remesh_tries"] == 3 and "remesh_out_of_time" not in st  # a step budget: every try
     assert topology(res.F) == before
     assert face_components(res.F, res.V.shape[0]).max() == face_components(F, V.shape[0]).max()
+
+
+def test_under_a_time_budget_a_refused_remesh_is_retried_only_while_the_stages_share_has_room(monkeypatch):
+    """Three tries of a refused 10k remesh (about a second each with their checks) spent the whole share of
+    a 10 s run's last stage, which took no step and ran the run 11 % over budget. On a fake clock where a
+    remesh takes 0.2 s (the teapot's, refused: it welds the handle to the body): a stage whose share has
+    0.5 s left makes one try (a second would leave 0.1 s, less than a try) and keeps its mesh, says why, and
+    the run ends within a step of its budget (three tries would have ended it 0.1 s over); with 1.1 s left, all
+    three tries are made; a step budget makes all three as before."""
+    import importlib
+
+    from meshmei.reconstruct import ReconstructionWarning
+    from meshmei.shapes import remesh
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    clock = _fake_clock(monkeypatch, 0.005)
+    calls = []
+
+    def slow(V, F, n, **kw):
+        clock.sleep(0.2)
+        calls.append(kw.get("iterations"))
+        return remesh(V, F, n, **kw)
+
+    monkeypatch.setattr(fit, "remesh", slow)
+    V, F = target_mesh("teapot", resolution=4)
+    kw = dict(stages=(V.shape[0], 700), n_samples=300, target_pool=1000, eval_samples=500)
+    with pytest.warns(ReconstructionWarning, match=r"the remesh \(tried 1 of 3 times: the stage's share of the time "
+                      r"budget left no room for another\) to 700 vertices"):
+        res = reconstruct((V, F), "bunny", "vertex", time_budget=1.0, stage_fractions=(0.5, 0.5), **kw)
+    st = res.info["stages"][1]
+    assert calls == [None] and st["remesh_tries"] == 1 and st["remesh_out_of_time"] is True
+    assert st["remesh_iterations"] is None and st["steps"] > 0 and res.V.shape == V.shape
+    assert res.history[-1]["time"] < 1.0 + 0.05 and res.wall_time < 1.0 + 0.05
+    calls.clear()
+    res = reconstruct((V, F), "bunny", "vertex", time_budget=2.2, stage_fractions=(0.5, 0.5), **kw)
+    st = res.info["stages"][1]
+    assert calls == [None, 10, 3] and st["remesh_tries"] == 3 and "remesh_out_of_time" not in st
+    calls.clear()
+    res = reconstruct((V, F), "bunny", "vertex", steps=4, stage_fractions=(0.5, 0.5), **kw)
+    assert calls == [None, 10, 3] and res.info["stages"][1]["remesh_tries"] == 3
 
 
 def test_a_remesh_that_clears_one_crossing_and_makes_another_elsewhere_is_refused():
@@ -1198,7 +1239,7 @@ def test_a_stage_whose_remesh_is_refused_takes_the_weights_of_the_mesh_it_runs_o
     import importlib
 
     fit = importlib.import_module("meshmei.reconstruct.fit")
-    monkeypatch.setattr(fit, "_remesh_clean", lambda V, F, n, clean: (V, F, {
+    monkeypatch.setattr(fit, "_remesh_clean", lambda V, F, n, clean, seconds_left=None: (V, F, {
         "remesh_iterations": None, "remesh_refused_pairs": 3, "remesh_refused_topology": []}))
     V, F = sphere
     n = V.shape[0]

@@ -412,23 +412,34 @@ def _new_intersections(V, F, old: np.ndarray, V2, F2) -> int:
     return max(len(new) - len(old), elsewhere)  # at least the excess, and every pair away from the old ones
 
 
-def _remesh_clean(V, F, n: int, clean: bool):
+def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
     """Remesh to ``n`` vertices; with ``clean``, retry (other iteration counts) when the remesh adds
     intersecting pairs (:func:`_new_intersections`) or changes the topology (:func:`~meshmei.quality.topology`:
     pieces welded at a vertex, a new non-manifold edge or vertex), and keep the mesh as it is when no try is
-    clean. Returns ``(V, F, record)``."""
+    clean. ``seconds_left``: under a time budget, the seconds left in the stage's share; no retry starts once
+    what would be left after it, at the last try's duration, is under that duration (a refused 10k remesh
+    and its checks take about a second: three tries spent a 10 s run's last share and ran it over budget).
+    Returns ``(V, F, record)``; the record says how many tries were made (``remesh_tries``)."""
+    t0 = time.perf_counter()
     V2, F2 = remesh(V, F, n)
     if not clean:
         return V2, F2, {}
     old, shape = self_intersecting_pairs(V, F), topology(F)  # the source's, once for every try
+    tries, tried_at = 0, t0
     for iterations in (None, 10, 3):
         if iterations is not None:
+            now = time.perf_counter()
+            if seconds_left is not None and seconds_left - (now - t0) < 2.0 * (now - tried_at):
+                break  # after one more try as long as the last, the stage would have less than that left
             V2, F2 = remesh(V, F, n, iterations=iterations)
+            tried_at = now
         added = _new_intersections(V, F, old, V2, F2)
         changed = sorted(k for k, v in topology(F2).items() if v != shape[k])
+        tries += 1
         if added == 0 and not changed:
-            return V2, F2, {"remesh_iterations": iterations or 5}
-    return V, F, {"remesh_iterations": None, "remesh_refused_pairs": added, "remesh_refused_topology": changed}
+            return V2, F2, {"remesh_iterations": iterations or 5, "remesh_tries": tries}
+    return V, F, {"remesh_iterations": None, "remesh_refused_pairs": added, "remesh_refused_topology": changed,
+                  "remesh_tries": tries, **({"remesh_out_of_time": True} if tries < 3 else {})}
 
 
 # A restart stage (the count of the stage before, the same settings) is run as part of the stage before it when
@@ -472,15 +483,19 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         t0 = time.perf_counter()
         remeshed = {}
         if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
-            V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps)
+            left = None if budget.seconds is None else float(bounds[k + 1]) * budget.seconds - trace.seconds
+            V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps, left)
         sk = per_stage[k] if per_stage else s
         # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
         # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
         refused = remeshed.get("remesh_iterations", 0) is None
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source, V.shape[0] if refused else None)
         if refused:
+            tried = ("every remesh" if not remeshed.get("remesh_out_of_time") else
+                     f"the remesh (tried {remeshed['remesh_tries']} of 3 times: the stage's share of the time budget "
+                     "left no room for another)")
             info["warnings"].append(
-                f"stage {k}: every remesh to {n_stage} vertices added self-intersections or changed the topology "
+                f"stage {k}: {tried} to {n_stage} vertices added self-intersections or changed the topology "
                 f"({remeshed['remesh_refused_pairs']} new pairs; "
                 f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): "
                 f"the stage runs on the mesh it had, {V.shape[0]} vertices, with the weights for that count")
