@@ -1205,6 +1205,47 @@ def test_under_a_time_budget_a_refused_remesh_is_retried_only_while_the_stages_s
     assert calls == [None, 10, 3] and res.info["stages"][1]["remesh_tries"] == 3
 
 
+def test_a_growing_stage_whose_remesh_is_refused_runs_on_its_mesh_split_in_four(sphere, monkeypatch):
+    """A 10k stage whose every remesh was refused ran on the 2,351-vertex mesh it had (a 10 s bunny run at
+    10k). A stage that grows the mesh now splits every face in four at its edges' midpoints (the same
+    surface, about four times the vertices) when that lands nearer the count asked for and passes the same
+    checks. Here a remesh that grows the mesh crosses its surface (one vertex pushed through the far side)."""
+    import importlib
+
+    from meshmei.reconstruct import ReconstructionWarning
+    from meshmei.shapes import remesh
+    from meshmei.topology import mesh_topology
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+
+    def crossing(V, F, n, **kw):  # a remesh that grows the mesh crosses it
+        V2, F2 = remesh(V, F, n, **kw)
+        if n > V.shape[0]:
+            V2 = V2.clone()
+            V2[0] = -1.5 * V2[0]
+        return V2, F2
+
+    monkeypatch.setattr(fit, "remesh", crossing)
+    V, F = sphere
+    n, e = V.shape[0], int(mesh_topology(F, V.shape[0]).edges.shape[0])
+    U, G, rec = fit._remesh_clean(V, F, 4 * n, True)
+    assert rec["remesh_subdivided"] is True and rec["remesh_iterations"] is None and rec["remesh_tries"] == 3
+    assert rec["remesh_refused_pairs"] > 0 and U.shape == (n + e, 3) and G.shape == (4 * F.shape[0], 3)
+    assert U.dtype == V.dtype and torch.equal(U[:n], V) and count_self_intersections(U, G) == 0
+    # every new vertex is the midpoint of an edge of the old mesh
+    E = mesh_topology(F, n).edges
+    mid = 0.5 * (V[E[:, 0]].double() + V[E[:, 1]].double())
+    assert torch.cdist(U[n:].double(), mid).min(1).values.max() < 1e-6
+    assert fit._remesh_clean(V, F, n + 10, True)[0] is V  # not growing: the mesh it had
+    with pytest.warns(ReconstructionWarning, match=r"every remesh to \d+ vertices added self-intersections .*: the "
+                      r"stage runs on the mesh it had with every face split in four \(the same surface\), \d+ "
+                      r"vertices"):
+        res = reconstruct(sphere, "bunny", "rbf", steps=6, stages=(n // 4, n), **SMALL)
+    first, second = res.info["stages"]
+    assert second["remesh_subdivided"] is True and second["n_vertices"] > 3 * first["n_vertices"]
+    assert res.final.self_intersections == 0 and res.V.shape[0] == second["n_vertices"]
+
+
 def test_a_remesh_that_clears_one_crossing_and_makes_another_elsewhere_is_refused():
     """The stage check compared counts: with a source that already crossed itself in one place, a remesh
     that made a new crossing elsewhere passed as long as the total did not grow (5 new pairs in a clean

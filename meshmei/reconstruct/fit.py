@@ -416,9 +416,11 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
     """Remesh to ``n`` vertices; with ``clean``, retry (other iteration counts) when the remesh adds
     intersecting pairs (:func:`_new_intersections`) or changes the topology (:func:`~meshmei.quality.topology`:
     pieces welded at a vertex, a new non-manifold edge or vertex), and keep the mesh as it is when no try is
-    clean. ``seconds_left``: under a time budget, the seconds left in the stage's share; no retry starts once
-    what would be left after it, at the last try's duration, is under that duration (a refused 10k remesh
-    and its checks take about a second: three tries spent a 10 s run's last share and ran it over budget).
+    clean; then, where that lands nearer ``n``, the mesh with every face split in four (:func:`_subdivided`,
+    the same surface; ``remesh_subdivided`` in the record) if it passes the same checks. ``seconds_left``:
+    under a time budget, the seconds left in the stage's share; no retry starts once what would be left after
+    it, at the last try's duration, is under that duration (a refused 10k remesh and its checks take about a
+    second: three tries spent a 10 s run's last share and ran it over budget).
     Returns ``(V, F, record)``; the record says how many tries were made (``remesh_tries``)."""
     t0 = time.perf_counter()
     V2, F2 = remesh(V, F, n)
@@ -438,8 +440,23 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
         tries += 1
         if added == 0 and not changed:
             return V2, F2, {"remesh_iterations": iterations or 5, "remesh_tries": tries}
-    return V, F, {"remesh_iterations": None, "remesh_refused_pairs": added, "remesh_refused_topology": changed,
-                  "remesh_tries": tries, **({"remesh_out_of_time": True} if tries < 3 else {})}
+    record = {"remesh_iterations": None, "remesh_refused_pairs": added, "remesh_refused_topology": changed,
+              "remesh_tries": tries, **({"remesh_out_of_time": True} if tries < 3 else {})}
+    # a stage that grows the mesh: split every face in four at its edges' midpoints (the same surface, about
+    # four times the vertices) if that lands nearer the count asked for and passes the same checks
+    U, G = _subdivided(V, F)
+    if abs(U.shape[0] - n) < abs(V.shape[0] - n) and _new_intersections(V, F, old, U, G) == 0 and \
+            topology(G) == shape:
+        return U, G, {**record, "remesh_subdivided": True}
+    return V, F, record
+
+
+def _subdivided(V, F):
+    """``(V, F)`` with every face split in four at its edges' midpoints (libigl's ``upsample``), in ``V``'s
+    dtype and on its device."""
+    U, G = igl.upsample(np.ascontiguousarray(V.detach().cpu().double().numpy()),
+                        np.ascontiguousarray(F.cpu().numpy()), number_of_subdivs=1)
+    return torch.from_numpy(U).to(V.dtype).to(V.device), torch.from_numpy(np.asarray(G, dtype=np.int64)).to(F.device)
 
 
 # A restart stage (the count of the stage before, the same settings) is run as part of the stage before it when
@@ -488,17 +505,19 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         sk = per_stage[k] if per_stage else s
         # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
         # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
-        refused = remeshed.get("remesh_iterations", 0) is None
+        refused = remeshed.get("remesh_iterations", 0) is None and not remeshed.get("remesh_subdivided")
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source, V.shape[0] if refused else None)
-        if refused:
+        if remeshed.get("remesh_iterations", 0) is None:
             tried = ("every remesh" if not remeshed.get("remesh_out_of_time") else
                      f"the remesh (tried {remeshed['remesh_tries']} of 3 times: the stage's share of the time budget "
                      "left no room for another)")
+            runs_on = (f"the stage runs on the mesh it had, {V.shape[0]} vertices, with the weights for that count"
+                       if refused else f"the stage runs on the mesh it had with every face split in four (the same "
+                       f"surface), {V.shape[0]} vertices")
             info["warnings"].append(
                 f"stage {k}: {tried} to {n_stage} vertices added self-intersections or changed the topology "
                 f"({remeshed['remesh_refused_pairs']} new pairs; "
-                f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): "
-                f"the stage runs on the mesh it had, {V.shape[0]} vertices, with the weights for that count")
+                f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): {runs_on}")
         sk = _guarded_step(s, sk, V.shape[0])
         pairing = None  # normal_match: whether the stage's start encloses the target (else plain pairs)
         if sk.normal_match > 0:
