@@ -292,6 +292,21 @@ def test_candidates_are_exactly_the_pairs_within_reach(kind, compiled):
     assert set(zip(vt.tolist(), ft.tolist())) == set(zip(vi[want].tolist(), fi[want].tolist()))
 
 
+def _edge_search_against_every_pair(barrier, V, compiled):
+    """The barrier's edge search on ``V`` (its edges, the pairs ``(ea, eb)`` and their distances ``de``), the
+    pairs it found as sorted ``(lower, higher)`` tuples, and the same for every pair of edges sharing no
+    vertex within the search's reach, measured one by one."""
+    E, k = barrier.E, barrier.E.shape[0]
+    i, j = torch.triu_indices(k, k, 1)
+    apart = (E[i][:, :, None] != E[j][:, None, :]).all(2).all(1)
+    d2 = segment_sqdist(V[E[i, 0]], V[E[i, 1]], V[E[j, 0]], V[E[j, 1]])
+    reach = barrier.distance + 2 * barrier.margin
+    want = (d2 < reach * reach) & apart
+    _, _, ea, eb, _, de = barrier._candidates(V.numpy(), compiled)
+    found = sorted(zip(torch.minimum(ea, eb).tolist(), torch.maximum(ea, eb).tolist()))
+    return E, (ea, eb, de), found, sorted(zip(i[want].tolist(), j[want].tolist()))
+
+
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_cc)])
 def test_edge_candidates_are_exactly_the_edge_pairs_within_reach(compiled):
     """Against every pair of edges of a crumpled sphere with a few edges stretched long: exactly the pairs
@@ -301,15 +316,8 @@ def test_edge_candidates_are_exactly_the_edge_pairs_within_reach(compiled):
     V = V + 0.35 * h * torch.randn(V.shape, generator=torch.Generator().manual_seed(5), dtype=V.dtype)
     V[:6] *= 1.6
     barrier = ContactBarrier(F, distance=h / 3, edges=True)
-    E, k = barrier.E, barrier.E.shape[0]
-    i, j = torch.triu_indices(k, k, 1)
-    apart = (E[i][:, :, None] != E[j][:, None, :]).all(2).all(1)
-    d2 = segment_sqdist(V[E[i, 0]], V[E[i, 1]], V[E[j, 0]], V[E[j, 1]])
-    reach = barrier.distance + 2 * barrier.margin
-    want = (d2 < reach * reach) & apart
-    _, _, ea, eb, _, de = barrier._candidates(V.numpy(), compiled)
-    found = sorted(zip(torch.minimum(ea, eb).tolist(), torch.maximum(ea, eb).tolist()))
-    assert len(found) > 100 and found == sorted(zip(i[want].tolist(), j[want].tolist()))
+    E, (ea, eb, de), found, want = _edge_search_against_every_pair(barrier, V, compiled)
+    assert len(found) > 100 and found == want
     half = (V[E[:, 1]] - V[E[:, 0]]).norm(dim=1)
     long = half > torch.quantile(half, 0.98)
     assert bool((long[ea] | ~long[eb]).all()) and bool(((long[ea] != long[eb]) | (ea < eb)).all())
@@ -331,15 +339,8 @@ def test_edge_candidates_where_many_edges_are_stretched(compiled):
     V = V + 0.3 * h * torch.randn(V.shape, generator=torch.Generator().manual_seed(3), dtype=V.dtype)
     V[V[:, 2] > 0.2, :2] *= 2.5
     barrier = ContactBarrier(F, distance=h / 3, edges=True)
-    E, k = barrier.E, barrier.E.shape[0]
-    i, j = torch.triu_indices(k, k, 1)
-    apart = (E[i][:, :, None] != E[j][:, None, :]).all(2).all(1)
-    d2 = segment_sqdist(V[E[i, 0]], V[E[i, 1]], V[E[j, 0]], V[E[j, 1]])
-    reach = barrier.distance + 2 * barrier.margin
-    want = (d2 < reach * reach) & apart
-    _, _, ea, eb, _, de = barrier._candidates(V.numpy(), compiled)
-    found = sorted(zip(torch.minimum(ea, eb).tolist(), torch.maximum(ea, eb).tolist()))
-    assert found == sorted(zip(i[want].tolist(), j[want].tolist()))
+    E, (ea, eb, de), found, want = _edge_search_against_every_pair(barrier, V, compiled)
+    assert found == want
     size = (0.5 * (V[E[:, 1]] - V[E[:, 0]]).abs()).max(1).values  # the compiled search's long edges
     long = size > 2 * size.mean()
     assert float(long.double().mean()) > 0.1
