@@ -475,9 +475,12 @@ class ReconstructionResult:
     info : dict, e.g. the regularizer weights used (``w_laplacian``, ``w_edge``, ``w_arap``, scaled to the
         resolution) and per stage (``info["stages"]``) its method, Laplacian weight, ``setup_seconds``, with
         the guard its ``steps`` and ``accepted_steps``, and for rbf the truncation error and pair counts (a
-        restart merged into stage ``k``: ``n_vertices``, ``end_step``, ``steps`` 0, ``merged_into`` k);
-        ``warnings``: one line per stage whose every step the guard refused (each also a
-        :class:`ReconstructionWarning`)
+        restart merged into stage ``k``: ``n_vertices``, ``end_step``, ``steps`` 0, ``merged_into`` k), and
+        after a checked remesh ``remesh_iterations`` and ``remesh_tries`` (every try refused:
+        ``remesh_iterations`` None, ``remesh_refused_pairs``, ``remesh_refused_topology``, and
+        ``remesh_out_of_time`` where a time budget stopped the tries, ``remesh_subdivided`` where the stage runs
+        on its mesh split in four); ``warnings``: one line per stage whose every step the guard refused, whose
+        remesh was refused or whose start has pairs in contact (each also a :class:`ReconstructionWarning`)
     """
 
     V: torch.Tensor
