@@ -427,12 +427,13 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
     if not clean:
         return V2, F2, {}
     old, shape = self_intersecting_pairs(V, F), topology(F)  # the source's, once for every try
-    tries, tried_at = 0, t0
+    tries, tried_at, out_of_time = 0, t0, False
     for iterations in (None, 10, 3):
         if iterations is not None:
             now = time.perf_counter()
             if seconds_left is not None and seconds_left - (now - t0) < 2.0 * (now - tried_at):
-                break  # after one more try as long as the last, the stage would have less than that left
+                out_of_time = True  # after one more try as long as the last, the stage would have less left
+                break
             V2, F2 = remesh(V, F, n, iterations=iterations)
             tried_at = now
         added = _new_intersections(V, F, old, V2, F2)
@@ -441,13 +442,14 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
         if added == 0 and not changed:
             return V2, F2, {"remesh_iterations": iterations or 5, "remesh_tries": tries}
     record = {"remesh_iterations": None, "remesh_refused_pairs": added, "remesh_refused_topology": changed,
-              "remesh_tries": tries, **({"remesh_out_of_time": True} if tries < 3 else {})}
+              "remesh_tries": tries, **({"remesh_out_of_time": True} if out_of_time else {})}
     # a stage that grows the mesh: split every face in four at its edges' midpoints (the same surface, about
     # four times the vertices) if that lands nearer the count asked for and passes the same checks
-    U, G = _subdivided(V, F)
-    if abs(U.shape[0] - n) < abs(V.shape[0] - n) and _new_intersections(V, F, old, U, G) == 0 and \
-            topology(G) == shape:
-        return U, G, {**record, "remesh_subdivided": True}
+    if n > V.shape[0]:
+        U, G = _subdivided(V, F)
+        if abs(U.shape[0] - n) < abs(V.shape[0] - n) and _new_intersections(V, F, old, U, G) == 0 and \
+                topology(G) == shape:
+            return U, G, {**record, "remesh_subdivided": True}
     return V, F, record
 
 
@@ -456,7 +458,8 @@ def _subdivided(V, F):
     dtype and on its device."""
     U, G = igl.upsample(np.ascontiguousarray(V.detach().cpu().double().numpy()),
                         np.ascontiguousarray(F.cpu().numpy()), number_of_subdivs=1)
-    return torch.from_numpy(U).to(V.dtype).to(V.device), torch.from_numpy(np.asarray(G, dtype=np.int64)).to(F.device)
+    return (torch.from_numpy(U).to(device=V.device, dtype=V.dtype),
+            torch.from_numpy(np.asarray(G, dtype=np.int64)).to(F.device))
 
 
 # A restart stage (the count of the stage before, the same settings) is run as part of the stage before it when
@@ -505,9 +508,10 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         sk = per_stage[k] if per_stage else s
         # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
         # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
-        refused = remeshed.get("remesh_iterations", 0) is None and not remeshed.get("remesh_subdivided")
+        remesh_refused = remeshed.get("remesh_iterations", 0) is None
+        refused = remesh_refused and not remeshed.get("remesh_subdivided")  # and the mesh kept as it was
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source, V.shape[0] if refused else None)
-        if remeshed.get("remesh_iterations", 0) is None:
+        if remesh_refused:
             tried = ("every remesh" if not remeshed.get("remesh_out_of_time") else
                      f"the remesh (tried {remeshed['remesh_tries']} of 3 times: the stage's share of the time budget "
                      "left no room for another)")
