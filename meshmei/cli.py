@@ -321,7 +321,9 @@ def _add_reconstruct(sub) -> None:
                         "'auto3': n/16,n/4,n,n (default_stages(n, levels=3); for rbf also half the --samples and "
                         "pairing by normal in the first stage, at most 150 and 250 steps in the two coarse stages "
                         "and a quarter of the Laplacian weight in the two fine stages: RBF_THREE_LEVEL_OVERRIDES); "
-                        "'auto' (default): auto3 for rbf from 2,000 vertices, else auto2 "
+                        "'auto4': auto3's schedule for n/4, then one stage at n (n/64,n/16,n/4,n/4,n; for rbf the "
+                        "same settings, and the last stage as light: RBF_FOUR_LEVEL_OVERRIDES); "
+                        "'auto' (default): auto4 for rbf from 8,000 vertices, auto3 from 2,000, else auto2 "
                         "(default_schedule); 'none': one stage")
     p.add_argument("--eval-every", type=int, default=d.eval_every)
     p.add_argument("--eval-samples", type=int, default=d.eval_samples)

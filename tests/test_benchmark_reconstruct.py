@@ -165,11 +165,11 @@ def test_variants_take_their_schedule_from_default_schedule():
     assert variant_settings("largesteps-3levels", 10000)["stage_overrides"] is None
     assert variant_settings("rbf-unguarded", 10000) == dict(UNGUARDED, stage_overrides=None,
                                                             **dict(zip(("stages", "stage_fractions"), default_stages(10000))))
-    # the guarded default runs the CLI's schedule: three levels at the benchmark's resolutions
-    for n in (2500, 10000):
+    # the guarded default runs the CLI's schedule: three levels at 2.5k, four at 10k
+    for n, levels in ((2500, 3), (10000, 4)):
         assert variant_settings("rbf", n) == dict(zip(("stages", "stage_fractions", "stage_overrides"),
                                                       default_schedule("rbf", n)))
-        assert len(variant_settings("rbf", n)["stages"]) == 4
+        assert len(variant_settings("rbf", n)["stages"]) == levels + 1
     assert variant_settings("rbf-nolap", 2500)["w_laplacian"] == 0.0
 
 

@@ -13,7 +13,7 @@ from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
 from meshmei.quality import count_self_intersections, health_report
-from meshmei.reconstruct import (DEFAULT_STEPS, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
+from meshmei.reconstruct import (DEFAULT_STEPS, RBF_FOUR_LEVEL_OVERRIDES, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
                                  reconstruct, resolve_source, source_mesh, target_surface)
 from meshmei.sampling import PointIndex, sample_points
 from meshmei.shapes import initial_mesh, target_mesh
@@ -65,12 +65,17 @@ def test_stages_remesh_between_stages(sphere, bunny):
     assert res.info["stages"][1]["truncation_error"] <= 3.4e-4
     assert default_stages(2500) == ((625, 2500, 2500), (0.25, 0.45, 0.3))
     assert default_stages(10000, levels=3) == ((625, 2500, 10000, 10000), (0.15, 0.25, 0.35, 0.25))
+    assert default_stages(10000, levels=4) == ((156, 625, 2500, 2500, 10000), (0.1, 0.15, 0.3, 0.2, 0.25))
     for n in (100, 2500, 10000, 40000):
         for levels in (2, 3):  # a ladder up to n, then n once more; one share per stage
             stages, shares = default_stages(n, levels)
             assert len(stages) == levels + 1 and stages[-2:] == (n, n) and list(stages) == sorted(stages)
             assert len(shares) == len(stages) and sum(shares) == pytest.approx(1.0)
-    for bad in (1, 4, "3"):
+        # four: three levels' stages for n/4 in three quarters of the budget, then n in the last quarter
+        stages, shares = default_stages(n, 4)
+        assert stages == (*default_stages(max(32, n // 4), 3)[0], n) and list(stages) == sorted(stages)
+        assert len(shares) == 5 and sum(shares[:4]) == pytest.approx(0.75) and shares[-1] == 0.25
+    for bad in (1, 5, "3"):
         with pytest.raises(ValueError, match="levels"):
             default_stages(2500, bad)
 
@@ -309,7 +314,7 @@ def test_cli_stage_schedules(tmp_path, capsys):
     from meshmei.shapes import initial_mesh
 
     n = initial_mesh("sphere", n_vertices=800)[0].shape[0]
-    for spec, levels in (("auto", 2), ("auto2", 2), ("auto3", 3)):  # auto: two levels for rbf below 2k
+    for spec, levels in (("auto", 2), ("auto2", 2), ("auto3", 3), ("auto4", 4)):  # auto: two levels for rbf below 2k
         out_dir = tmp_path / spec
         rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 8,
                         "--samples", 300, "--eval-samples", 1000, "--stages", spec, "--no-progress"], capsys)
@@ -322,6 +327,8 @@ def test_cli_stage_schedules(tmp_path, capsys):
         # smoothing in the fine stages), with the first stage's samples following --samples
         first = {**RBF_THREE_LEVEL_OVERRIDES[0], "n_samples": 150}
         want = [first, *RBF_THREE_LEVEL_OVERRIDES[1:]] if levels == 3 else None
+        if levels == 4:  # the same, and the last stage at n as light as the fine stages
+            want = [first, *RBF_FOUR_LEVEL_OVERRIDES[1:]]
         assert settings["stage_overrides"] == want
     out_dir = tmp_path / "ls3"
     rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 4,
@@ -330,34 +337,46 @@ def test_cli_stage_schedules(tmp_path, capsys):
     assert rc == 0, out.err
     settings = json.loads((out_dir / "history.json").read_text())["settings"]
     assert tuple(settings["stages"]) == default_stages(n, 3)[0] and settings["stage_overrides"] is None
-    rc, out = _cli(["--target", "bunny", "--out", tmp_path / "bad", "--stages", "auto4", "--no-progress"], capsys)
+    rc, out = _cli(["--target", "bunny", "--out", tmp_path / "bad", "--stages", "auto5", "--no-progress"], capsys)
     assert rc == 2 and "auto3" in out.err
 
 
-def test_default_schedule_gives_rbf_three_levels_from_2k_vertices():
-    from meshmei.reconstruct import THREE_LEVEL_MIN_VERTICES, default_schedule
+def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_8k():
+    from meshmei.reconstruct import (FOUR_LEVEL_MIN_VERTICES, RBF_FOUR_LEVEL_OVERRIDES, THREE_LEVEL_MIN_VERTICES,
+                                     default_schedule)
 
     # measured at 10k and at the CLI's default 2,500: its starts (torus 2,431 vertices, sphere 2,550) get them
     starts = [initial_mesh(name, n_vertices=2500)[0].shape[0] for name in ("torus", "sphere")]
     assert THREE_LEVEL_MIN_VERTICES <= min(starts) and THREE_LEVEL_MIN_VERTICES >= 16 * 100  # first stage >= 100
-    for n in (THREE_LEVEL_MIN_VERTICES, *starts, 10_000, 28_000):
+    for n in (THREE_LEVEL_MIN_VERTICES, *starts, FOUR_LEVEL_MIN_VERTICES - 1):
         assert default_schedule("rbf", n) == (*default_stages(n, 3), RBF_THREE_LEVEL_OVERRIDES)
+    # from 8k (the benchmark's 10k) four: what three give n/4, then one stage at n as light as the fine ones
+    assert FOUR_LEVEL_MIN_VERTICES == 4 * THREE_LEVEL_MIN_VERTICES
+    assert RBF_FOUR_LEVEL_OVERRIDES == (*RBF_THREE_LEVEL_OVERRIDES, RBF_THREE_LEVEL_OVERRIDES[-1])
+    for n in (FOUR_LEVEL_MIN_VERTICES, 10_000, 28_000):
+        assert default_schedule("rbf", n) == (*default_stages(n, 4), RBF_FOUR_LEVEL_OVERRIDES)
+    for n in (THREE_LEVEL_MIN_VERTICES, *starts, 10_000, 28_000):
         for method in ("largesteps", "vertex"):
             assert default_schedule(method, n) == (*default_stages(n, 2), None)
     for method in ("rbf", "largesteps", "vertex"):
         n = THREE_LEVEL_MIN_VERTICES - 1
         assert default_schedule(method, n) == (*default_stages(n, 2), None)
-    # forced levels: rbf with three always gets the lighter fine stages, the others never
+    # forced levels: rbf with three or four always gets the lighter fine stages, the others never
     assert default_schedule("rbf", 2500, 3) == (*default_stages(2500, 3), RBF_THREE_LEVEL_OVERRIDES)
+    assert default_schedule("rbf", 2500, 4) == (*default_stages(2500, 4), RBF_FOUR_LEVEL_OVERRIDES)
+    assert default_schedule("rbf", 10_000, 3) == (*default_stages(10_000, 3), RBF_THREE_LEVEL_OVERRIDES)
     assert default_schedule("rbf", 10_000, 2) == (*default_stages(10_000, 2), None)
+    assert default_schedule("largesteps", 10_000, 4) == (*default_stages(10_000, 4), None)
     assert default_schedule("largesteps", 2500, 3) == (*default_stages(2500, 3), None)
     # the first stage draws half the run's samples: 5,000 of the default 10,000, or half of what is asked,
     # and matches them by normal (the only stage that does)
     assert RBF_THREE_LEVEL_OVERRIDES[0] == {"n_samples": ReconstructionSettings().n_samples // 2, "normal_match": 0.3,
                                             "max_steps": 150}
     assert all("normal_match" not in (o or {}) for o in RBF_THREE_LEVEL_OVERRIDES[1:])
+    assert default_schedule("rbf", 10_000, 3, n_samples=3001)[2] == ({"n_samples": 1500, "normal_match": 0.3,
+                                                                      "max_steps": 150}, *RBF_THREE_LEVEL_OVERRIDES[1:])
     assert default_schedule("rbf", 10_000, n_samples=3001)[2] == ({"n_samples": 1500, "normal_match": 0.3,
-                                                                   "max_steps": 150}, *RBF_THREE_LEVEL_OVERRIDES[1:])
+                                                                   "max_steps": 150}, *RBF_FOUR_LEVEL_OVERRIDES[1:])
     # the coarse stages' limits are the steps a default run gives them: they cut only longer budgets, and the
     # fine stages have none
     shares = default_stages(10_000, 3)[1]
@@ -367,7 +386,7 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices():
     with pytest.raises(ValueError, match="method"):
         default_schedule("bogus", 10_000)
     with pytest.raises(ValueError, match="levels"):
-        default_schedule("rbf", 10_000, 4)
+        default_schedule("rbf", 10_000, 5)
     for bad in (1, 2.5, True, "10000"):
         with pytest.raises(ValueError, match="n_samples"):
             default_schedule("rbf", 10_000, n_samples=bad)
@@ -597,12 +616,12 @@ def test_a_start_under_32_vertices_runs_the_automatic_schedule_in_one_stage(tmp_
 
     for n in range(1, MIN_STAGE_VERTICES):
         for method in ("rbf", "vertex", "largesteps"):
-            for levels in (None, 2, 3):
+            for levels in (None, 2, 3, 4):
                 assert default_schedule(method, n, levels) == (None, None, None)
         with pytest.raises(ValueError, match=f"needs at least 32 vertices, got {n}"):
             default_stages(n)
     for n in range(MIN_STAGE_VERTICES, 300):  # every automatic schedule resolves
-        for spec in ("auto", "auto2", "auto3"):
+        for spec in ("auto", "auto2", "auto3", "auto4"):
             stages, fractions, overrides = schedule_from_text(spec, "rbf", n)
             ReconstructionSettings(stages=stages, stage_fractions=fractions, stage_overrides=overrides).resolved()
     tet = tmp_path / "tet.obj"

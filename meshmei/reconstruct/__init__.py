@@ -3,6 +3,8 @@
 from .fit import reconstruct, stage_weights
 from .runs import save_reconstruction
 from .schedule import (
+    FOUR_LEVEL_MIN_VERTICES,
+    RBF_FOUR_LEVEL_OVERRIDES,
     RBF_THREE_LEVEL_OVERRIDES,
     THREE_LEVEL_MIN_VERTICES,
     default_schedule,
@@ -34,7 +36,9 @@ __all__ = [
     "default_stages",
     "default_schedule",
     "RBF_THREE_LEVEL_OVERRIDES",
+    "RBF_FOUR_LEVEL_OVERRIDES",
     "THREE_LEVEL_MIN_VERTICES",
+    "FOUR_LEVEL_MIN_VERTICES",
     "schedule_from_text",
     "SOURCE_NAMES",
     "source_mesh",

@@ -8,8 +8,8 @@ import numpy as np
 from ..errors import ReconstructionError
 from .settings import METHODS, MIN_STAGE_VERTICES
 
-__all__ = ["RBF_THREE_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES", "default_stages", "default_schedule",
-           "schedule_from_text"]
+__all__ = ["RBF_THREE_LEVEL_OVERRIDES", "RBF_FOUR_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES",
+           "FOUR_LEVEL_MIN_VERTICES", "default_stages", "default_schedule", "schedule_from_text"]
 
 # rbf with three levels (default_stages(n, levels=3)) in the benchmark (variant rbf-3levels) and the CLI's
 # --stages auto3. The coarsest stage (625 vertices at 10k) draws 5,000 Chamfer samples a step instead of
@@ -35,6 +35,15 @@ __all__ = ["RBF_THREE_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES", "default_sta
 RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps": 150}, {"max_steps": 250},
                              {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
 
+# rbf with four levels (default_stages(n, levels=4): what three levels give a run at n/4, then one stage at n)
+# takes the three-level settings for its first four stages, and the last stage the fine stages' lighter
+# smoothing. The stages at n/4 have the regularizer weights of a run at n/4 (reg_ref_vertices scales them
+# by stage count), so up to the last stage a 10k run is a 2.5k run; the last stage starts from an even
+# remesh of that 2.5k result. At 10k a 10 s run got to 6.2e-7 on the bunny where three levels ended at
+# 3.5e-5 (their two 10k stages ran 60 steps after 2.3 s of remeshing and setting up), and 1.8e-6 through
+# the teapot's handle against 2.7e-6 (docs/reconstruction.md, *Four levels at 10k*).
+RBF_FOUR_LEVEL_OVERRIDES = RBF_THREE_LEVEL_OVERRIDES + ({"w_laplacian": 2.5},)
+
 
 def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     """The coarse-to-fine schedule used by the benchmark and the CLI. Returns ``(stages, stage_fractions)``.
@@ -42,11 +51,13 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     ``levels=2`` (the default): ``(n/4, n, n)`` with shares ``(0.25, 0.45, 0.3)`` of the budget.
     ``levels=3``: ``(n/16, n/4, n, n)`` with shares ``(0.15, 0.25, 0.35, 0.25)``, so that a 10k run
     starts as a 2.5k run does (from 625 vertices, where the shape travels at little cost) and then refines.
+    ``levels=4``: three levels' schedule for ``n/4``, then one stage at ``n``: ``(n/64, n/16, n/4, n/4, n)``
+    with shares ``(0.1, 0.15, 0.3, 0.2, 0.25)``, so that a 10k run is a 2.5k run until its last quarter.
     Either way the last stage restarts on a fresh isotropic remesh of the shape, which clears folds and
     slivers left by the one before. At 10k vertices three levels helped rbf on all three benchmark problems
     and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
     *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 2,000
-    vertices. No stage has fewer than :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32)
+    vertices and four from 8,000. No stage has fewer than :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32)
     vertices, so ``n_vertices`` must have at least that many.
     """
     n = int(n_vertices)
@@ -55,9 +66,11 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
                                   f"{n_vertices!r}; run one stage at the mesh's own size (stages=None)")
     if levels == 3:
         return (max(MIN_STAGE_VERTICES, n // 16), max(MIN_STAGE_VERTICES, n // 4), n, n), (0.15, 0.25, 0.35, 0.25)
+    if levels == 4:
+        return tuple(max(MIN_STAGE_VERTICES, n // d) for d in (64, 16, 4, 4, 1)), (0.1, 0.15, 0.3, 0.2, 0.25)
     if levels == 2:
         return (max(MIN_STAGE_VERTICES, n // 4), n, n), (0.25, 0.45, 0.3)
-    raise ReconstructionError(f"levels must be 2 or 3, got {levels!r}")
+    raise ReconstructionError(f"levels must be 2, 3 or 4, got {levels!r}")
 
 
 # The smallest final count at which meshmei reconstruct's --stages auto gives rbf three levels. Measured at
@@ -67,22 +80,28 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
 # would fall under 125 vertices, where nothing was measured.
 THREE_LEVEL_MIN_VERTICES = 2_000
 
+# The smallest final count at which --stages auto gives rbf four levels: from here the run at n/4 that they
+# begin with is itself a three-level run. Measured at 10,000 only (docs/reconstruction.md, *Four levels at
+# 10k*); between 2,000 and 8,000 rbf keeps three.
+FOUR_LEVEL_MIN_VERTICES = 4 * THREE_LEVEL_MIN_VERTICES
+
 
 def default_schedule(method: str, n_vertices: int, levels: int | None = None, *, n_samples: int = 10_000) -> tuple:
     """The coarse-to-fine schedule ``meshmei reconstruct --stages auto`` uses for ``method`` and a final
     count of ``n_vertices``. Returns ``(stages, stage_fractions, stage_overrides)``.
 
-    ``levels`` 2 or 3 forces that many levels (``--stages auto2`` / ``auto3``); rbf with three levels
-    always gets :data:`RBF_THREE_LEVEL_OVERRIDES`: half the run's Chamfer samples in the coarsest stage
-    (``n_samples // 2``; 5,000 with the default 10,000) and the lighter fine stages. ``None``
-    (``--stages auto``) picks as follows.
+    ``levels`` 2, 3 or 4 forces that many levels (``--stages auto2`` / ``auto3`` / ``auto4``); rbf with three
+    levels always gets :data:`RBF_THREE_LEVEL_OVERRIDES` (with four, :data:`RBF_FOUR_LEVEL_OVERRIDES`, the same
+    and a lighter last stage): half the run's Chamfer samples in the coarsest stage (``n_samples // 2``; 5,000
+    with the default 10,000) and the lighter fine stages. ``None`` (``--stages auto``) picks as follows.
 
-    rbf at ``THREE_LEVEL_MIN_VERTICES`` (2,000) vertices or more: three levels with those overrides
-    (``default_stages(n, levels=3)``, the benchmark's rbf-3levels), measured against two levels at 10k on
-    the three benchmark problems (docs/reconstruction.md, *Coarse-to-fine* and *Fifth round*) and at the
-    CLI's default 2,500 on the bunny and the teapot (guarded). Otherwise two levels
-    (``default_stages(n)``); large steps and vertex always get two: three hurt large steps through the
-    teapot's handle.
+    rbf at ``FOUR_LEVEL_MIN_VERTICES`` (8,000) vertices or more: four levels
+    (``default_stages(n, levels=4)``), measured against three at 10k on the bunny and the teapot
+    (docs/reconstruction.md, *Four levels at 10k*). rbf at ``THREE_LEVEL_MIN_VERTICES`` (2,000) vertices or
+    more: three levels (``default_stages(n, levels=3)``, the benchmark's rbf-3levels), measured against two
+    levels at 10k on the three benchmark problems (*Coarse-to-fine* and *Fifth round*) and at the CLI's
+    default 2,500 on the bunny and the teapot (guarded). Otherwise two levels (``default_stages(n)``); large
+    steps and vertex always get two: three hurt large steps through the teapot's handle.
 
     A start of fewer than ``MIN_STAGE_VERTICES`` (32) vertices has no coarser level to start from: it
     runs in one stage at its own size, ``(None, None, None)``, whatever ``levels`` says.
@@ -95,20 +114,23 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
     if n < MIN_STAGE_VERTICES:
         return None, None, None
     if levels is None:
-        levels = 3 if method == "rbf" and n >= THREE_LEVEL_MIN_VERTICES else 2
+        levels = 2
+        if method == "rbf":
+            levels = 4 if n >= FOUR_LEVEL_MIN_VERTICES else 3 if n >= THREE_LEVEL_MIN_VERTICES else 2
     stages, fractions = default_stages(n, levels)
-    if method != "rbf" or levels != 3:
+    if method != "rbf" or levels == 2:
         return stages, fractions, None
-    first = dict(RBF_THREE_LEVEL_OVERRIDES[0], n_samples=int(n_samples) // 2)
-    return stages, fractions, (first,) + RBF_THREE_LEVEL_OVERRIDES[1:]
+    overrides = RBF_FOUR_LEVEL_OVERRIDES if levels == 4 else RBF_THREE_LEVEL_OVERRIDES
+    first = dict(overrides[0], n_samples=int(n_samples) // 2)
+    return stages, fractions, (first,) + overrides[1:]
 
 
 def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: int = 10_000) -> tuple:
     """``(stages, stage_fractions, stage_overrides)`` from the CLI's ``--stages`` text: ``"auto"``
-    (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` (that many levels), ``"none"`` (one stage),
+    (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` / ``"auto4"`` (that many levels), ``"none"`` (one stage),
     or comma-separated vertex counts with equal shares (``"600,2500,2500"``), each at least
     ``MIN_STAGE_VERTICES`` (32). ``n_vertices`` is the start's count."""
-    levels = {"auto": None, "auto2": 2, "auto3": 3}
+    levels = {"auto": None, "auto2": 2, "auto3": 3, "auto4": 4}
     if spec in levels:
         return default_schedule(method, n_vertices, levels[spec], n_samples=n_samples)
     if not spec or spec == "none":
@@ -116,7 +138,7 @@ def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: in
     try:
         stages = tuple(int(x) for x in spec.split(","))
     except ValueError:
-        raise ReconstructionError(f"--stages must be 'auto', 'auto2', 'auto3', 'none' or comma-separated integers, "
+        raise ReconstructionError(f"--stages must be 'auto', 'auto2', 'auto3', 'auto4', 'none' or comma-separated integers, "
                                   f"got {spec!r}") from None
     if min(stages) < MIN_STAGE_VERTICES:
         raise ReconstructionError(f"--stages {spec}: every stage needs at least {MIN_STAGE_VERTICES} vertices (the "
