@@ -13,8 +13,9 @@ from meshmei.cli import main
 from meshmei.errors import MeshError
 from meshmei.metrics import surface_metrics
 from meshmei.quality import count_self_intersections, health_report
-from meshmei.reconstruct import (DEFAULT_STEPS, RBF_FOUR_LEVEL_OVERRIDES, RBF_THREE_LEVEL_OVERRIDES, ReconstructionSettings, default_stages,
-                                 reconstruct, resolve_source, source_mesh, target_surface)
+from meshmei.reconstruct import (DEFAULT_STEPS, RBF_FOUR_LEVEL_OVERRIDES, RBF_THREE_LEVEL_OVERRIDES,
+                                 ReconstructionSettings, default_stages, reconstruct, resolve_source, source_mesh,
+                                 target_surface)
 from meshmei.sampling import PointIndex, sample_points
 from meshmei.shapes import initial_mesh, target_mesh
 

@@ -57,8 +57,9 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     slivers left by the one before. At 10k vertices three levels helped rbf on all three benchmark problems
     and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
     *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 2,000
-    vertices and four from 8,000. No stage has fewer than :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32)
-    vertices, so ``n_vertices`` must have at least that many.
+    vertices and four from 8,000. No stage has fewer than
+    :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32) vertices, so ``n_vertices`` must have at least
+    that many.
     """
     n = int(n_vertices)
     if n < MIN_STAGE_VERTICES:
@@ -127,8 +128,8 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
 
 def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: int = 10_000) -> tuple:
     """``(stages, stage_fractions, stage_overrides)`` from the CLI's ``--stages`` text: ``"auto"``
-    (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` / ``"auto4"`` (that many levels), ``"none"`` (one stage),
-    or comma-separated vertex counts with equal shares (``"600,2500,2500"``), each at least
+    (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` / ``"auto4"`` (that many levels), ``"none"``
+    (one stage), or comma-separated vertex counts with equal shares (``"600,2500,2500"``), each at least
     ``MIN_STAGE_VERTICES`` (32). ``n_vertices`` is the start's count."""
     levels = {"auto": None, "auto2": 2, "auto3": 3, "auto4": 4}
     if spec in levels:
@@ -138,8 +139,8 @@ def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: in
     try:
         stages = tuple(int(x) for x in spec.split(","))
     except ValueError:
-        raise ReconstructionError(f"--stages must be 'auto', 'auto2', 'auto3', 'auto4', 'none' or comma-separated integers, "
-                                  f"got {spec!r}") from None
+        raise ReconstructionError(f"--stages must be 'auto', 'auto2', 'auto3', 'auto4', 'none' or comma-separated "
+                                  f"integers, got {spec!r}") from None
     if min(stages) < MIN_STAGE_VERTICES:
         raise ReconstructionError(f"--stages {spec}: every stage needs at least {MIN_STAGE_VERTICES} vertices (the "
                                   f"start has {int(n_vertices)}); '--stages none' runs one stage at the start's size")
