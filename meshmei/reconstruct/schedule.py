@@ -82,8 +82,10 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
 THREE_LEVEL_MIN_VERTICES = 2_000
 
 # The smallest final count at which --stages auto gives rbf four levels: from here the run at n/4 that they
-# begin with is itself a three-level run. Measured at 10,000 only (docs/reconstruction.md, *Four levels at
-# 10k*); between 2,000 and 8,000 rbf keeps three.
+# begin with is itself a three-level run. Measured at 10,000, and at the CLI's default 2,500, where four
+# levels were worse in a 1,000-step run (seeds 0-2, guarded: bunny 1.29e-6, 1.32e-6, 1.28e-6 against three
+# levels' 1.22e-6, 1.18e-6, 1.09e-6; teapot through the handle 2.50e-6, 2.13e-6, 1.97e-6 against 1.96e-6,
+# 2.05e-6, 1.78e-6; docs/reconstruction.md, *Four levels at 10k*). Below 8,000 rbf keeps three.
 FOUR_LEVEL_MIN_VERTICES = 4 * THREE_LEVEL_MIN_VERTICES
 
 
