@@ -393,16 +393,16 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
             default_schedule("rbf", 10_000, n_samples=bad)
 
 
-def test_cli_auto_gives_rbf_three_levels_on_a_10k_torus(tmp_path, capsys):
+def test_cli_auto_gives_rbf_four_levels_on_a_10k_torus(tmp_path, capsys):
     out_dir = tmp_path / "t10k"
     rc, out = _cli(["--init", "torus", "--n-vertices", 10_000, "--target", "teapot", "--out", out_dir, "--steps", 3,
                     "--samples", 500, "--eval-samples", 1000, "--no-progress"], capsys)
     assert rc == 0, out.err
     settings = json.loads((out_dir / "history.json").read_text())["settings"]
     n = initial_mesh("torus", n_vertices=10_000)[0].shape[0]
-    assert tuple(settings["stages"]) == default_stages(n, 3)[0]
-    assert settings["stage_overrides"] == [{**RBF_THREE_LEVEL_OVERRIDES[0], "n_samples": 250},  # half of --samples
-                                           *RBF_THREE_LEVEL_OVERRIDES[1:]]
+    assert tuple(settings["stages"]) == default_stages(n, 4)[0]
+    assert settings["stage_overrides"] == [{**RBF_FOUR_LEVEL_OVERRIDES[0], "n_samples": 250},  # half of --samples
+                                           *RBF_FOUR_LEVEL_OVERRIDES[1:]]
 
 
 def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
