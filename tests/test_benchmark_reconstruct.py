@@ -200,6 +200,8 @@ def test_every_quick_mode_writes_outside_the_published_docs(mode, monkeypatch):
 
 @pytest.mark.parametrize("module, argv", [
     ("meshmei.benchmarks.validity", ["--parts", "bogus"]),  # ran nothing, exit 0
+    ("meshmei.benchmarks.validity", ["--parts", "thin", "--thin-vertices", "2500,ten"]),
+    ("meshmei.benchmarks.validity", ["--parts", "thin", "--thin-vertices", "2500,16"]),
     ("meshmei.benchmarks.albedo", ["--neurons", "abc"]),  # a ValueError traceback after start-up
     ("meshmei.benchmarks.regularizers", ["--sizes", "-5"]),  # a math domain error
     ("meshmei.benchmarks.regularizers", ["--repeat", "0"]),  # an IndexError after the work

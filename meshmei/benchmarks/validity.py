@@ -183,14 +183,14 @@ def mei_outcomes(n_cells: int, steps: int) -> list:
     return rows
 
 
-def thin_outcomes(names=tuple(THIN_TARGETS), seed: int = 0) -> list:
-    """The thin-part targets (the fin and the bowl used for no tuning): meshmei's default run (sphere start,
-    2,500 vertices, ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as published
-    given the default run's time."""
+def thin_outcomes(names=tuple(THIN_TARGETS), seed: int = 0, n_vertices: int = 2500) -> list:
+    """The thin-part targets (the fin and the bowl used for no tuning): meshmei's default run (sphere start of
+    about ``n_vertices``, ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as
+    published given the default run's time."""
     rows = []
     for name in names:
         target = target_surface(name)
-        V, F, _ = resolve_source("sphere", 2500, torch.float32, target)
+        V, F, _ = resolve_source("sphere", n_vertices, torch.float32, target)
         out = {}
         for label, method, kw in (("rbf (defaults: guard + barrier)", "rbf", {}),
                                   ("rbf, no guard, no barrier", "rbf", UNGUARDED),
@@ -199,16 +199,17 @@ def thin_outcomes(names=tuple(THIN_TARGETS), seed: int = 0) -> list:
             res = _default_run(V, F, target, method, seed, **kw, **budget)
             out[label] = res
             refused = sum(st.get("refused", 0) for st in res.info["stages"])
-            rows.append([name, label, f"{res.final.chamfer_l2:.2e}", *health_cells([surface_health(res.final)]),
+            rows.append([name, V.shape[0], label, f"{res.final.chamfer_l2:.2e}",
+                         *health_cells([surface_health(res.final)]),
                          refused if kw == {} else "-", f"{res.wall_time:.1f}"])
             print(rows[-1], flush=True)
     return rows
 
 
-def run_thin():
+def run_thin(resolutions=(2500,)):
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    rows = thin_outcomes()
+    rows = [row for n in resolutions for row in thin_outcomes(n_vertices=n)]
     body = "\n".join([
         "## Valid steps on targets with thin parts (`python -m meshmei.benchmarks.validity --parts thin`)",
         "",
@@ -219,12 +220,13 @@ def run_thin():
         "`cup` (walls 0.05 thick) and `bowl` (a spherical shell 0.05 thick, open above), unit diagonal, "
         "watertight, made for this (`meshmei.shapes.targets.THIN_TARGETS`); the cup and the dumbbell chose the "
         "weight and form of the coarsest stage's pairing by normal (`normal_match`), the fin and the bowl "
-        "nothing. From a 2,500-vertex sphere, seed 0: meshmei's default run "
+        "nothing. From a sphere of about " + " and ".join(f"{n:,}" for n in resolutions) + " vertices (the "
+        "vertices column: the start's count), seed 0: meshmei's default run "
         f"({DEFAULT_STEPS:,} steps), the same without guard and barrier, and large steps as published with the default "
         "run's wall time as its budget. " + SURFACE_HEALTH_LEGEND + "; refused = candidates the guard "
         "refused; s = optimisation wall time.",
         "",
-        markdown_table(["target", "run", "Chamfer-L2", *SURFACE_HEALTH_COLUMNS, "refused", "s"], rows),
+        markdown_table(["target", "vertices", "run", "Chamfer-L2", *SURFACE_HEALTH_COLUMNS, "refused", "s"], rows),
     ])
     return write_section("validity-thin", body)
 
@@ -310,6 +312,8 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=None, help="3D-MEI steps per seed (default: by start, as MEISettings)")
     ap.add_argument("--cells", type=int, default=6)
     ap.add_argument("--rounds", type=int, default=9, help="alternated rounds of the mei-cost part (its median)")
+    ap.add_argument("--thin-vertices", default="2500",
+                    help="comma-separated start sizes of the thin part, e.g. 2500,10000 (default 2500)")
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), reconstruction (default CLI runs), thin "
                          "(targets with thin parts)")
@@ -318,6 +322,12 @@ def main(argv=None):
     known = {"mei", "mei-cost", "reconstruction", "thin"}
     if not parts <= known:  # an unknown part ran nothing and exited 0
         ap.error(f"--parts: unknown {', '.join(sorted(parts - known))} (known: {', '.join(sorted(known))})")
+    try:
+        thin_vertices = tuple(int(x) for x in args.thin_vertices.split(","))
+    except ValueError:
+        ap.error(f"--thin-vertices must be comma-separated integers, got {args.thin_vertices!r}")
+    if min(thin_vertices) < 32:
+        ap.error(f"--thin-vertices: each start needs at least 32 vertices, got {args.thin_vertices!r}")
     t = time.perf_counter()
     if "mei" in parts:
         print(f"wrote {run(args.steps, args.cells)} in {time.perf_counter() - t:.0f} s")
@@ -326,7 +336,7 @@ def main(argv=None):
     if "reconstruction" in parts:
         print(f"wrote {run_reconstruction()} in {time.perf_counter() - t:.0f} s")
     if "thin" in parts:
-        print(f"wrote {run_thin()} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run_thin(thin_vertices)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":
