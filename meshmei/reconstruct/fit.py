@@ -456,8 +456,7 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
 def _subdivided(V, F):
     """``(V, F)`` with every face split in four at its edges' midpoints (libigl's ``upsample``), in ``V``'s
     dtype and on its device."""
-    U, G = igl.upsample(np.ascontiguousarray(V.detach().cpu().double().numpy()),
-                        np.ascontiguousarray(F.cpu().numpy()), number_of_subdivs=1)
+    U, G = igl.upsample(*numpy_mesh(V, F), number_of_subdivs=1)
     return (torch.from_numpy(U).to(device=V.device, dtype=V.dtype),
             torch.from_numpy(np.asarray(G, dtype=np.int64)).to(F.device))
 
