@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, SURFACE_HEALTH_COLUMNS, SURFACE_HEALTH_LEGEND,
-                                        benchmark_parser, health_cells, machine_line, markdown_table, median,
+                                        benchmark_parser, health_cells, int_list, machine_line, markdown_table, median,
                                         step_intervals, surface_health, write_section)
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
@@ -312,7 +312,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=None, help="3D-MEI steps per seed (default: by start, as MEISettings)")
     ap.add_argument("--cells", type=int, default=6)
     ap.add_argument("--rounds", type=int, default=9, help="alternated rounds of the mei-cost part (its median)")
-    ap.add_argument("--thin-vertices", default="2500",
+    ap.add_argument("--thin-vertices", type=int_list, default="2500",
                     help="comma-separated start sizes of the thin part, e.g. 2500,10000 (default 2500)")
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), reconstruction (default CLI runs), thin "
@@ -322,12 +322,8 @@ def main(argv=None):
     known = {"mei", "mei-cost", "reconstruction", "thin"}
     if not parts <= known:  # an unknown part ran nothing and exited 0
         ap.error(f"--parts: unknown {', '.join(sorted(parts - known))} (known: {', '.join(sorted(known))})")
-    try:
-        thin_vertices = tuple(int(x) for x in args.thin_vertices.split(","))
-    except ValueError:
-        ap.error(f"--thin-vertices must be comma-separated integers, got {args.thin_vertices!r}")
-    if min(thin_vertices) < 32:
-        ap.error(f"--thin-vertices: each start needs at least 32 vertices, got {args.thin_vertices!r}")
+    if min(args.thin_vertices) < 32:
+        ap.error(f"--thin-vertices: each start needs at least 32 vertices, got {args.thin_vertices}")
     t = time.perf_counter()
     if "mei" in parts:
         print(f"wrote {run(args.steps, args.cells)} in {time.perf_counter() - t:.0f} s")
@@ -336,7 +332,7 @@ def main(argv=None):
     if "reconstruction" in parts:
         print(f"wrote {run_reconstruction()} in {time.perf_counter() - t:.0f} s")
     if "thin" in parts:
-        print(f"wrote {run_thin(thin_vertices)} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run_thin(args.thin_vertices)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":
