@@ -29,8 +29,8 @@ SMALL = dict(steps=4, seeds=(0, 1), image_size=20, n_vertices=50)
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
 
 
-def cells(image_size=20):
-    """Three Gabor cells as one lab model's neurons (a ModelEncoder, with a device of its own)."""
+def cells(image_size=20, dtype=torch.float32):
+    """Three Gabor cells as one lab model's neurons (a ModelEncoder, with a device and a dtype of its own)."""
     units = torch.nn.ModuleList([GaborSimpleCell(), GaborComplexCell(orientation=0.7),
                                  GaborSimpleCell(orientation=1.2, phase=1.0)])
 
@@ -43,7 +43,7 @@ def cells(image_size=20):
         def forward(self, x):
             return self.gain * torch.cat([u(x, preprocessed=True) for u in self.units], 1)
 
-    return encoder_from_model(Model(), mean=0.5, std=0.2, image_size=image_size)
+    return encoder_from_model(Model().to(dtype), mean=0.5, std=0.2, image_size=image_size)
 
 
 @contextlib.contextmanager
@@ -54,6 +54,26 @@ def stray_tensors_on_meta():
         yield
     finally:
         torch.set_default_device("cpu")
+
+
+def _adam_names_its_step_device() -> bool:
+    """Whether torch's Adam makes its step counter on the CPU by name. torch 2.13 does; 2.11 makes it on the
+    default device, so under "meta" its own ``step.item()`` fails whatever meshmei does (seen on a GPU machine
+    with torch 2.11, 2026-11-29: every optimising run failed there, in ``torch/optim/adam.py``)."""
+    p = torch.zeros(1, requires_grad=True, device="cpu")
+    p.grad = torch.ones(1, device="cpu")
+    opt = torch.optim.Adam([p], foreach=False)
+    try:
+        with stray_tensors_on_meta():
+            opt.step()
+    except (RuntimeError, NotImplementedError):
+        return False
+    return opt.state[p]["step"].device.type == "cpu"
+
+
+# The checks under "meta" need torch's own optimiser state off the default device (CI's torch 2.13 has that).
+meta = pytest.mark.skipif(not _adam_names_its_step_device(),
+                          reason="this torch's Adam makes its step counter on the default device")
 
 
 def code(compiled: bool):
@@ -76,6 +96,7 @@ def _same(a, b):
     assert a.history == b.history
 
 
+@meta
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch code"])
 @pytest.mark.parametrize("run", list(RUNS))
 def test_a_3d_mei_makes_no_tensor_off_its_inputs_device(run, compiled):
@@ -89,6 +110,7 @@ def test_a_3d_mei_makes_no_tensor_off_its_inputs_device(run, compiled):
     assert probed.V.device.type == "cpu" and probed.image.device.type == "cpu"
 
 
+@meta
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch code"])
 def test_a_batch_makes_no_tensor_off_its_inputs_device(compiled):
     enc = cells()
@@ -100,6 +122,7 @@ def test_a_batch_makes_no_tensor_off_its_inputs_device(compiled):
         _same(probed[n], plain[n])
 
 
+@meta
 def test_a_population_with_pixel_meis_makes_no_tensor_off_its_inputs_device(tmp_path):
     enc, s = cells(), MEISettings(**SMALL)
     with native.torch_reference():
@@ -113,6 +136,7 @@ def test_a_population_with_pixel_meis_makes_no_tensor_off_its_inputs_device(tmp_
             assert a[k] == b[k], k
 
 
+@meta
 def test_diverse_meis_and_the_random_baseline_make_no_tensor_off_their_inputs_device():
     from meshmei.mei import diverse_meis, random_mesh_responses
 
@@ -130,6 +154,7 @@ def test_diverse_meis_and_the_random_baseline_make_no_tensor_off_their_inputs_de
     assert torch.equal(probed[1], plain[1])
 
 
+@meta
 @pytest.mark.parametrize("method", ["rbf", "largesteps", "vertex"])
 def test_a_reconstruction_makes_no_tensor_off_its_inputs_device(method):
     """Guarded (the default), coarse to fine; in the torch code, as on a GPU."""
@@ -185,27 +210,49 @@ def test_a_cuda_device_this_machine_lacks_is_refused_before_the_folder(tmp_path)
 
 # ---- on a GPU ----------------------------------------------------------------------------------------------
 
+GPU_RUNS = ["sheet", "sphere", "light, pose and albedo"]
+
+
 @cuda
-@pytest.mark.parametrize("run", ["sheet", "sphere", "light, pose and albedo"])
+@pytest.mark.parametrize("run", GPU_RUNS)
 def test_a_3d_mei_on_the_gpu_agrees_with_the_cpu(run):
+    """With a float64 model the run is float64 end to end, and the devices differ in summation order only."""
     init, overrides = RUNS[run]
-    enc = cells()
+    enc = cells(dtype=torch.float64)
     cpu = optimize_mei(enc, 1, init, **SMALL, **overrides, dtype="float64")
     gpu = optimize_mei(enc.to("cuda"), 1, init, **SMALL, **overrides, dtype="float64")
     assert gpu.V.device.type == "cpu"  # results come back on the CPU
     assert gpu.seed == cpu.seed
-    assert gpu.activation == pytest.approx(cpu.activation, rel=1e-6)
-    assert torch.allclose(gpu.V, cpu.V, atol=1e-8)
+    assert gpu.activation == pytest.approx(cpu.activation, rel=1e-9)
+    assert torch.allclose(gpu.V, cpu.V, rtol=0, atol=1e-10)
+    assert torch.allclose(gpu.image, cpu.image, rtol=0, atol=1e-9)
+
+
+@cuda
+@pytest.mark.parametrize("run", GPU_RUNS)
+def test_a_float32_model_on_the_gpu_agrees_with_the_cpu_to_its_rounding(run):
+    """A lab's model is usually float32: it sees float32 images on either device, and its responses differ
+    by float32 rounding, which the Gabor sums' cancellation magnifies (the sheet's response is 0.004 of sums
+    of order one) and Adam's first, sign-like steps carry into the vertices."""
+    init, overrides = RUNS[run]
+    enc = cells()
+    cpu = optimize_mei(enc, 1, init, **SMALL, **overrides, dtype="float64")
+    gpu = optimize_mei(enc.to("cuda"), 1, init, **SMALL, **overrides, dtype="float64")
+    assert gpu.seed == cpu.seed
+    assert gpu.activation == pytest.approx(cpu.activation, rel=1e-3)
+    assert torch.allclose(gpu.V, cpu.V, rtol=0, atol=1e-3)
 
 
 @cuda
 def test_a_population_on_the_gpu_agrees_with_the_cpu(tmp_path):
     s = MEISettings(**SMALL, dtype="float64")
-    cpu = run_population(cells(), [0, 1, 2], tmp_path / "cpu", settings=s, batch_size=4, pixel_steps=3,
-                         progress=False)
-    gpu = run_population(cells(), [0, 1, 2], tmp_path / "gpu", settings=s, batch_size=4, pixel_steps=3,
-                         device="cuda", progress=False)
+    cpu = run_population(cells(dtype=torch.float64), [0, 1, 2], tmp_path / "cpu", settings=s, batch_size=4,
+                         pixel_steps=3, progress=False)
+    gpu = run_population(cells(dtype=torch.float64), [0, 1, 2], tmp_path / "gpu", settings=s, batch_size=4,
+                         pixel_steps=3, device="cuda", progress=False)
     for a, b in zip(cpu, gpu, strict=True):
         assert (a["neuron"], a["seed"], a["self_intersections"]) == (b["neuron"], b["seed"], b["self_intersections"])
-        assert b["mei_response"] == pytest.approx(a["mei_response"], rel=1e-6)
+        assert b["mei_response"] == pytest.approx(a["mei_response"], rel=1e-9)
+        # the pixel MEI runs in float32 (pixel_mei's default) whatever the settings' dtype: its start image is
+        # a float32 draw, so a population's bound does not move with the dtype. 8.5e-8 between an H200 and a CPU.
         assert b["pixel_mei_response"] == pytest.approx(a["pixel_mei_response"], rel=1e-6)

@@ -12,11 +12,13 @@ import sys
 import pytest
 import torch
 
+import meshmei
 from meshmei.encoders import Encoder, Preprocess, encoder_from_model, encoder_identity, model_fingerprint
 from meshmei.errors import EncoderError, MEIError
 from meshmei.population.store import config_hash
 
 SIZE = 16
+MESHMEI_ROOT = os.path.dirname(os.path.dirname(meshmei.__file__))  # the meshmei under test, for subprocesses
 
 
 def _weights(seed, n=4):
@@ -291,7 +293,8 @@ def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
     code = "import labmodel; print(labmodel.fingerprints())"
     seen = set()
     for seed in ("0", "1", "2", "3"):
-        env = {**os.environ, "PYTHONHASHSEED": seed, "PYTHONPATH": str(tmp_path)}
+        path = os.pathsep.join([str(tmp_path), MESHMEI_ROOT, os.environ.get("PYTHONPATH", "")])
+        env = {**os.environ, "PYTHONHASHSEED": seed, "PYTHONPATH": path}
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env,
                              cwd=tmp_path)
         assert out.returncode == 0, out.stderr[-2000:]
