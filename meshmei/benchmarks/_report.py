@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import os
 import platform
 import re
@@ -17,7 +19,7 @@ from meshmei._checks import positive_int  # re-exported: the benchmarks' argpars
 __all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
            "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs",
            "HEALTH_COLUMNS", "HEALTH_LEGEND", "health_cells", "SURFACE_HEALTH_COLUMNS", "SURFACE_HEALTH_LEGEND",
-           "surface_health"]
+           "surface_health", "FinishedRows", "source_hash"]
 
 _HEADER = "# Benchmarks\n\nEach section is written by the script named in it; re-run the script to refresh it.\n"
 
@@ -72,6 +74,82 @@ def write_section(name: str, body: str) -> Path:
     text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip() + "\n\n" + block + "\n"
     path.write_text(text)
     return path
+
+
+def source_hash() -> str:
+    """A hash of meshmei's source (every ``.py`` and ``.c`` file under the package, paths and contents)."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".c") and p.is_file()):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _plain(x):
+    """NumPy and torch scalars as Python's (an int stays an int), for JSON."""
+    return x.item() if hasattr(x, "item") else float(x)
+
+
+class FinishedRows:
+    """The finished results of one part of a benchmark, saved as each finishes, so that an interrupted run
+    loses none of them.
+
+    ``get(key, compute)`` returns the result saved under ``key`` or computes, saves and returns it, in its
+    JSON form either way (a resumed table is the table a whole run writes). The file is
+    ``docs/.NAME.partial.json``; the same command run again takes its results instead of recomputing them,
+    unless meshmei's source has changed since (:func:`source_hash`) or ``restart`` is set, and says which.
+    :meth:`close`, once the part's section is written, removes the file. ``name`` None keeps nothing on disk.
+    """
+
+    def __init__(self, name: str | None, restart: bool = False):
+        self.path = None if name is None else docs_dir() / f".{name}.partial.json"
+        self.source, self.rows, self.resumed = source_hash(), {}, 0
+        self.started = time.strftime("%Y-%m-%d %H:%M")
+        old = self._read()
+        if old is None:
+            return
+        if restart:
+            print(f"{self.path}: --restart: dropping the {len(old['rows'])} finished results of an earlier run")
+        elif old.get("source") != self.source:
+            print(f"{self.path}: dropping the {len(old['rows'])} finished results of an earlier run: meshmei's "
+                  "source has changed since")
+        else:
+            self.rows, self.started = old["rows"], old["started"]
+            print(f"{self.path}: taking the {len(self.rows)} finished results of an earlier run (started "
+                  f"{self.started}); --restart computes them again")
+
+    def _read(self) -> dict | None:
+        if self.path is None or not self.path.exists():
+            return None
+        try:
+            old = json.loads(self.path.read_text())
+            return old if isinstance(old, dict) and isinstance(old.get("rows"), dict) else None
+        except (OSError, ValueError):  # a file cut short is a run to redo, not an error
+            return None
+
+    def get(self, key: str, compute):
+        if key in self.rows:
+            self.resumed += 1
+            return self.rows[key]
+        value = json.loads(json.dumps(compute(), default=_plain))
+        self.rows[key] = value
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.path.with_name(self.path.name + ".tmp")
+            tmp.write_text(json.dumps({"source": self.source, "started": self.started, "rows": self.rows}))
+            os.replace(tmp, self.path)  # whole or not at all, should the run be killed mid-write
+        return value
+
+    def note(self) -> str:
+        """A sentence for the section when results were taken from an earlier run ("" otherwise)."""
+        if not self.resumed:
+            return ""
+        return (f" {self.resumed} of its results were finished by an interrupted run of the same source that "
+                f"started {self.started}; the machine line, load and total time are this run's.")
+
+    def close(self) -> None:
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
 
 
 def median(xs) -> float:

@@ -12,6 +12,11 @@ Run: ``python -m meshmei.benchmarks.validity [--steps 300] [--cells 8]``; writes
   run (2,500 vertices, 1,000 steps, ``--stages auto``) on the bunny and through the teapot's handle over three
   seeds, with meshmei's defaults (step guard and contact barrier), without them, and large steps as
   published.
+
+A part's section is written when the part ends, but each of its runs is saved as it finishes
+(``docs/.SECTION.partial.json``, :class:`~meshmei.benchmarks._report.FinishedRows`): an interrupted part
+loses none of them, and the same command run again takes them (unless meshmei's source has changed since,
+or with ``--restart``) and says so in the section.
 """
 
 from __future__ import annotations
@@ -24,8 +29,8 @@ from pathlib import Path
 import torch
 
 from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, SURFACE_HEALTH_COLUMNS, SURFACE_HEALTH_LEGEND,
-                                        benchmark_parser, health_cells, int_list, machine_line, markdown_table, median,
-                                        step_intervals, surface_health, write_section)
+                                        FinishedRows, benchmark_parser, health_cells, int_list, machine_line,
+                                        markdown_table, median, step_intervals, surface_health, write_section)
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
@@ -129,9 +134,12 @@ def _default_run(V, F, target, method: str, seed: int, **kwargs):
                        seed=seed, **kwargs)
 
 
-def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=(("bunny", "sphere"), ("teapot", "torus"))) -> list:
+def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=(("bunny", "sphere"), ("teapot", "torus")),
+                            finished: FinishedRows | None = None) -> list:
     """Chamfer-L2, self-intersections (and the rest of :data:`SURFACE_HEALTH_COLUMNS`, over the seeds),
-    refused steps and wall time of the CLI's default run per problem, mode and seed."""
+    refused steps and wall time of the CLI's default run per problem, mode and seed; each seed's run kept
+    in ``finished`` as it ends."""
+    finished = finished or FinishedRows(None)
     rows = []
     for problem, init in problems:
         target = target_surface(problem)
@@ -139,12 +147,17 @@ def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=((
             V, F, _ = resolve_source(init, n_vertices, torch.float32, target)
             cds, sis, walls, refused, health = [], [], [], [], []
             for seed in seeds:
-                res = _default_run(V, F, target, method, seed, **kw)
-                cds.append(res.final.chamfer_l2)
-                sis.append(res.final.self_intersections)
-                health.append(surface_health(res.final))
-                walls.append(res.wall_time)
-                refused.append(sum(st.get("refused", 0) for st in res.info["stages"]))
+                def one():
+                    res = _default_run(V, F, target, method, seed, **kw)
+                    return dict(chamfer_l2=res.final.chamfer_l2, self_intersections=res.final.self_intersections,
+                                health=surface_health(res.final), wall_time=res.wall_time,
+                                refused=sum(st.get("refused", 0) for st in res.info["stages"]))
+                r = finished.get(f"reconstruction|{problem}|{init}|{n_vertices}|{label}|{seed}", one)
+                cds.append(r["chamfer_l2"])
+                sis.append(r["self_intersections"])
+                health.append(r["health"])
+                walls.append(r["wall_time"])
+                refused.append(r["refused"])
                 print(problem, label, seed, cds[-1], sis[-1], walls[-1], refused[-1], flush=True)
             rows.append([f"{problem}, {V.shape[0]} vertices", label, ", ".join(f"{c:.2e}" for c in cds), f"{median(cds):.2e}",
                          ", ".join(str(s) for s in sis), *health_cells(health)[1:],
@@ -165,56 +178,69 @@ def cells(n: int) -> list:
     return out
 
 
-def mei_outcomes(n_cells: int, steps: int) -> list:
+def _mei_row(name: str, params: dict, cell, init: str, steps: int | None) -> list:
+    row = [name, ", ".join(f"{k} {v:.2f}" for k, v in params.items()), init]
+    for on in (True, False):
+        t = time.perf_counter()
+        res = optimize_mei(cell, 0, init, MEISettings(steps=steps, valid_steps=on))
+        h = health_report(res.V, res.F, res.V0)
+        row += [f"{res.activation:.3f}", h["self_intersections"], h["flipped_faces"], f"{h['min_quality']:.3f}"]
+        if on:  # the guard's results: closed and manifold as well
+            row += ["yes" if h["watertight"] else "no", "yes" if h["nonmanifold_edges"] == 0 else "no"]
+        row.append(f"{time.perf_counter() - t:.0f}")
+    return row
+
+
+def mei_outcomes(n_cells: int, steps: int | None, finished: FinishedRows | None = None) -> list:
+    """One row per cell and start (the guard on, then off), each kept in ``finished`` as it ends."""
+    finished = finished or FinishedRows(None)
     rows = []
-    for name, params, cell in cells(n_cells):
+    for i, (name, params, cell) in enumerate(cells(n_cells)):
         for init in ("sheet", "sphere", "torus"):
-            row = [name, ", ".join(f"{k} {v:.2f}" for k, v in params.items()), init]
-            for on in (True, False):
-                t = time.perf_counter()
-                res = optimize_mei(cell, 0, init, MEISettings(steps=steps, valid_steps=on))
-                h = health_report(res.V, res.F, res.V0)
-                row += [f"{res.activation:.3f}", h["self_intersections"], h["flipped_faces"], f"{h['min_quality']:.3f}"]
-                if on:  # the guard's results: closed and manifold as well
-                    row += ["yes" if h["watertight"] else "no", "yes" if h["nonmanifold_edges"] == 0 else "no"]
-                row.append(f"{time.perf_counter() - t:.0f}")
-            rows.append(row)
+            rows.append(finished.get(f"mei|{i}|{init}|{steps}", lambda: _mei_row(name, params, cell, init, steps)))
             print(rows[-1], flush=True)
     return rows
 
 
-def thin_outcomes(names=tuple(THIN_TARGETS), seed: int = 0, n_vertices: int = 2500) -> list:
+def thin_outcomes(names=tuple(THIN_TARGETS), seed: int = 0, n_vertices: int = 2500,
+                  finished: FinishedRows | None = None) -> list:
     """The thin-part targets (the fin and the bowl used for no tuning): meshmei's default run (sphere start of
     about ``n_vertices``, ``DEFAULT_STEPS`` steps), the same without guard and barrier, and large steps as
-    published given the default run's time."""
+    published given the default run's time; each row kept in ``finished`` as it ends."""
+    finished = finished or FinishedRows(None)
     rows = []
     for name in names:
         target = target_surface(name)
         V, F, _ = resolve_source("sphere", n_vertices, torch.float32, target)
-        out = {}
+        wall = {}
         for label, method, kw in (("rbf (defaults: guard + barrier)", "rbf", {}),
                                   ("rbf, no guard, no barrier", "rbf", UNGUARDED),
                                   ("largesteps, same time", "largesteps", UNGUARDED)):
-            budget = dict(time_budget=out["rbf (defaults: guard + barrier)"].wall_time) if method == "largesteps" else {}
-            res = _default_run(V, F, target, method, seed, **kw, **budget)
-            out[label] = res
-            refused = sum(st.get("refused", 0) for st in res.info["stages"])
-            rows.append([name, V.shape[0], label, f"{res.final.chamfer_l2:.2e}",
-                         *health_cells([surface_health(res.final)]),
-                         refused if kw == {} else "-", f"{res.wall_time:.1f}"])
+            budget = dict(time_budget=wall["rbf (defaults: guard + barrier)"]) if method == "largesteps" else {}
+
+            def one():
+                res = _default_run(V, F, target, method, seed, **kw, **budget)
+                refused = sum(st.get("refused", 0) for st in res.info["stages"])
+                return dict(wall_time=res.wall_time, row=[
+                    name, V.shape[0], label, f"{res.final.chamfer_l2:.2e}", *health_cells([surface_health(res.final)]),
+                    refused if kw == {} else "-", f"{res.wall_time:.1f}"])
+            r = finished.get(f"thin|{name}|{n_vertices}|{seed}|{label}", one)
+            wall[label] = r["wall_time"]
+            rows.append(r["row"])
             print(rows[-1], flush=True)
     return rows
 
 
-def run_thin(resolutions=(2500,)):
+def run_thin(resolutions=(2500,), restart: bool = False):
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    rows = [row for n in resolutions for row in thin_outcomes(n_vertices=n)]
+    finished = FinishedRows("validity-thin", restart)
+    rows = [row for n in resolutions for row in thin_outcomes(n_vertices=n, finished=finished)]
     body = "\n".join([
         "## Valid steps on targets with thin parts (`python -m meshmei.benchmarks.validity --parts thin`)",
         "",
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}; "
-        f"{time.perf_counter() - t0:.0f} s in all.",
+        f"{time.perf_counter() - t0:.0f} s in all.{finished.note()}",
         "",
         "Targets `dumbbell` (two balls joined by a rod of radius 0.05), `fin` (a disc 0.06 thick through a ball), "
         "`cup` (walls 0.05 thick) and `bowl` (a spherical shell 0.05 thick, open above), unit diagonal, "
@@ -228,18 +254,22 @@ def run_thin(resolutions=(2500,)):
         "",
         markdown_table(["target", "vertices", "run", "Chamfer-L2", *SURFACE_HEALTH_COLUMNS, "refused", "s"], rows),
     ])
-    return write_section("validity-thin", body)
+    path = write_section("validity-thin", body)
+    finished.close()
+    return path
 
 
-def run_reconstruction(seeds=(0, 1, 2)):
+def run_reconstruction(seeds=(0, 1, 2), restart: bool = False):
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    rows = reconstruction_outcomes(seeds) + reconstruction_outcomes((0,), 10000, (("bunny", "sphere"),))
+    finished = FinishedRows("validity-reconstruction", restart)
+    rows = (reconstruction_outcomes(seeds, finished=finished)
+            + reconstruction_outcomes((0,), 10000, (("bunny", "sphere"),), finished=finished))
     body = "\n".join([
         "## Valid steps in reconstruction (`python -m meshmei.benchmarks.validity --parts reconstruction`)",
         "",
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}; "
-        f"{time.perf_counter() - t0:.0f} s in all.",
+        f"{time.perf_counter() - t0:.0f} s in all.{finished.note()}",
         "",
         "The CLI's default run (`meshmei reconstruct --init sphere --target bunny` and `--init torus --target "
         f"teapot`: 2,500 vertices, {DEFAULT_STEPS:,} steps, `--stages auto`, which gives rbf three levels), seeds " + ", ".join(map(str, seeds)) + "; and "
@@ -251,7 +281,9 @@ def run_reconstruction(seeds=(0, 1, 2)):
         markdown_table(["problem", "run", "Chamfer-L2 per seed", "median", "SI per seed",
                         *SURFACE_HEALTH_COLUMNS[1:], "refused per seed", "s"], rows),
     ])
-    return write_section("validity-reconstruction", body)
+    path = write_section("validity-reconstruction", body)
+    finished.close()
+    return path
 
 
 def steps_text(steps: int | None) -> str:
@@ -261,17 +293,18 @@ def steps_text(steps: int | None) -> str:
     return ", ".join(f"{n} steps from the {k}" for k, n in MEI_DEFAULT_STEPS.items() if k != "custom")
 
 
-def run(steps: int | None, n_cells: int):
+def run(steps: int | None, n_cells: int, restart: bool = False):
     load = os.getloadavg()[0]
+    finished = FinishedRows("validity", restart)
     cost = [mei_cost()] + [reconstruction_cost(n) for n in (2500, 10000)]
     for r in cost:
         print(r, flush=True)
-    outcomes = mei_outcomes(n_cells, steps)
+    outcomes = mei_outcomes(n_cells, steps, finished)
     on = [float(r[3]) for r in outcomes]
     body = "\n".join([
         "## Valid steps (`python -m meshmei.benchmarks.validity`)",
         "",
-        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.{finished.note()}",
         "",
         "Cost of the guarantee: median milliseconds per step with `valid_steps` off and on (the 3D-MEI's "
         "default: the guard, its barrier and the contact barrier; the split is in *Cost of valid 3D-MEI "
@@ -304,7 +337,9 @@ def run(steps: int | None, n_cells: int):
         f"{sum(1 for r in outcomes if r[2] != 'sheet')} from closed starts); {sum(1 for x in on if x >= 0.95)} "
         f"of {len(on)} reach 0.95 of the bound (lowest {min(on):.3f}).",
     ])
-    return write_section("validity", body)
+    path = write_section("validity", body)
+    finished.close()
+    return path
 
 
 def main(argv=None):
@@ -314,6 +349,9 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=9, help="alternated rounds of the mei-cost part (its median)")
     ap.add_argument("--thin-vertices", type=int_list, default="2500",
                     help="comma-separated start sizes of the thin part, e.g. 2500,10000 (default 2500)")
+    ap.add_argument("--restart", action="store_true",
+                    help="compute again the results an interrupted run of the same source left in "
+                         "docs/.SECTION.partial.json (by default they are taken as they are)")
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), reconstruction (default CLI runs), thin "
                          "(targets with thin parts)")
@@ -326,13 +364,13 @@ def main(argv=None):
         ap.error(f"--thin-vertices: each start needs at least 32 vertices, got {args.thin_vertices}")
     t = time.perf_counter()
     if "mei" in parts:
-        print(f"wrote {run(args.steps, args.cells)} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run(args.steps, args.cells, args.restart)} in {time.perf_counter() - t:.0f} s")
     if "mei-cost" in parts:
         print(f"wrote {run_mei_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "reconstruction" in parts:
-        print(f"wrote {run_reconstruction()} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run_reconstruction(restart=args.restart)} in {time.perf_counter() - t:.0f} s")
     if "thin" in parts:
-        print(f"wrote {run_thin(args.thin_vertices)} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run_thin(args.thin_vertices, args.restart)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":
