@@ -20,7 +20,7 @@ from .errors import MEIError, ReconstructionError, TuningError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
 from .mei.optimize import start_from_file
 from .plots import diverse_figure
-from .population import parse_neurons, run_population
+from .population import check_device, parse_neurons, run_population
 from .quality import closedness, health_line
 from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
@@ -90,6 +90,9 @@ def _add_mei(sub) -> None:
     p.add_argument("--diverse", type=int, default=1, metavar="K",
                    help="K diverse 3D-MEIs of the neuron, optimised together and pushed apart (default 1: one)")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
+    p.add_argument("--device", default="cpu",
+                   help="cpu, cuda or cuda:N: where the model runs and the mesh is rendered and optimised (the "
+                        "step guard's checks stay on the CPU; the run folder is the same either way)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_run_mei)
@@ -223,7 +226,8 @@ def _run_mei(args) -> int:
     out = Path(args.out)
     check_output(out, overwrite=args.overwrite, error=MEIError, how="--overwrite")  # before the run, not after it
     _inputs_apart(out, (args.model, args.init), MEIError)
-    encoder = _cli_encoder(args)
+    device = check_device(args.device)  # a device this machine lacks: refused before the model is built
+    encoder = _cli_encoder(args).to(device)
     init = _mei_start(args.init)
     n_vertices = _mei_n_vertices(args, init)
     image_size = _image_size(args, encoder)

@@ -256,3 +256,20 @@ def test_a_population_on_the_gpu_agrees_with_the_cpu(tmp_path):
         # the pixel MEI runs in float32 (pixel_mei's default) whatever the settings' dtype: its start image is
         # a float32 draw, so a population's bound does not move with the dtype. 8.5e-8 between an H200 and a CPU.
         assert b["pixel_mei_response"] == pytest.approx(a["pixel_mei_response"], rel=1e-6)
+
+
+@cuda
+def test_the_cli_runs_a_3d_mei_on_the_gpu(tmp_path, capsys):
+    """``meshmei mei --device cuda`` writes the run that ``--device cpu`` writes, to float32 rounding (the
+    built-in cell computes in the run's float32)."""
+    from meshmei.cli import main
+    from meshmei.mei import load_run
+
+    args = ["mei", "--encoder", "gabor-complex", "--steps", "4", "--seeds", "0", "--image-size", "24",
+            "--n-vertices", "60", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "cpu")]) == 0
+    assert main([*args, "--out", str(tmp_path / "gpu"), "--device", "cuda"]) == 0
+    cpu, gpu = load_run(tmp_path / "cpu"), load_run(tmp_path / "gpu")
+    assert gpu.V.device.type == "cpu" and gpu.seed == cpu.seed
+    assert gpu.activation == pytest.approx(cpu.activation, rel=1e-3)
+    assert torch.allclose(gpu.V, cpu.V, rtol=0, atol=1e-3)

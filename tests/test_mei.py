@@ -264,6 +264,17 @@ def test_cli_writes_a_run(tmp_path, capsys, monkeypatch):
     assert main(["mei", "--out", str(out), "--steps", "1", "--quiet"]) == 2  # exists: clear error
 
 
+@pytest.mark.parametrize("device", ["tpu", "cuda:x", "cpu:1"] + ([] if torch.cuda.is_available() else ["cuda"]))
+def test_cli_refuses_a_device_it_cannot_use_in_one_line_and_writes_nothing(tmp_path, capsys, device):
+    from meshmei.cli import main
+
+    out = tmp_path / "run"
+    assert main(["mei", "--out", str(out), "--steps", "1", "--quiet", "--device", device]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and ("must be cpu, cuda or cuda:N" in err or "has no CUDA device" in err)
+    assert not out.exists()
+
+
 def test_ctrl_c_ends_the_cli_in_one_line_with_code_130_and_writes_nothing(tmp_path, capsys, monkeypatch):
     import meshmei.cli as cli
 
