@@ -26,6 +26,9 @@
 
 int meshmei_contact_abi(void) { return 6; }
 
+/* the barrier and its slope (_guard.c, built into the same library) */
+double meshmei_barrier(double x, double h, double tiny, double *slope);
+
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
 static void cross3(const double *a, const double *b, double *out) {
@@ -463,8 +466,9 @@ void contact_energy(int64_t k, const double *V, const int64_t *a, const int64_t 
             wgt[0] = -(1.0 - st[0]), wgt[1] = -st[0], wgt[2] = 1.0 - st[1], wgt[3] = st[1];
         }
         if (!(d2 < dh * dh)) continue;
-        double d = sqrt(d2 > tiny ? d2 : tiny), gap = d - dh, lg = log(d / dh);
-        energy[item] += -gap * gap * lg;
+        /* at d = sqrt(max(d2, tiny)): the sqrt of the larger is the larger sqrt */
+        double d = sqrt(d2 > tiny ? d2 : tiny), slope;
+        energy[item] += meshmei_barrier(sqrt(d2), dh, sqrt(tiny), &slope);
         count[item] += 1;
         if (grad == NULL || !(d2 > tiny)) continue;
         /* the difference of the two sides' closest points: sum of -wgt * corner (first side's weights -1 or
@@ -472,7 +476,7 @@ void contact_energy(int64_t k, const double *V, const int64_t *a, const int64_t 
         double diff[3] = {0.0, 0.0, 0.0};
         for (int c = 0; c < 4; c++)
             for (int a = 0; a < 3; a++) diff[a] -= wgt[c] * X[c][a];
-        double slope = (-2.0 * gap * lg - gap * gap / d) / d;
+        slope /= d;
         for (int c = 0; c < 4; c++) {
             double *gc = grad + 3 * r[c];
             for (int a = 0; a < 3; a++) gc[a] -= slope * wgt[c] * diff[a];

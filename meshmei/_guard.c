@@ -95,8 +95,8 @@ void guard_frame_finish(int64_t m, const double *C, const double *RS, const doub
 
 /* incremental potential contact's barrier b(x) = -(x - h)^2 log(x / h) for x < h (x raised to `tiny`, the
  * caller's dtype's smallest normal number, as meshmei.contact.log_barrier clamps it), else 0; its slope into
- * *slope (0 where x was raised) */
-static double barrier_slope(double x, double h, double tiny, double *slope) {
+ * *slope (0 where x was raised). The one copy of the formula in C: _contact.c's contact_energy calls it too. */
+double meshmei_barrier(double x, double h, double tiny, double *slope) {
     if (!(x < h)) {
         *slope = 0.0;
         return 0.0;
@@ -139,7 +139,7 @@ int guard_barrier(int64_t B, int64_t n, int64_t m, const double *V, const int64_
             double q = qconst * dbl / L, sq_, sl_q = 0.0, sl_t = 0.0, cs = 0.0, den = 0.0;
             int inside = 0;
             if (q_band > 0.0 && q - floor_q < q_band) {
-                e += barrier_slope(q - floor_q, q_band, tiny, &sq_);
+                e += meshmei_barrier(q - floor_q, q_band, tiny, &sq_);
                 sl_q = sq_, inside = 1;
             }
             int turn = R && band > 0.0 && (!turn_faces || turn_faces[f]);
@@ -148,7 +148,7 @@ int guard_barrier(int64_t B, int64_t n, int64_t m, const double *V, const int64_
                 den = dbl > eps * l2 ? dbl : eps * l2;
                 cs = den > 0.0 ? (c[0] * r[0] + c[1] * r[1] + c[2] * r[2]) / den : 0.0;
                 if (cs - cos_bound < band) {
-                    e += barrier_slope(cs - cos_bound, band, tiny, &sq_);
+                    e += meshmei_barrier(cs - cos_bound, band, tiny, &sq_);
                     sl_t = sq_, inside = 1;
                 }
             }
