@@ -63,6 +63,14 @@ def test_numpy_and_torch_scalars_keep_their_kind(docs):
     assert got == [3, 0.5, 2, True] and [type(x) for x in got] == [int, float, int, bool]
 
 
+def test_a_file_without_its_start_time_is_still_taken(docs):
+    from meshmei.benchmarks._report import source_hash
+
+    (docs / ".part.partial.json").write_text(json.dumps({"source": source_hash(), "rows": {"a": 1}}))
+    rows = FinishedRows("part")
+    assert rows.get("a", _never) == 1 and "not recorded" in rows.note()
+
+
 def test_without_a_name_nothing_is_written(docs):
     rows = FinishedRows(None)
     assert rows.get("a", lambda: 1) == 1 and rows.get("a", _never) == 1

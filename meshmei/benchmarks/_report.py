@@ -114,7 +114,7 @@ class FinishedRows:
             print(f"{self.path}: dropping the {len(old['rows'])} finished results of an earlier run: meshmei's "
                   "source has changed since")
         else:
-            self.rows, self.started = old["rows"], old["started"]
+            self.rows, self.started = old["rows"], str(old.get("started", "at a time not recorded"))
             print(f"{self.path}: taking the {len(self.rows)} finished results of an earlier run (started "
                   f"{self.started}); --restart computes them again")
 
