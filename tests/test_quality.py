@@ -155,3 +155,17 @@ def test_health_in_words_names_what_keeps_a_mesh_from_being_watertight():
     assert closedness(1, 0) == "open: 1 boundary edge"
     assert closedness(0, 2) == "2 non-manifold edges"
     assert closedness(3, 1) == "open: 3 boundary edges, 1 non-manifold edge"
+
+
+@pytest.mark.parametrize("scale", [1e80, 1e150, 1e300, 1e-170, 1e-300])
+def test_a_mesh_at_an_extreme_scale_gets_the_health_of_the_same_mesh_at_size_one(scale):
+    """Found by fuzzing: at 1e300 the quality was NaN (squared lengths overflow), and libigl counted 1,131
+    intersecting pairs on a clean sphere at 1e80 and 21 at 1e-170."""
+    from meshmei.shapes import initial_mesh
+
+    V, F = initial_mesh("sphere", n_vertices=400)
+    V = V.double()
+    far, near = health_report(V * scale, F, V * scale), health_report(V, F, V)
+    for k in ("min_quality", "mean_quality"):  # V * scale is V rounded once: the same to rounding
+        assert far.pop(k) == pytest.approx(near.pop(k), rel=1e-12, abs=0)
+    assert far == near

@@ -427,8 +427,18 @@ class ModelEncoder(Encoder):
             want = f"({batch}, {self._n})" if self._probed else f"({batch}, N)"
             raise EncoderError(f"the model{self._member(i)} must return responses of shape (B, N); for a batch of "
                                f"{batch} it returned {tuple(out.shape)}, expected {want}")
+        if out.layout != torch.strided:
+            raise EncoderError(f"the model{self._member(i)} must return a dense tensor of responses, got layout "
+                               f"{out.layout} (call .to_dense() on it)")
+        if out.device != x.device:
+            raise EncoderError(f"the model{self._member(i)} returned its responses on device {out.device}, its images "
+                               f"were on {x.device}: responses must stay on the images' device")
         if not out.is_floating_point():
             raise EncoderError(f"the model must return float responses, got dtype {out.dtype}")
+        if x.requires_grad and torch.is_grad_enabled() and not out.requires_grad:
+            raise EncoderError(f"the model{self._member(i)}'s responses carry no gradient back to the image (an "
+                               f"output that is detached, computed under no_grad, or does not depend on the input): "
+                               f"a 3D-MEI and a pixel MEI climb that gradient")
         if not all_finite(out) and all_finite(x):
             bad = int((~torch.isfinite(out)).sum())
             raise EncoderError(f"the model{self._member(i)} returned non-finite responses to finite images of shape "
@@ -475,14 +485,21 @@ def _probe(encoder: ModelEncoder) -> int:
     """Run the model on gray images at its size, a batch of 2 and a batch of 1 (a 3D-MEI step renders one
     image): the neuron count, or EncoderError naming what arrived."""
     H, W = encoder.image_size
-    x = torch.full((2, 1, H, W), 0.5, device=encoder.device)
-    x[1, :, : H // 2] = 0.25  # two different images: a model that ignores its batch shows up as (1, N)
-    pre = encoder.preprocess.to(encoder.device)
-    with torch.no_grad():
-        z = pre.rescale(pre.standardise(x))
-        out = encoder.all_responses(z)
-        encoder._n, encoder._probed = int(out.shape[1]), True
-        one = encoder.all_responses(z[:1])  # the same count for a single image (a model ending in squeeze())
+    try:
+        x = torch.full((2, 1, H, W), 0.5, device=encoder.device)
+        x[1, :, : H // 2] = 0.25  # two different images: a model that ignores its batch shows up as (1, N)
+        pre = encoder.preprocess.to(encoder.device)
+        with torch.no_grad():
+            z = pre.rescale(pre.standardise(x))
+            out = encoder.all_responses(z)
+            encoder._n, encoder._probed = int(out.shape[1]), True
+            one = encoder.all_responses(z[:1])  # the same count for a single image (a model ending in squeeze())
+    except (torch.OutOfMemoryError, RuntimeError) as err:
+        if not isinstance(err, torch.OutOfMemoryError) and "allocate" not in str(err):
+            raise
+        raise EncoderError(f"two gray images of {H} x {W} pixels and {encoder.channels} channel(s), and the "
+                           f"model's answer to them, do not fit in memory on {encoder.device}: check image_size "
+                           f"and channels ({str(err).splitlines()[0][:160]})") from None
     if not bool(torch.isfinite(out).all() & torch.isfinite(one).all()):
         bad = int((~torch.isfinite(out)).sum())
         raise EncoderError(f"the model returned non-finite responses to a gray image ({bad} of {out.numel()} "
