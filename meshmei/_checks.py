@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 
 import numpy as np
 import torch
 
-__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "positive_int", "all_finite"]
+__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "positive_int", "all_finite", "is_integral"]
 
 
 def all_finite(x: torch.Tensor) -> bool:
@@ -22,11 +23,19 @@ def all_finite(x: torch.Tensor) -> bool:
     return math.isfinite(float(x.detach().abs().amax()))
 
 
+def is_integral(x) -> bool:
+    """An integer of any size (NumPy's too), or a finite float of integer value (``3.0``), not a bool. (An int
+    beyond a float's range made ``math.isfinite`` raise OverflowError in the checks that used it.)"""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, numbers.Real):
+        return False
+    return isinstance(x, numbers.Integral) or (math.isfinite(x) and int(x) == x)
+
+
 def check_positive(name, value, *, integer=False, error: type[ValueError] = ValueError):
     """Raise ``error`` unless ``value`` is a positive finite number (an integer with ``integer=True``)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise error(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
-    if not (math.isfinite(float(value)) and value > 0):
+    if not (value > 0 and (isinstance(value, numbers.Integral) or math.isfinite(value))):
         raise error(f"{name} must be positive and finite, got {value!r}")
     if integer and int(value) != value:
         raise error(f"{name} must be a positive integer, got {value!r}")
@@ -36,7 +45,7 @@ def check_non_negative(name, value, *, unit: str = "", error: type[ValueError] =
     """Raise ``error`` unless ``value`` is a finite number >= 0 (``unit``, e.g. ``" of pixels"``, is named
     in the message)."""
     if (isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating))
-            or not (math.isfinite(float(value)) and value >= 0)):
+            or not (value >= 0 and (isinstance(value, numbers.Integral) or math.isfinite(value)))):
         raise error(f"{name} must be a finite non-negative number{unit}, got {value!r}")
 
 

@@ -17,8 +17,10 @@ from typing import Callable
 
 import torch
 
-from ._checks import all_finite
+from ._checks import all_finite, is_integral
 from .deform.largesteps import AdamUniform
+
+MAX_STEPS = 10**12  # a budget's most steps: 30 years at a millisecond a step (more made tqdm's total overflow)
 
 __all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "Lookahead", "make_optimizer",
            "minimize"]
@@ -72,10 +74,10 @@ class Budget:
     def __post_init__(self):
         if self.steps is None and self.seconds is None:
             raise ValueError("a budget needs steps, seconds or both")
-        if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, numbers.Real)
-                                       or not math.isfinite(self.steps) or int(self.steps) != self.steps
-                                       or self.steps < 1):
+        if self.steps is not None and (not is_integral(self.steps) or self.steps < 1):
             raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
+        if self.steps is not None and self.steps > MAX_STEPS:
+            raise ValueError(f"steps must be at most {MAX_STEPS:.0e}, got {self.steps!r}")
         if self.seconds is not None and not (self.seconds > 0 and math.isfinite(self.seconds)):
             raise ValueError(f"seconds must be positive and finite, got {self.seconds!r}")
 

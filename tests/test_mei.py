@@ -600,3 +600,18 @@ def test_a_simple_cell_from_the_sheet_climbs_alike_at_400_and_1600_vertices():
     for r in (coarse, fine):
         h = r.health()
         assert h["self_intersections"] == 0 and h["flipped_faces"] == 0
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--steps", str(10**400), "steps must be at most 1e+12"),
+    ("--reg-ref-vertices", str(10**400), "reg_ref_vertices must be a vertex count of at most 5,000,000"),
+    ("--reg-ref-vertices", str(10**20), "reg_ref_vertices must be a vertex count of at most 5,000,000"),  # a KeyError deep in the run
+])
+def test_cli_refuses_counts_too_large_in_one_line(tmp_path, capsys, option, value, message):
+    """Found by fuzzing: these ended in an OverflowError or a KeyError traceback."""
+    from meshmei.cli import main
+
+    out = tmp_path / "run"
+    assert main(["mei", "--out", str(out), "--steps", "2", "--quiet", option, value]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err and not out.exists()

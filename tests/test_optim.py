@@ -446,3 +446,12 @@ def test_a_guarded_run_with_a_lookahead_is_the_run_without_it_with_one_evaluatio
     assert [r["step_scale"] for r in h_look] == [r["step_scale"] for r in h_plain]
     # the objective after an accepted step (not the undone ones, nor after the last step) took the kept one
     assert n_plain - n_look == sum(1 for r in h_look[:-1] if r["step_scale"] > 0)
+
+
+def test_a_step_count_beyond_a_floats_range_is_refused_in_one_line():
+    """Found by fuzzing: --steps 10**400 passed the checks (math.isfinite raised OverflowError on it)."""
+    from meshmei.optim import MAX_STEPS
+
+    with pytest.raises(ValueError, match=r"^steps must be at most 1e\+12, got 1000"):
+        Budget(10**400)
+    assert Budget(MAX_STEPS).steps == MAX_STEPS

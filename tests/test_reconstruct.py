@@ -1464,3 +1464,18 @@ def test_a_facing_weight_adds_the_term_and_records_it_and_bad_weights_are_refuse
             ReconstructionSettings(w_facing=bad).resolved()
         with pytest.raises(ReconstructionError, match=r"^normal_match must be non-negative and finite"):
             ReconstructionSettings(normal_match=bad).resolved()
+
+
+def test_stage_and_step_counts_too_large_are_refused_in_one_line(tmp_path, capsys):
+    """Found by fuzzing: --stages 10**400 raised OverflowError in the weights' scaling, --stages 10**8 was
+    quietly capped at 196,610 vertices, and --steps 10**400 overflowed tqdm."""
+    from meshmei.cli import main
+
+    for option, value, message in (("--stages", str(10**400), "stages must be vertex counts of at most 5,000,000"),
+                                   ("--stages", str(10**8), "stages must be vertex counts of at most 5,000,000"),
+                                   ("--steps", str(10**400), "steps must be at most 1e+12")):
+        out = tmp_path / option.strip("-")
+        args = ["reconstruct", "--out", str(out), "--target", "bunny", "--n-vertices", "200", "--no-progress"]
+        assert main([*args, "--steps", "2", option, value]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and message in err and not out.exists()

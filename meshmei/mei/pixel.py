@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as TF
 
-from .._checks import check_distinct_seeds, check_non_negative, check_positive
+from .._checks import check_distinct_seeds, check_non_negative, check_positive, is_integral
 from ..encoders import Encoder, EncoderError, frozen_encoder
 from ..optim import Budget, Progress, Schedule, Trace, minimize
 from .optimize import check_neuron
@@ -153,7 +153,7 @@ class NormalizedAscent(torch.optim.Optimizer):
 
 def _is_integer(v) -> bool:
     """A finite real number of integer value (``3``, ``np.int64(3)``, ``3.0``), not a bool."""
-    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and int(v) == v
+    return is_integral(v)
 
 
 def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma, init_std, dtype, device=None):

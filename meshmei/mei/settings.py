@@ -10,14 +10,16 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 import torch
 
-from .._checks import check_distinct_seeds
+from .._checks import check_distinct_seeds, is_integral
 from ..deform import RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
+from ..optim import MAX_STEPS
 from ..quality import health_report
 from ..regularizers import REGULARIZERS
 from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
+from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
 __all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "ALBEDO_MIN_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer",
@@ -217,6 +219,8 @@ class MEISettings:
                 continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise MEIError(f"{name} must be a positive integer, got {v!r}")
+            if name == "steps" and v > MAX_STEPS:
+                raise MEIError(f"steps must be at most {MAX_STEPS:.0e}, got {v!r}")
         for name in ("lr", "lr_scales", "lr_decay", "init_noise", "sigma_factor", "r_cut", "lr_light", "lr_pose",
                      "camera_distance", "fov_degrees", "lr_albedo", "albedo_smoothness", "albedo_shape_lr",
                      "robust_pose", "robust_light"):
@@ -248,8 +252,10 @@ class MEISettings:
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
                 raise MEIError(f"weight of {k!r} must be a finite non-negative number, got {w!r}")
         ref = self.reg_ref_vertices
-        if ref is not None and (not _is_number(ref) or not math.isfinite(ref) or int(ref) != ref or ref < 1):
+        if ref is not None and (not is_integral(ref) or ref < 1):
             raise MEIError(f"reg_ref_vertices must be a positive integer or None, got {ref!r}")
+        if ref is not None and ref > MAX_VERTICES:  # the weights it scales would underflow to 0
+            raise MEIError(f"reg_ref_vertices must be a vertex count of at most {MAX_VERTICES:,}, got {ref!r}")
         if not _is_number(self.min_quality) or not 0 <= self.min_quality < 1:
             raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
         for name in ("barrier_weight", "contact_weight", "contact_distance"):

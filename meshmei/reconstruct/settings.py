@@ -9,9 +9,11 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 
+from .._checks import is_integral
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
 from ..optim import OPTIMIZERS
+from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
 __all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES",
@@ -306,7 +308,7 @@ def _is_real(x) -> bool:
 
 def _is_count(x) -> bool:
     """An integer, or an integral finite float (10.0), not a bool."""
-    return _is_real(x) and math.isfinite(x) and int(x) == x
+    return _is_real(x) and is_integral(x)
 
 
 def _is_scalar(x) -> bool:
@@ -423,6 +425,8 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
     if not counts or not all(_is_count(x) and x >= MIN_STAGE_VERTICES for x in counts):
         raise ReconstructionError(f"stages must be integer vertex counts of at least {MIN_STAGE_VERTICES}, got "
                                   f"{s.stages!r} (stages=None runs one stage at the source's own size)")
+    if max(counts) > MAX_VERTICES:
+        raise ReconstructionError(f"stages must be vertex counts of at most {MAX_VERTICES:,}, got {s.stages!r}")
     stages = tuple(int(x) for x in counts)
     if s.centers is not None and not _is_scalar(s.centers):
         # indices of the source's vertices: a remeshed stage has other vertices (they were reused, silently)
