@@ -16,7 +16,6 @@ pixel MEI's compares two images of one space.
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 
 import torch
