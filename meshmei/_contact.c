@@ -447,6 +447,7 @@ void contact_edge_edge_distances(const double *V, const int64_t *E, int64_t k, c
 void contact_energy(int64_t k, const double *V, const int64_t *a, const int64_t *b, const int64_t *table, int kind,
                     int64_t item, int64_t n, double dh, double tiny, double *energy, int64_t *count, double *grad) {
     const int64_t base = n * item;
+    const double root_tiny = sqrt(tiny);  /* the clamp of d: the sqrt of the larger is the larger sqrt */
     for (int64_t i = 0; i < k; i++) {
         int64_t r[4];
         if (kind == 0) {
@@ -466,9 +467,8 @@ void contact_energy(int64_t k, const double *V, const int64_t *a, const int64_t 
             wgt[0] = -(1.0 - st[0]), wgt[1] = -st[0], wgt[2] = 1.0 - st[1], wgt[3] = st[1];
         }
         if (!(d2 < dh * dh)) continue;
-        /* at d = sqrt(max(d2, tiny)): the sqrt of the larger is the larger sqrt */
-        double d = sqrt(d2 > tiny ? d2 : tiny), slope;
-        energy[item] += meshmei_barrier(sqrt(d2), dh, sqrt(tiny), &slope);
+        double d = sqrt(d2), slope;
+        energy[item] += meshmei_barrier(d, dh, root_tiny, &slope);
         count[item] += 1;
         if (grad == NULL || !(d2 > tiny)) continue;
         /* the difference of the two sides' closest points: sum of -wgt * corner (first side's weights -1 or
