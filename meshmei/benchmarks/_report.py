@@ -103,7 +103,8 @@ class FinishedRows:
 
     def __init__(self, name: str | None, restart: bool = False):
         self.path = None if name is None else docs_dir() / f".{name}.partial.json"
-        self.source, self.rows, self.resumed = source_hash(), {}, 0
+        self.source = None if self.path is None else source_hash()  # nothing on disk: nothing to match
+        self.rows, self.resumed = {}, 0
         self.started = time.strftime("%Y-%m-%d %H:%M")
         old = self._read()
         if old is None:

@@ -88,7 +88,7 @@ def _check_size(image_size):
         H, W = image_size
     except (TypeError, ValueError):
         raise EncoderError(f"image_size must be an int or a pair (H, W), got {image_size!r}") from None
-    if not all(_is_integer(s) for s in (H, W)):  # int() would cut (16.7, 16) to 16 x 16 without a word
+    if not all(is_integral(s) for s in (H, W)):  # int() would cut (16.7, 16) to 16 x 16 without a word
         raise EncoderError(f"image_size must be an int or a pair of integers (H, W), got {image_size!r}")
     H, W = int(H), int(W)
     if H < 2 or W < 2:
@@ -150,17 +150,12 @@ class NormalizedAscent(torch.optim.Optimizer):
                 z.copy_(_on_sphere(z, norm))
 
 
-def _is_integer(v) -> bool:
-    """A finite real number of integer value (``3``, ``np.int64(3)``, ``3.0``), not a bool."""
-    return is_integral(v)
-
-
 def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma, init_std, dtype, device=None):
     """The checked arguments of :func:`pixel_mei`: ``(neuron, H, W, steps, seeds)``; ``EncoderError`` names
     the first bad one."""
     neuron = check_neuron(encoder, neuron, error=EncoderError)
     H, W = _check_size(image_size)
-    if not _is_integer(steps) or steps < 1:
+    if not is_integral(steps) or steps < 1:
         raise EncoderError(f"steps must be a positive integer, got {steps!r}")
     for name, v in (("step_size", step_size), ("init_std", init_std)):
         check_positive(name, v, error=EncoderError)
@@ -168,7 +163,7 @@ def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma
     if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
         raise EncoderError(f"seeds must be a sequence of integers, e.g. (0,), got {seeds!r}")
     seeds = [s.item() if isinstance(s, torch.Tensor) and s.numel() == 1 else s for s in seeds]
-    if not all(_is_integer(s) for s in seeds):
+    if not all(is_integral(s) for s in seeds):
         raise EncoderError(f"seeds must be a sequence of integers, got {seeds!r}")
     seeds = [int(s) for s in seeds]
     if not seeds:

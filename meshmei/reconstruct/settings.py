@@ -306,11 +306,6 @@ def _is_real(x) -> bool:
     return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
 
 
-def _is_count(x) -> bool:
-    """An integer, or an integral finite float (10.0), not a bool."""
-    return _is_real(x) and is_integral(x)
-
-
 def _is_scalar(x) -> bool:
     """A single value (a number, a bool, a string), not a sequence of them: ``centers`` as a count."""
     return isinstance(x, (numbers.Number, np.bool_, str))
@@ -327,7 +322,7 @@ def _check_values(s: ReconstructionSettings) -> None:
     for name in ("valid_steps", "reg_decay"):  # "no" or 0 would switch a feature on or off by truthiness
         if not isinstance(getattr(s, name), (bool, np.bool_)):
             raise ReconstructionError(f"{name} must be True or False, got {getattr(s, name)!r}")
-    if s.steps is not None and not (_is_count(s.steps) and s.steps >= 1):  # inf: an OverflowError before
+    if s.steps is not None and not (is_integral(s.steps) and s.steps >= 1):  # inf: an OverflowError before
         raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
     tb = s.time_budget
     if tb is not None and not (_is_real(tb) and tb > 0 and math.isfinite(tb)):
@@ -335,7 +330,7 @@ def _check_values(s: ReconstructionSettings) -> None:
     c = s.centers
     # a number of kernels (vertex indices, an array, are checked by the deformer); -5, 2.5 or True failed
     # after the target was loaded
-    if _is_scalar(c) and not (_is_count(c) and c >= 1):
+    if _is_scalar(c) and not (is_integral(c) and c >= 1):
         raise ReconstructionError(f"centers must be None, a positive integer (a number of RBF kernels) or vertex "
                                   f"indices, got {c!r}")
     for name in ("lr", "r_cut", "sigma_factor", "contact_distance"):
@@ -422,7 +417,7 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
         return s
     # counts, each an integer (100.7 was truncated, inf an OverflowError, 500 alone a TypeError)
     counts = _sequence(s.stages)
-    if not counts or not all(_is_count(x) and x >= MIN_STAGE_VERTICES for x in counts):
+    if not counts or not all(is_integral(x) and x >= MIN_STAGE_VERTICES for x in counts):
         raise ReconstructionError(f"stages must be integer vertex counts of at least {MIN_STAGE_VERTICES}, got "
                                   f"{s.stages!r} (stages=None runs one stage at the source's own size)")
     if max(counts) > MAX_VERTICES:
@@ -432,7 +427,7 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
         # indices of the source's vertices: a remeshed stage has other vertices (they were reused, silently)
         raise ReconstructionError("centers given as vertex indices name the source's vertices; with stages every "
                                   "stage is remeshed: give a number of kernels instead")
-    if _is_count(s.centers) and s.centers > min(stages):  # the later stage failed after the earlier had run
+    if is_integral(s.centers) and s.centers > min(stages):  # the later stage failed after the earlier had run
         raise ReconstructionError(f"centers={s.centers!r} exceeds the smallest stage's {min(stages)} vertices; "
                                   f"a stage has at most one kernel per vertex")
     fr = _sequence(s.stage_fractions) if s.stage_fractions is not None else tuple(1.0 / len(stages) for _ in stages)
