@@ -9,7 +9,7 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["atomic_directory", "check_apart", "check_output", "check_replaceable", "RESULT_MARKERS"]
+__all__ = ["atomic_directory", "check_apart", "check_creatable", "check_output", "check_replaceable", "RESULT_MARKERS"]
 
 # One of these files is in every folder meshmei writes (a 3D-MEI run, a diverse set, a sweep, a
 # reconstruction), with the keys listed: a folder that holds none of them (and is not empty) is not meshmei's
@@ -106,6 +106,18 @@ def check_output(directory, *, overwrite: bool, error, how: str = _API) -> None:
         raise error(_exists(directory, how))
     if directory.exists() or directory.is_symlink():
         check_replaceable(directory, error)
+    check_creatable(directory, error)
+
+
+def check_creatable(directory, error) -> None:
+    """Raise ``error`` unless the nearest existing folder above ``directory`` is a folder this process may
+    write in (``--out afile/sub`` failed with errno 17 or 20, after the run)."""
+    directory = Path(directory)
+    above = next((p for p in directory.absolute().parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise error(f"cannot make {directory}: {above} is a file, not a folder; choose another output path")
+    if above is not None and not os.access(above, os.W_OK | os.X_OK):
+        raise error(f"cannot make {directory}: no permission to write in {above}; choose another output path")
 
 
 def check_apart(out, source, error, what: str = "the input") -> None:

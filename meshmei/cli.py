@@ -18,6 +18,7 @@ from ._files import atomic_directory, check_apart, check_output
 from .encoders import load_model, make_encoder
 from .errors import MEIError, ReconstructionError, TuningError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
+from .mei.diverse import MAX_MEMBERS
 from .mei.optimize import start_from_file
 from .plots import diverse_figure
 from .population import check_device, parse_neurons, run_population
@@ -62,11 +63,22 @@ def _add_model_options(p, instead: str) -> None:
     p.add_argument("--data-key", default=None, help="passed to the model as data_key=... (multi-session readouts)")
 
 
+def _add_encoder_options(p, default: str) -> None:
+    """``--encoder`` (a built-in one, ``default`` when neither it nor ``--model`` is given) and ``--model``."""
+    p.add_argument("--encoder", default=None, choices=ENCODERS, help=f"a built-in encoder (default {default})")
+    p.set_defaults(default_encoder=default)  # None above: an --encoder given with --model is refused, not ignored
+    _add_model_options(p, "--encoder")
+
+
+def _encoder_name(args) -> str:
+    """The built-in encoder a ``meshmei mei`` or ``population`` run without ``--model`` uses."""
+    return args.encoder or args.default_encoder
+
+
 def _add_mei(sub) -> None:
     d = MEISettings()
     p = sub.add_parser("mei", help="optimise a 3D-MEI for one neuron and write mesh, renders and summary")
-    p.add_argument("--encoder", default="gabor-simple", choices=ENCODERS, help="a built-in encoder (default gabor-simple)")
-    _add_model_options(p, "--encoder")
+    _add_encoder_options(p, "gabor-simple")
     p.add_argument("--neuron", type=int, default=0)
     p.add_argument("--init", default="sheet",
                    help=f"{', '.join(INITIAL_KINDS)} (default sheet), or a mesh file, centred and scaled to a "
@@ -172,7 +184,9 @@ def _cli_encoder(args, default=None):
                  if getattr(args, k) is not None]
         if given:
             raise MEIError(f"{', '.join(given)} apply to --model only")
-        return make_encoder(args.encoder) if hasattr(args, "encoder") else default
+        return make_encoder(_encoder_name(args)) if hasattr(args, "encoder") else default
+    if getattr(args, "encoder", None) is not None:  # it was ignored without a word
+        raise MEIError(f"--model and --encoder {args.encoder} each name the model: give one of them")
     given = dict(mean=args.mean, std=args.std, norm=args.norm, channels=args.channels, clip=args.clip,
                  pixel_range=None if args.pixel_range is None else _pixel_range(args.pixel_range),
                  image_size=getattr(args, "image_size", None))  # --image-size: the model's input size
@@ -227,6 +241,8 @@ def _run_mei(args) -> int:
     check_output(out, overwrite=args.overwrite, error=MEIError, how="--overwrite")  # before the run, not after it
     _inputs_apart(out, (args.model, args.init), MEIError)
     device = check_device(args.device)  # a device this machine lacks: refused before the model is built
+    if not 1 <= args.diverse <= MAX_MEMBERS:  # before the model is built, as the device
+        raise MEIError(f"--diverse K needs 1 <= K <= {MAX_MEMBERS} (1: one ordinary 3D-MEI), got {args.diverse}")
     encoder = _cli_encoder(args).to(device)
     init = _mei_start(args.init)
     n_vertices = _mei_n_vertices(args, init)
@@ -235,13 +251,11 @@ def _run_mei(args) -> int:
                            n_vertices=n_vertices, lr=args.lr, weights=_weights(args.weight),
                            optimize_light=args.optimize_light, optimize_pose=args.optimize_pose,
                            **_objective_settings(args))
-    if args.diverse < 1:
-        raise MEIError(f"--diverse K needs K >= 1 (1: one ordinary 3D-MEI), got {args.diverse}")
     if args.diverse > 1:
         return _run_diverse(args, encoder, settings, out, init)
     res = optimize_mei(encoder, args.neuron, init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
-    line = f"3D-MEI neuron {res.neuron} ({args.model or args.encoder}, {args.init}): response {res.activation:.4f}"
+    line = f"3D-MEI neuron {res.neuron} ({args.model or _encoder_name(args)}, {args.init}): response {res.activation:.4f}"
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:
@@ -353,7 +367,8 @@ def _run_reconstruct(args) -> int:
     # Check the output folder and resolve both meshes first: bad input fails before any optimisation starts.
     check_output(args.out, overwrite=args.overwrite, error=ReconstructionError, how="--overwrite")
     _inputs_apart(args.out, (args.init, args.target), ReconstructionError)
-    if args.n_vertices is not None and args.init not in SOURCE_NAMES:
+    # a name that is neither is refused below, as a source neither built in nor a file (not "the mesh file bogus")
+    if args.n_vertices is not None and args.init not in SOURCE_NAMES and Path(args.init).exists():
         raise ReconstructionError(f"--n-vertices {args.n_vertices} sets the size of a generated --init "
                                   f"({', '.join(SOURCE_NAMES)}), not of the mesh file {args.init}; remesh the file "
                                   f"instead, or leave --n-vertices out")
@@ -455,8 +470,7 @@ def _add_population(sub) -> None:
                        description="3D-MEIs of many neurons (each with every seed; the best kept), their pixel MEIs, "
                                    "one run folder per neuron under --out/neurons, population.csv and population.png. "
                                    "Rerun the same command to resume: finished neurons are skipped.")
-    p.add_argument("--encoder", default="demo", choices=ENCODERS, help="a built-in encoder (default demo)")
-    _add_model_options(p, "--encoder")
+    _add_encoder_options(p, "demo")
     p.add_argument("--neurons", required=True, help="ranges and lists, e.g. 0-99 or 0-9,20,30-32")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
     p.add_argument("--steps", type=int, default=None,

@@ -194,8 +194,9 @@ class Lookahead:
     ``tensors`` changed in between (their version counters, which every in-place update moves: the
     optimiser's step, a halving, an undone step, a restored best iterate), and evaluates ``fn`` otherwise.
     The values and the gradients are those of evaluating ``fn`` at the call: the same operations on the
-    same inputs. ``fn`` must depend on nothing that changes without one of ``tensors`` changing (an RBF
-    deformer's pair list is rebuilt inside its own call and restored only with the parameters).
+    same inputs (under ``torch.no_grad`` the kept result comes back detached, as ``fn`` would give it there).
+    ``fn`` must depend on nothing that changes without one of ``tensors`` changing (an RBF deformer's pair
+    list is rebuilt inside its own call and restored only with the parameters).
     """
 
     def __init__(self, fn: Callable[[], torch.Tensor], tensors):
@@ -207,8 +208,8 @@ class Lookahead:
 
     def __call__(self) -> torch.Tensor:
         kept, self._kept = self._kept, None  # handed out once: a second backward through it would fail
-        if kept is not None and kept[0] == self._key():
-            return kept[1]
+        if kept is not None and kept[0] == self._key():  # detached where no graph is wanted: a result made
+            return kept[1] if torch.is_grad_enabled() else kept[1].detach()  # under no_grad carried one
         return self.fn()
 
     def candidate(self) -> torch.Tensor:

@@ -135,6 +135,23 @@ def test_pair_list_rebuilt_only_when_a_scale_outgrows_it():
     assert rbf.n_rebuilds == 1
 
 
+def test_a_scale_overflowed_to_inf_lists_every_pair_and_drops_nothing():
+    """A huge learning rate on the scales (reconstruct's lr_scale=1e30) overflowed one to inf: the pair list then
+    held every pair, and the truncation error was inf / inf, NaN, in the stage's record."""
+    V0, _ = icosphere(3)
+    rbf = RBFDeformer(V0.float(), learn_scales=True)  # a kernel at every vertex
+    assert rbf.n_pairs < V0.shape[0] * rbf.n_kernels
+    with torch.no_grad():
+        rbf.log_sigma[3] = 1e5  # exp overflows: the kernel weighs 1 at every vertex
+        rbf.offsets[3] = torch.tensor([0.5, -0.25, 1.0])
+    moved = (rbf() - rbf.V0).detach()  # the other offsets are zero: every vertex moves by this kernel's offset
+    assert torch.allclose(moved, rbf.offsets[3].detach().expand(V0.shape[0], 3), rtol=0, atol=1e-6)
+    assert 0 < rbf.truncation_error <= math.exp(-rbf.r_cut**2 / 2) * (1 + 1e-6)  # the others' bound, not NaN
+    with torch.no_grad():
+        rbf.log_sigma.fill_(1e5)  # every scale: the list holds every pair and drops nothing
+    assert torch.isfinite(rbf()).all() and rbf.truncation_error == 0.0
+
+
 def test_pairs_grow_linearly_with_vertices():
     per_vertex = []
     for s in (3, 4):

@@ -187,6 +187,8 @@ def test_pixel_mei_of_a_model_without_norm_searches_the_renderable_images():
     (dict(device="gpu"), "device 'gpu' cannot hold the image here"),
     (dict(device="meta"), "device 'meta' holds no values"),
     (dict(image_size=(16.7, 16)), r"image_size must be an int or a pair of integers \(H, W\), got \(16.7, 16\)"),
+    (dict(image_size=10**6), r"image_size must be at most 8192 x 8192, got 1000000$"),  # the allocator's error
+    (dict(image_size=(16, 8193)), r"image_size must be at most 8192 x 8192, got \(16, 8193\)$"),
 ])
 def test_pixel_mei_refuses_bad_arguments_in_one_line(kw, match):
     # a negative step_size used to minimise the response; the others failed inside torch or ran a seed twice

@@ -240,6 +240,10 @@ def test_bad_input_raises_mei_error():
         optimize_mei(cell, 0, "sheet", step=3)
     with pytest.raises(MEIError, match="grid"):
         grid_search(cell, 0, "sheet", {"laplacian": []}, **TINY)
+    # kernels too narrow for float32 gave NaN vertices, reported as a mesh error at the first render
+    with pytest.raises(MEIError, match=r"^sigma_factor=1e-30 makes the RBF kernels \S+ wide, too narrow for "
+                                       r"torch.float32 arithmetic \(1 / sigma\^2 overflows\); raise sigma_factor$"):
+        optimize_mei(cell, 0, "sheet", **{**TINY, "sigma_factor": 1e-30})
 
 
 def test_cli_writes_a_run(tmp_path, capsys, monkeypatch):
@@ -273,6 +277,26 @@ def test_cli_refuses_a_device_it_cannot_use_in_one_line_and_writes_nothing(tmp_p
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and ("must be cpu, cuda or cuda:N" in err or "has no CUDA device" in err)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [["mei", "--quiet"], ["reconstruct", "--target", "bunny", "--no-progress"],
+                                     ["population", "--neurons", "0", "--quiet"]])
+def test_cli_refuses_an_output_folder_below_a_file_in_one_line_before_the_run(tmp_path, capsys, monkeypatch, command):
+    """--out afile/sub ended in errno 17 or 20, reconstruct's after its whole run."""
+    import meshmei.cli as cli
+    import meshmei.population.run as population_run
+
+    def ran(*args, **kwargs):
+        raise AssertionError("the run started before its output folder was checked")
+
+    for module, name in ((cli, "optimize_mei"), (cli, "reconstruct"), (population_run, "mei_batches")):
+        monkeypatch.setattr(module, name, ran)
+    (tmp_path / "afile").write_text("mine")
+    assert cli.main([*command, "--out", str(tmp_path / "afile" / "sub"), "--steps", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(f"cannot make {tmp_path / 'afile' / 'sub'}: {tmp_path / 'afile'} is a file, not a folder; "
+                        "choose another output path") and "\n" not in err
+    assert (tmp_path / "afile").read_text() == "mine"
 
 
 def test_ctrl_c_ends_the_cli_in_one_line_with_code_130_and_writes_nothing(tmp_path, capsys, monkeypatch):

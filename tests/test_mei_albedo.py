@@ -85,6 +85,9 @@ def test_shape_only_stays_the_default_and_bad_albedo_settings_are_refused():
     assert optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40).albedo is None
     with pytest.raises(MEIError, match="albedo_resolution"):
         MEISettings(albedo=True, albedo_resolution=1)
+    with pytest.raises(MEIError, match=r"^albedo_resolution must be at most 8192 \(the largest image side\), got 10+$"):
+        MEISettings(albedo=True, albedo_resolution=10**9)  # reached the allocator and its RuntimeError
+    assert MEISettings(albedo=True, albedo_resolution=8192).albedo_resolution == 8192
     with pytest.raises(MEIError, match="albedo_init"):
         MEISettings(albedo=True, albedo_init=1.0)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -130,12 +131,19 @@ def test_overwriting_a_diverse_set_leaves_no_member_of_the_old_one(tmp_path, cap
     assert main(["mei", "--diverse", "2", "--out", str(out), "--overwrite", "--seeds", "7", *common]) == 0
     assert sorted(p.name for p in out.glob("member_*")) == ["member_0", "member_1"]  # member_2 is gone
     assert len(json.loads((out / "diversity.json").read_text())["responses"]) == 2
+    for member in ("member_0", "member_1"):  # saved without a graph (it made the sweep below warn)
+        state = torch.load(out / member / "state.pt", weights_only=True)
+        assert not any(v.requires_grad for v in state.values() if isinstance(v, torch.Tensor))
     capsys.readouterr()
-    assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth", "0:0:1"]) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the UserWarning of a scalar taken from a tensor with a graph
+        assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth", "0:0:1"]) == 0
     assert capsys.readouterr().out.count("pose sweep, neuron 0") == 2
-    for k in ("0", "-3"):
-        assert main(["mei", "--diverse", k, "--out", str(tmp_path / f"d{k}"), *common]) == 2
-        assert "--diverse K needs K >= 1" in capsys.readouterr().err
+    for k in ("0", "-3", "1025", "1" + "0" * 400):  # 10**400 had grown a list of seeds until memory ran out
+        assert main(["mei", "--diverse", k, "--out", str(tmp_path / f"d{len(k)}{k[0]}"), *common]) == 2
+        err = capsys.readouterr().err
+        assert "--diverse K needs 1 <= K <= 1024" in err and len(err.splitlines()) == 1
+        assert not (tmp_path / f"d{len(k)}{k[0]}").exists()
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "diversity.json").write_text("{}")

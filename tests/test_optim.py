@@ -401,6 +401,10 @@ def test_a_lookahead_hands_its_kept_evaluation_out_once_and_only_at_the_same_par
     with torch.no_grad():
         x.add_(1.0)  # the parameters moved (an optimiser's step, a halving): the kept result is stale
     assert torch.equal(look().detach(), 3.0 * x.detach()) and len(calls) == 4
+    look.candidate()
+    with torch.no_grad():  # a final result taken without a gradient: the kept result, without its graph
+        final = look()
+    assert len(calls) == 5 and torch.equal(final, 3.0 * x.detach()) and not final.requires_grad
 
 
 def test_a_guarded_run_with_a_lookahead_is_the_run_without_it_with_one_evaluation_less_per_accepted_step():

@@ -676,6 +676,12 @@ def test_a_source_beyond_float32s_range_asks_to_rescale_whatever_the_schedule(sp
     assert bool(torch.isfinite(target_surface((big, F))[0]).all())
     with pytest.raises(MeshError, match=r"target: coordinates up to 1e\+39 do not fit in torch.float32"):
         target_surface((big, F), normalize=False)
+    # a float64 target at 1e155, whose squared diagonal overflows float64, was called "zero surface area": it is
+    # normalised as at 1 (scaled by a power of two first), and kept at its scale it is refused as overflowing
+    assert torch.allclose(target_surface((1e155 * V.double(), F))[0], target_surface((V, F))[0], rtol=0, atol=1e-7)
+    with pytest.raises(MeshError, match=r"^target: the face areas overflow torch.float64 \(largest coordinate "
+                                        r"\S+e\+154\); rescale the mesh$"):
+        target_surface((1e155 * V.double(), F), normalize=False, dtype=torch.float64)
 
 
 def test_a_bfloat16_source_runs_in_bfloat16(sphere):
@@ -888,6 +894,12 @@ def test_stage_settings_that_failed_late_are_refused_up_front():
         ReconstructionSettings(stages=(100, 200), stage_fractions=0.5).resolved()  # a TypeError
     with pytest.raises(ReconstructionError, match=r"^steps must be a positive integer, got inf$"):
         ReconstructionSettings(steps=float("inf")).resolved()  # an OverflowError
+    for name in ("n_samples", "target_pool", "eval_samples"):  # 10**9 samples ran out of memory, killed silently
+        with pytest.raises(ReconstructionError, match=rf"^{name} must be at most 10,000,000 samples, got 1000000000$"):
+            ReconstructionSettings(**{name: 10**9}).resolved()
+        ReconstructionSettings(**{name: 10**7}).resolved()  # the bound itself is allowed
+    with pytest.raises(ValueError, match="stage 0: n_samples must be at most 10,000,000"):  # per stage too
+        ReconstructionSettings(stages=(100, 300), stage_overrides=({"n_samples": 10**8}, None)).resolved()
     for stages in (500, (float("inf"),), (100.7, 500.9)):  # a TypeError, an OverflowError, truncated to (100, 500)
         with pytest.raises(ReconstructionError, match=rf"^stages must be integer vertex counts of at least 32, got "
                                                       rf"{re.escape(repr(stages))} \(stages=None"):
@@ -942,6 +954,10 @@ def test_cli_refuses_options_it_would_ignore(sphere, tmp_path, capsys):
     rc, out = _cli(base + ["--init", tmp_path / "start.obj", "--n-vertices", 500, "--out", tmp_path / "a"], capsys)
     assert rc == 2 and "--n-vertices 500 sets the size of a generated --init" in out.err
     assert "start.obj" in out.err and not (tmp_path / "a").exists()
+    rc, out = _cli(base + ["--init", "sphre", "--n-vertices", 500, "--out", tmp_path / "a"], capsys)  # no such file
+    assert rc == 2 and out.err.strip().endswith("source sphre: neither a built-in source (sheet, sphere, torus, "
+                                                 "torus-centred, torus-through-opening) nor a mesh file")
+    assert not (tmp_path / "a").exists()  # it was called "the mesh file sphre"
     rc, out = _cli(base + ["--init", "sphere", "--n-vertices", 100, "--contact-edges", "on", "--contact-weight", 0,
                            "--out", tmp_path / "b"], capsys)
     assert rc == 2 and "contact_edges=True applies only with w_contact > 0" in out.err and not (tmp_path / "b").exists()
@@ -1147,6 +1163,8 @@ def test_truthy_strings_and_mistyped_names_are_clear_errors(sphere):
             reconstruct(sphere, "bunny", steps=1, **{name: "no"})
     with pytest.raises(FileNotFoundError, match=r"target bunnny: neither a built-in target \(bunny, teapot"):
         reconstruct(sphere, "bunnny", steps=1)
+    with pytest.raises(ReconstructionError, match=r"^unknown ReconstructionSettings fields \['bogus', 'lr_scales'\]$"):
+        reconstruct(sphere, "bunny", steps=1, lr_scales=0.1, bogus=3)  # a TypeError naming __init__
     with pytest.raises(FileNotFoundError, match=r"source sphre: neither a built-in source \(sheet, sphere"):
         resolve_source("sphre", 100, torch.float32, None)
 

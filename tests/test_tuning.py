@@ -54,6 +54,19 @@ def test_rotations_are_proper_and_compose_in_order():
     torch.testing.assert_close(Re @ front, torch.tensor([0, 0.5, math.sqrt(3) / 2], dtype=torch.float64))
 
 
+def test_angles_beyond_a_turn_are_the_same_rotations_and_stay_finite():
+    """1e308 degrees overflowed float32 in radians: a NaN rotation, refused deep in the renderer."""
+    for dtype in (torch.float32, torch.float64):
+        R = pose_rotations([370.0, -725.0, 1e308], [1e308, 0.0], [-1e308], dtype=dtype)
+        assert torch.isfinite(R).all()
+        same = pose_rotations([10.0, -5.0, math.fmod(1e308, 360.0)], [math.fmod(1e308, 360.0), 0.0],
+                              [math.fmod(-1e308, 360.0)], dtype=dtype)
+        torch.testing.assert_close(R, same, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+    with pytest.raises(TuningError, match=r"^light distance must be at most 1e\+06, got 1e\+308$"):
+        light_positions([0.0], [0.0], 1e308)  # its position overflowed: "light holds NaN or Inf"
+    assert torch.isfinite(light_positions([0.0], [0.0], 1e6)).all()
+
+
 def test_light_positions_on_the_hemisphere():
     P = light_positions([0, 45, 90], [0, 90, 180], 2.0, dtype=torch.float64)
     torch.testing.assert_close(P.norm(dim=-1), torch.full((3, 3), 2.0, dtype=torch.float64))

@@ -413,8 +413,11 @@ class RBFDeformer(torch.nn.Module):
         with torch.no_grad():
             s = self.sigma.double()
             cover = torch.maximum(self._radius.double(), self.r_cut * s)
-            # a scale past its cover would be rebuilt on the next call; report what that call would drop
-            return float(torch.exp(-(cover / s) ** 2 / 2).max())
+            # a scale past its cover would be rebuilt on the next call; report what that call would drop. An
+            # infinite cover (a scale overflowed to inf by a huge lr on the scales) lists every pair: it drops
+            # nothing (inf / inf made the error NaN)
+            dropped = torch.exp(-(cover / s) ** 2 / 2)
+            return float(torch.where(torch.isinf(cover), torch.zeros_like(dropped), dropped).max())
 
     def weights(self) -> torch.Tensor:
         """The truncated weight matrix as a sparse COO ``(n, K)`` tensor (differentiable in the scales)."""

@@ -27,7 +27,11 @@ from .optimize import check_neuron, initial, objective_weights, result_from_seed
 from .scene import sheet_uv
 from .settings import MEISettings
 
-__all__ = ["DiverseMEIs", "diverse_meis"]
+__all__ = ["DiverseMEIs", "diverse_meis", "MAX_MEMBERS"]
+
+# The most members one call optimises: they form one batch, and the diversity reward compares every pair of
+# images (k^2 distances); 10**400 from the command line grew a list of seeds until the machine ran out of memory
+MAX_MEMBERS = 1024
 
 
 @dataclass(frozen=True)
@@ -89,7 +93,7 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     Parameters
     ----------
     k : int
-        Members (>= 2).
+        Members (2 to ``MAX_MEMBERS``, 1024).
     diversity : float
         Weight of the diversity reward (>= 0; 0 with ``floor`` 0: K independent runs, kept at their final
         iterate).
@@ -99,8 +103,8 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     """
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
     neuron = check_neuron(encoder, neuron)
-    if isinstance(k, bool) or not isinstance(k, int) or k < 2:
-        raise MEIError(f"k must be an integer >= 2, got {k!r}")
+    if isinstance(k, bool) or not isinstance(k, int) or not 2 <= k <= MAX_MEMBERS:
+        raise MEIError(f"k must be an integer from 2 to {MAX_MEMBERS}, got {k!r}")
     if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in (diversity, floor)) or not (
             diversity >= 0 and math.isfinite(diversity) and 0 <= floor <= 1):
         raise MEIError(f"need diversity >= 0 and floor in [0, 1], got {diversity!r}, {floor!r}")

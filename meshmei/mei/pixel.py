@@ -24,6 +24,7 @@ import torch.nn.functional as TF
 from .._checks import check_distinct_seeds, check_non_negative, check_positive, is_integral
 from ..encoders import Encoder, EncoderError, frozen_encoder
 from ..optim import Budget, Progress, Schedule, Trace, minimize
+from ..render.settings import MAX_IMAGE_SIZE
 from .optimize import check_neuron
 
 __all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "NormalizedAscent"]
@@ -82,10 +83,9 @@ class PixelMEIResult:
 
 
 def _check_size(image_size):
-    if isinstance(image_size, int) and not isinstance(image_size, bool):
-        image_size = (image_size, image_size)
+    square = isinstance(image_size, int) and not isinstance(image_size, bool)
     try:
-        H, W = image_size
+        H, W = (image_size, image_size) if square else image_size
     except (TypeError, ValueError):
         raise EncoderError(f"image_size must be an int or a pair (H, W), got {image_size!r}") from None
     if not all(is_integral(s) for s in (H, W)):  # int() would cut (16.7, 16) to 16 x 16 without a word
@@ -93,6 +93,8 @@ def _check_size(image_size):
     H, W = int(H), int(W)
     if H < 2 or W < 2:
         raise EncoderError(f"image_size must be at least 2 x 2, got {image_size!r}")
+    if max(H, W) > MAX_IMAGE_SIZE:  # 10**6 went to the allocator and came back as its RuntimeError
+        raise EncoderError(f"image_size must be at most {MAX_IMAGE_SIZE} x {MAX_IMAGE_SIZE}, got {image_size!r}")
     return H, W
 
 
@@ -198,7 +200,8 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
     neuron : int
         One neuron's index.
     image_size : int or (H, W), optional
-        Default: the model's own size for a :class:`~meshmei.encoders.ModelEncoder`, else 64.
+        Default: the model's own size for a :class:`~meshmei.encoders.ModelEncoder`, else 64. Each side 2 to
+        8192 (``MAX_IMAGE_SIZE``).
     steps : int
         Steps per seed (>= 1).
     step_size : float

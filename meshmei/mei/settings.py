@@ -19,6 +19,7 @@ from ..quality import health_report
 from ..regularizers import REGULARIZERS
 from ..render import Camera, RenderSettings, axis_angle_to_matrix, render
 from ..render.camera import DEFAULT_DISTANCE, DEFAULT_FOV_DEGREES
+from ..render.settings import MAX_IMAGE_SIZE
 from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
@@ -138,7 +139,7 @@ class MEISettings:
         ``albedo_shape_lr * lr`` (1 by default; 0.1 lets the albedo lead, which unguarded runs needed to keep
         the shape from folding, docs/mei.md). From the sheet the albedo is an
         ``albedo_resolution`` x ``albedo_resolution`` texture over the sheet's own grid instead (texel
-        neighbours in the penalty); 0: per vertex there too. False (default): shape only, the paper's
+        neighbours in the penalty; at most 8192, the largest image side); 0: per vertex there too. False (default): shape only, the paper's
         setting.
     robust_pose, robust_light : float
         Degrees (0: off). Maximise the expected response over object turns (azimuth about y, elevation
@@ -269,6 +270,8 @@ class MEISettings:
         r = self.albedo_resolution
         if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
             raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")
+        if r > MAX_IMAGE_SIZE:  # a texture finer than the largest image; 10**9 reached the allocator
+            raise MEIError(f"albedo_resolution must be at most {MAX_IMAGE_SIZE} (the largest image side), got {r!r}")
         if not _is_number(self.albedo_init) or not 0 < self.albedo_init < 1:
             raise MEIError(f"albedo_init must lie in (0, 1), got {self.albedo_init!r}")
         w = self.robust_widen
@@ -518,8 +521,14 @@ def _render_settings(render, image_size: int) -> RenderSettings:
 def make_deformer(V0, settings: MEISettings, centers=None):
     if centers is None:
         centers = settings.centers
-    return RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
-                       learn_scales=settings.lr_scales > 0)
+    rbf = RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
+                      learn_scales=settings.lr_scales > 0)
+    with torch.no_grad():  # a kernel this narrow weighs its own centre 0 * inf: NaN vertices at the first render
+        narrow = not bool(torch.isfinite(torch.exp(-2.0 * rbf.log_sigma)).all())
+    if narrow:
+        raise MEIError(f"sigma_factor={settings.sigma_factor!r} makes the RBF kernels {float(rbf.sigma.min()):.3g} "
+                       f"wide, too narrow for {V0.dtype} arithmetic (1 / sigma^2 overflows); raise sigma_factor")
+    return rbf
 
 
 def rebuild_deformer(V0, state, settings):

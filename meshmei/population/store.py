@@ -24,6 +24,7 @@ import os
 import uuid
 from pathlib import Path
 
+from .._files import check_creatable
 from ..errors import MEIError
 from ..mei.runs import RUN_FILES, is_complete_summary
 
@@ -75,8 +76,9 @@ def prepare_folder(out, config: dict) -> str:
                            f"this run {digest}; differing: {', '.join(changed) or 'format'}); use another --out "
                            "or the same settings to resume")
         return digest
-    if out.exists() and any(not p.name.startswith(".") for p in out.iterdir()):
+    if out.exists() and (not out.is_dir() or any(not p.name.startswith(".") for p in out.iterdir())):
         raise MEIError(f"{out} exists and is not a population folder; choose another --out")
+    check_creatable(out, MEIError)
     out.mkdir(parents=True, exist_ok=True)
     # the description first, then the neurons folder: jobs of one SLURM array may start at once
     _write_atomic(meta, json.dumps({"format": CONFIG_FORMAT, "config_hash": digest, "config": config}, indent=1,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import igl
 import numpy as np
@@ -278,6 +278,9 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     """
     if method is not None:
         kwargs["method"] = method
+    unknown = sorted(set(kwargs) - {f.name for f in fields(ReconstructionSettings)})
+    if unknown:  # dataclasses' TypeError, which named __init__, not reconstruct's settings
+        raise ReconstructionError(f"unknown ReconstructionSettings fields {unknown}")
     base = settings or ReconstructionSettings()
     if "method" in kwargs and kwargs["method"] != base.method:
         base = base.without_method_defaults()  # a result's resolved settings held the other method's lr, ...

@@ -16,7 +16,7 @@ from ..optim import OPTIMIZERS
 from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
-__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES",
+__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES", "MAX_SAMPLES",
            "ReconstructionSettings", "ReconstructionResult", "ReconstructionWarning"]
 
 
@@ -37,6 +37,9 @@ SEED_MIN, SEED_MAX = -(2 ** 63), 2 ** 64 - 2
 
 # The fewest vertices a stage may be remeshed to.
 MIN_STAGE_VERTICES = 32
+# The most samples n_samples, target_pool and eval_samples may ask for: 10**7 points and their distances take
+# a few GB; 10**9 exhausted a 128 GB machine's memory after minutes
+MAX_SAMPLES = 10_000_000
 
 # contact_edges="auto": a stage turns edge-edge contact pairs on after this many candidates refused by the
 # intersection rule (a stage that does not stall refuses 0-5 in all; a stall, hundreds)
@@ -92,7 +95,8 @@ class ReconstructionSettings:
         Points sampled on the current mesh per step, and target points drawn per step.
     target_pool : int
         Size of the fixed pool of target samples; the source-to-target direction uses all of it (through
-        a KD-tree built once), so its resolution, not ``n_samples``, limits that direction.
+        a KD-tree built once), so its resolution, not ``n_samples``, limits that direction. These two and
+        ``eval_samples`` are at most ``MAX_SAMPLES`` (10,000,000).
     w_laplacian, w_edge, w_arap : float
         Weights of the uniform Laplacian, edge-length and direction-preserving ARAP regularizers, for a
         mesh of ``reg_ref_vertices`` vertices (see there).
@@ -340,6 +344,8 @@ def _check_values(s: ReconstructionSettings) -> None:
         n = getattr(s, name)
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise ReconstructionError(f"{name} must be a positive integer, got {n!r}")
+        if n > MAX_SAMPLES:  # 10**9 ran out of memory after minutes, killed without a word
+            raise ReconstructionError(f"{name} must be at most {MAX_SAMPLES:,} samples, got {n!r}")
     m = s.max_steps
     if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1):
         raise ReconstructionError(f"max_steps must be a positive integer or None, got {m!r}")

@@ -151,10 +151,12 @@ def _area(V, F) -> float:
 
 def _check_area(V, F, role):
     area = _area(V, F)
+    # squared coordinates beyond the dtype's range (float32: about 1e19) would turn sampling, edge lengths
+    # and the contact reach into Inf at the first step or stage; say so here, whatever the schedule (and
+    # before the zero-area check: a float64 mesh at 1e155 has a NaN area, and was called "zero surface area")
+    if not (math.isfinite(area) and math.isfinite(float(doublearea(V.detach(), F).sum()))):
+        wider = " or use float64" if V.dtype != torch.float64 else ""
+        raise MeshError(f"{role}: the face areas overflow {V.dtype} (largest coordinate "
+                        f"{float(V.detach().abs().max()):.3g}); rescale the mesh{wider}")
     if not area > 0:
         raise MeshError(f"{role} mesh has zero surface area ({V.shape[0]} vertices, {F.shape[0]} faces)")
-    # squared coordinates beyond the dtype's range (float32: about 1e19) would turn sampling, edge lengths
-    # and the contact reach into Inf at the first step or stage; say so here, whatever the schedule
-    if not math.isfinite(float(doublearea(V.detach(), F).sum())):
-        raise MeshError(f"{role}: the face areas overflow {V.dtype} (largest coordinate "
-                        f"{float(V.detach().abs().max()):.3g}); rescale the mesh or use float64")

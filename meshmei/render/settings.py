@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import RenderError
 
-__all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS", "finite_float"]
+__all__ = ["RenderError", "RenderSettings", "SOFT_MARGIN_SIGMAS", "MAX_IMAGE_SIZE", "finite_float"]
 
 # Soft coverage is evaluated only within this many sigmas of the silhouette: beyond it the logistic
 # differs from 0 or 1 by less than 1e-3 (sigmoid(-7) = 9.1e-4), the size of the jump we accept there.
@@ -19,6 +19,9 @@ SOFT_MARGIN_SIGMAS = 7.0
 # and a fringe of 1e30 pixels overflowed the pixel boxes (an OverflowError) while 1e300 made the image inf
 MAX_SIGMA = 1000.0
 MAX_INTENSITY = 1e6
+# the widest image side (pixels): 8192 x 8192 is 67 million pixels; also the bound of every other image-sized
+# grid (a pixel MEI, an albedo texture), so that a size of 10**6 is refused, not handed to the allocator
+MAX_IMAGE_SIZE = 8192
 
 
 def finite_float(name: str, value) -> float:
@@ -39,7 +42,7 @@ class RenderSettings:
     Attributes
     ----------
     image_size : int
-        Width and height of the square image in pixels (1 to 8192).
+        Width and height of the square image in pixels (1 to ``MAX_IMAGE_SIZE``, 8192).
     sigma : float
         Softness of the silhouette in pixels: coverage is ``sigmoid(s / sigma)`` of the signed distance
         ``s`` (pixels, positive inside) from the pixel centre to the silhouette. ``0.2`` about minimises the
@@ -80,8 +83,8 @@ class RenderSettings:
 
     def __post_init__(self):
         size = self.image_size
-        if isinstance(size, (bool, np.bool_)) or not isinstance(size, numbers.Integral) or not 1 <= size <= 8192:
-            raise RenderError(f"image_size must be an integer in [1, 8192], got {size!r}")
+        if isinstance(size, (bool, np.bool_)) or not isinstance(size, numbers.Integral) or not 1 <= size <= MAX_IMAGE_SIZE:
+            raise RenderError(f"image_size must be an integer in [1, {MAX_IMAGE_SIZE}], got {size!r}")
         object.__setattr__(self, "image_size", int(size))
         sigma = finite_float("sigma", self.sigma)
         if not 0 < sigma <= MAX_SIGMA:

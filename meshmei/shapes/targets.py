@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from .._checks import check_positive
 from ..errors import MeshError
+from ..quality import in_range
 from .remeshing import isotropic_parameters, mesh_arrays
 
 __all__ = ["target_mesh", "bunny_path", "normalize_unit_diagonal", "TARGET_NAMES", "TEAPOT_FILE", "THIN_TARGETS"]
@@ -96,8 +97,8 @@ def normalize_unit_diagonal(V):
         raise MeshError(f"V must be a non-empty (n, 3) float tensor, got {got}")
     if not bool(torch.isfinite(V).all()):  # Inf gave NaN vertices, NaN a 'coincide' error
         raise MeshError("V holds NaN or Inf coordinates; cannot normalise it")
-    W = V.double()  # V itself when it is float64
-    lo, hi = W.min(0).values, W.max(0).values
+    W = in_range(V.double())  # V itself when it is float64; beyond 1e50 scaled by a power of two, exactly (at
+    lo, hi = W.min(0).values, W.max(0).values  # 1e155 the squared diagonal overflowed: inf, and a zero mesh)
     diag = float((hi - lo).norm())
     if not diag > 0:
         raise MeshError(f"mesh has zero extent (all {V.shape[0]} vertices coincide); cannot normalise it")

@@ -39,6 +39,9 @@ def check_angles(name, values, lo=None, hi=None) -> np.ndarray:
 
 
 def _rot(axis, deg, dtype, device):
+    # beyond a turn, the angle less its whole turns (exact in float64; within a turn nothing changes): 1e308
+    # degrees overflowed the dtype in radians and made the rotation NaN
+    deg = np.where(np.abs(deg) > 360.0, np.fmod(deg, 360.0), deg)
     aa = torch.zeros(len(deg), 3, dtype=dtype, device=device)
     aa[:, axis] = torch.as_tensor(np.radians(deg), dtype=dtype, device=device)
     return axis_angle_to_matrix(aa)
@@ -65,11 +68,17 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32,
     az = np.radians(check_angles("azimuth", azimuth))
     if not (isinstance(distance, (int, float)) and math.isfinite(distance) and distance > 0):
         raise TuningError(f"light distance must be a positive number, got {distance!r}")
+    if distance > MAX_LIGHT_DISTANCE:  # 1e308 overflowed the light's position ("light holds NaN or Inf")
+        raise TuningError(f"light distance must be at most {MAX_LIGHT_DISTANCE:g}, got {distance!r}")
     check_grid_size(len(el), len(az))
     E, A = np.meshgrid(el, az, indexing="ij")
     P = distance * np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
     return torch.as_tensor(P, dtype=dtype, device=device)
 
+
+# the farthest light of a light sweep: from there the light's direction turns by under a microradian across an
+# object of unit size, so a farther one is the same light; its squared distance stays well within float32
+MAX_LIGHT_DISTANCE = 1e6
 
 # the most conditions (renders per neuron) of one grid: two full axes at a tenth of a degree
 MAX_GRID_CONDITIONS = 3601 * 3601
