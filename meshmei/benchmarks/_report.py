@@ -17,7 +17,7 @@ import torch
 from meshmei._checks import positive_int  # re-exported: the benchmarks' argparse type
 
 __all__ = ["docs_dir", "write_section", "machine_line", "median", "step_intervals", "timeit", "timings",
-           "markdown_table", "benchmark_parser", "int_list", "positive_int", "keep_docs_for_full_runs",
+           "markdown_table", "benchmark_parser", "add_restart", "int_list", "positive_int", "keep_docs_for_full_runs",
            "HEALTH_COLUMNS", "HEALTH_LEGEND", "health_cells", "SURFACE_HEALTH_COLUMNS", "SURFACE_HEALTH_LEGEND",
            "surface_health", "FinishedRows", "source_hash"]
 
@@ -39,6 +39,13 @@ def benchmark_parser(file: str, doc: str) -> argparse.ArgumentParser:
     return argparse.ArgumentParser(prog=f"python -m meshmei.benchmarks.{name}",
                                    description=" ".join(doc.split("\n\n")[0].split()),
                                    epilog="A full run writes its section of docs/benchmarks.md.")
+
+
+def add_restart(parser: argparse.ArgumentParser) -> None:
+    """The ``--restart`` flag of a benchmark that keeps its finished results in :class:`FinishedRows`."""
+    parser.add_argument("--restart", action="store_true",
+                        help="compute again the results an interrupted run of the same source left in "
+                             "docs/.SECTION.partial.json (by default they are taken as they are)")
 
 
 def int_list(text: str) -> list:

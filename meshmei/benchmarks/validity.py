@@ -29,8 +29,9 @@ from pathlib import Path
 import torch
 
 from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, SURFACE_HEALTH_COLUMNS, SURFACE_HEALTH_LEGEND,
-                                        FinishedRows, benchmark_parser, health_cells, int_list, machine_line,
-                                        markdown_table, median, step_intervals, surface_health, write_section)
+                                        FinishedRows, add_restart, benchmark_parser, health_cells, int_list,
+                                        machine_line, markdown_table, median, step_intervals, surface_health,
+                                        write_section)
 from meshmei.benchmarks.reconstruct.problems import UNGUARDED
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.mei import MEISettings, optimize_mei
@@ -349,9 +350,7 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=9, help="alternated rounds of the mei-cost part (its median)")
     ap.add_argument("--thin-vertices", type=int_list, default="2500",
                     help="comma-separated start sizes of the thin part, e.g. 2500,10000 (default 2500)")
-    ap.add_argument("--restart", action="store_true",
-                    help="compute again the results an interrupted run of the same source left in "
-                         "docs/.SECTION.partial.json (by default they are taken as they are)")
+    add_restart(ap)
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), reconstruction (default CLI runs), thin "
                          "(targets with thin parts)")
