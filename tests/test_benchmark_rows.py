@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import re
 from types import SimpleNamespace
 
 import pytest
@@ -113,3 +115,203 @@ def test_an_interrupted_thin_part_resumes_where_it_stopped(docs, monkeypatch):
     # large steps on the cup ran now, with the budget its default run took (13 s) before the interruption
     assert calls[0] == ("cup", "largesteps", 13.0) and [c[0] for c in calls[1:]] == ["fin"] * 3
     assert rows == whole and len(rows) == 6
+
+
+# The other benchmarks that save each finished run: an interrupted run resumed writes the uninterrupted run's
+# section (but for the note that says so), computing only what was not finished. Their optimisations are
+# stand-ins that return fixed fields, from their arguments alone, and record each call.
+
+_NOTE = (r" (\d+) of its results were finished by an interrupted run of the same source that started [^;]+; "
+         r"the machine line, load and total time are this run's\.")
+_HEALTH = dict(self_intersections=0, flipped_faces=1, degenerate_faces=0, min_quality=0.23456, mean_quality=0.71,
+               boundary_edges=4, nonmanifold_edges=0, watertight=False)
+
+
+def _section(docs, name: str) -> str:
+    text = (docs / "benchmarks.md").read_text()
+    return text.split(f"<!-- BEGIN {name} -->")[1].split(f"<!-- END {name} -->")[0]
+
+
+class _Calls(list):
+    """The stand-ins' calls, in order; the one numbered ``stop`` (from 1; 0: none) is interrupted."""
+
+    stop = 0
+
+    def __call__(self, *what):
+        self.append(what)
+        if len(self) == self.stop:
+            raise KeyboardInterrupt
+
+
+def _assert_resumes(docs, monkeypatch, name: str, run, calls: _Calls, stop: int, done: int, units: int):
+    """``run()`` whole, then interrupted at its ``stop``-th call, then again: the last computes only the calls
+    after the first ``done`` (those of the ``units`` results the interrupted run finished) and writes the
+    whole run's section but for the note."""
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.5, 0.5, 0.5))
+    partial = docs / f".{name}.partial.json"
+    run()
+    whole, everything = _section(docs, name), list(calls)
+    assert not partial.exists() and not re.search(_NOTE, whole)
+    calls.clear()
+    calls.stop = stop
+    with pytest.raises(KeyboardInterrupt):
+        run()
+    assert list(calls) == everything[:stop] and len(json.loads(partial.read_text())["rows"]) == units
+    calls.clear()
+    calls.stop = 0
+    run()
+    assert list(calls) == everything[done:]  # the finished results were taken, not computed again
+    resumed = _section(docs, name)
+    assert [int(n) for n in re.findall(_NOTE, resumed)] == [units]
+    assert re.sub(_NOTE, "", resumed) == whole
+    assert not partial.exists()
+    return whole
+
+
+def test_an_interrupted_mei_benchmark_resumes_where_it_stopped(docs, monkeypatch):
+    """The mei section: interrupted in the complex cell's first 3D-MEI (its fifth optimisation), the run
+    again takes the pixel MEIs and 3D-MEIs finished before it, and draws the same curves and bars."""
+    from meshmei.benchmarks import mei
+
+    calls = _Calls()
+
+    def fake_mei(cell, neuron, init, settings):
+        name = getattr(cell, "name", type(cell).__name__)
+        calls("3d", name, init, settings.steps)
+        top = 0.9 + 0.01 * len(init) + 0.03 * len(name) / 20
+        return SimpleNamespace(activation=top - 0.001, history=[0.3, 0.91, 0.94, top],
+                               time_history=[0.5, 1.0, 1.5, 2.0], seconds_per_step=0.0123 * len(init),
+                               health=lambda: dict(_HEALTH, flipped_faces=len(init)))
+
+    def fake_pixel(cell, neuron, image_size=64, steps=200):
+        calls("pixel", getattr(cell, "name", type(cell).__name__), steps)
+        return SimpleNamespace(activation=0.98765)
+
+    def fake_random(model, neuron, init, n, settings):
+        calls("random", n)
+        return torch.linspace(0.1, 0.6, n)
+
+    def fake_grid(cell, neuron, init, grid, settings):
+        calls("grid", init)
+        return [dict(weights=dict(settings.weights, laplacian=lap, area=area), activation=0.5 + lap / 1000,
+                     fraction_of_bound=0.5, seconds=3.0, **dict(_HEALTH, min_quality=area / 5000 + 0.1))
+                for lap in grid["laplacian"] for area in grid["area"]]
+
+    drawn = []
+    monkeypatch.setattr(mei, "optimize_mei", fake_mei)
+    monkeypatch.setattr(mei, "pixel_mei", fake_pixel)
+    monkeypatch.setattr(mei, "random_mesh_responses", fake_random)
+    monkeypatch.setattr(mei, "load_demo_model", lambda: SimpleNamespace(name="demo"))
+    monkeypatch.setattr(mei, "DEMO_MODEL_PATH", SimpleNamespace(is_file=lambda: True))
+    monkeypatch.setattr(mei, "grid_search", fake_grid)
+    monkeypatch.setattr(mei, "time_per_step", lambda size, nv: (0.002, 0.001))  # timings: always this run's
+    monkeypatch.setattr(mei, "plot", lambda curves, bars, out_dir: drawn.append((curves, bars)))
+    # pixel (simple), 3D (simple, sheet and sphere), pixel (complex), then 3D (complex, sheet) is interrupted
+    whole = _assert_resumes(docs, monkeypatch, "mei", lambda: mei.run(steps=4, seeds=(0,), pixel_steps=3),
+                            calls, stop=5, done=4, units=4)
+    assert len(drawn) == 2 and drawn[0] == drawn[1]  # the interrupted run drew nothing
+    assert len(drawn[0][0]) == 4 and len(drawn[0][1]) == 5  # curves of 2 cells x 2 starts; bars + the demo's
+    assert "| complex | sphere | 0.983 | 0.984 | 2 | 1.0 | 4 | 74 | 0 | 6 | 0.235 | 0/1 | 1/1 | 0.9877 |" in whole
+    assert "3D-MEI 0.965, pixel MEI 0.988." in whole and "| sheet | 100.0 | 30.0 | 1000.0 | 0.600 |" in whole
+
+
+def test_an_interrupted_robust_benchmark_resumes_where_it_stopped(docs, monkeypatch):
+    """The robust section: a run and its two sweeps are one result; interrupted in the second run's light
+    sweep, the run again computes that run and its sweeps anew."""
+    import numpy as np
+
+    from meshmei.benchmarks import robust
+
+    calls = _Calls()
+
+    def fake_mei(enc, n, init, settings):
+        calls("3d", n, settings.robust_pose, settings.robust_light)
+        act = 0.5 + 0.01 * n - 0.001 * (settings.robust_pose + 2 * settings.robust_light)
+        return SimpleNamespace(activation=act, n=n, pose=settings.robust_pose, light=settings.robust_light,
+                               health=lambda: dict(_HEALTH, self_intersections=n))
+
+    def fake_sweep(kind):
+        def sweep(res, enc, neurons):  # broader along the axis the run was made robust to
+            calls(kind, res.n)
+            return SimpleNamespace(neurons=[9] + neurons,
+                                   responses=[[0.0], np.linspace(0, 1, 41) ** (10 / (10 + getattr(res, kind)))])
+        return sweep
+
+    monkeypatch.setattr(robust, "make_encoder", lambda name: SimpleNamespace(name=name))
+    monkeypatch.setattr(robust, "optimize_mei", fake_mei)
+    monkeypatch.setattr(robust, "pose_sweep", fake_sweep("pose"))
+    monkeypatch.setattr(robust, "light_sweep", fake_sweep("light"))
+    whole = _assert_resumes(docs, monkeypatch, "robust", lambda: robust.run([6, 0]), calls, stop=6, done=3, units=1)
+    assert "| 6 | robust pose 20 | 0.540 (0.96) | 87.8 % | 51.2 % | 1.71x | 6 | 1 | 0.235 | 0/1 | 1/1 | 0 |" in whole
+
+
+def test_interrupted_albedo_resolution_and_diverse_benchmarks_resume_where_they_stopped(docs, monkeypatch):
+    """One result per optimisation (albedo: each of a neuron's four runs; resolution: each cell, start,
+    weights and size; diverse: each set of K members), interrupted in the middle of the part."""
+    from meshmei.benchmarks import albedo, diverse, resolution
+
+    calls = _Calls()
+    monkeypatch.setattr(albedo, "make_encoder", lambda name: SimpleNamespace(name=name))
+
+    def fake_albedo_mei(enc, n, init, settings):
+        calls("3d", n, settings.albedo, settings.albedo_shape_lr)
+        act = 0.6 + 0.01 * n + 0.1 * settings.albedo * settings.albedo_shape_lr
+        return SimpleNamespace(activation=act, albedo=torch.tensor([0.125, 0.5 + n / 100]),
+                               health=lambda: dict(_HEALTH, flipped_faces=n))
+
+    def fake_pixel(enc, n):
+        calls("pixel", n)
+        return SimpleNamespace(activation=0.65 + 0.001 * n)
+
+    monkeypatch.setattr(albedo, "optimize_mei", fake_albedo_mei)
+    monkeypatch.setattr(albedo, "pixel_mei", fake_pixel)
+    whole = _assert_resumes(docs, monkeypatch, "albedo", lambda: albedo.run([0, 3]), calls, stop=6, done=5, units=5)
+    assert "| 3 | 0.653 | 0.630 (0.965) | 0.730 (1.118) | 0.12-0.53 | 0 | 3 | 0.235 | 0/1 | 1/1 |" in whole
+
+    calls = _Calls()
+
+    def fake_resolution_mei(enc, n, start, settings):
+        calls(enc.name, start, settings.n_vertices, settings.reg_ref_vertices, settings.lr_by_edge)
+        frac = 0.8 + settings.n_vertices / 10 ** 5 + 0.01 * settings.lr_by_edge + 0.001 * len(start)
+        return SimpleNamespace(fraction_of_bound=frac, V=torch.zeros(settings.n_vertices + 2, 3),
+                               extra={"guard": {"refused": len(start)}} if settings.lr_by_edge else {},
+                               health=lambda: _HEALTH)
+
+    monkeypatch.setattr(resolution, "make_encoder", lambda name: SimpleNamespace(name=name))
+    monkeypatch.setattr(resolution, "optimize_mei", fake_resolution_mei)
+    whole = _assert_resumes(docs, monkeypatch, "resolution", lambda: resolution.run(10, [400, 2500]), calls,
+                            stop=7, done=6, units=6)
+    assert "| gabor-simple | sphere | 2500 | 2502 | scaled | 0.831 | 0 | 1 | 0.235 | 0/1 | 1/1 | - | 0 |" in whole
+
+    calls = _Calls()
+
+    def fake_diverse(enc, neuron, k, diversity):
+        calls(type(enc).__name__, neuron, k, diversity)
+        g = torch.Generator().manual_seed(neuron + int(10 * diversity))
+        results = [SimpleNamespace(activation=0.9 - 0.01 * i + diversity / 10, image=torch.rand(1, 1, 64, 64, generator=g),
+                                   health=lambda i=i: dict(_HEALTH, self_intersections=i)) for i in range(k)]
+        d = torch.arange(k, dtype=torch.float32)
+        dissimilarity = (d[:, None] - d[None]).abs() * (0.25 + diversity / 2)
+        return SimpleNamespace(results=results, responses=[r.activation for r in results],
+                               dissimilarity=dissimilarity)
+
+    monkeypatch.setattr(diverse, "make_encoder", lambda name: SimpleNamespace(name=name))
+    monkeypatch.setattr(diverse, "diverse_meis", fake_diverse)
+    whole = _assert_resumes(docs, monkeypatch, "diverse", lambda: diverse.run(3), calls, stop=4, done=3, units=3)
+    phases = re.search(r"\| complex cell \| 0.5 \| 0.950, 0.940, 0.930 \| 0.667 \| 0.500 \| ([^|]*) \| 3 \|", whole)
+    assert phases and len(phases.group(1).split(", ")) == 3  # the complex cell's members' phases, as saved
+    assert "| simple cell | 0.5 | 0.950, 0.940, 0.930 | 0.667 | 0.500 |  | 3 | 3 | 0.235 | 0/3 | 3/3 | 0 |" in whole
+
+
+@pytest.mark.parametrize("name, argv", [("mei", []), ("robust", []), ("diverse", []), ("albedo", []),
+                                        ("resolution", []), ("validity", ["--parts", "thin"])])
+def test_each_saving_benchmark_takes_restart(monkeypatch, name, argv):
+    import importlib
+
+    module = importlib.import_module(f"meshmei.benchmarks.{name}")
+    got = []
+    run = "run_thin" if name == "validity" else "run"
+    monkeypatch.setattr(module, run, lambda *a, **kw: got.append(kw.get("restart", a[-1])))
+    module.main(argv)
+    module.main(argv + ["--restart"])
+    assert got == [False, True]

@@ -8,6 +8,10 @@ given (``reg_ref_vertices=None``), with the weights stated for 400 vertices and 
 with the edge length as well (``lr * sqrt(400 / n)``). Reported: the fraction of the cell's bound, the health
 of the result (self-intersecting pairs, flipped faces, minimum triangle quality, watertight, manifold), the
 steps the guard refused and the wall time.
+
+Each run is saved as it finishes (``docs/.resolution.partial.json``,
+:class:`~meshmei.benchmarks._report.FinishedRows`): the same command run again after an interruption takes
+them (unless meshmei's source has changed since, or with ``--restart``) and says so in the section.
 """
 
 from __future__ import annotations
@@ -15,8 +19,8 @@ from __future__ import annotations
 import os
 import time
 
-from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, int_list,
-                                        machine_line, markdown_table, write_section)
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, FinishedRows, add_restart, benchmark_parser,
+                                        health_cells, int_list, machine_line, markdown_table, write_section)
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei
 
@@ -28,8 +32,10 @@ VARIANTS = {
 }
 
 
-def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-simple", "gabor-complex")) -> str:
+def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-simple", "gabor-complex"),
+        restart: bool = False) -> str:
     load = os.getloadavg()[0]
+    finished = FinishedRows("resolution", restart)
     rows, spread = [], {}
     for cell in cells:
         enc = make_encoder(cell)
@@ -38,14 +44,18 @@ def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-
                 for n in sizes:
                     if n == REF and name != "as given":
                         continue  # every variant is the same run at the reference count
-                    t0 = time.perf_counter()
-                    res = optimize_mei(enc, 0, start, MEISettings(n_vertices=n, steps=steps, seeds=(0,), **kw))
-                    secs = time.perf_counter() - t0
-                    h, g = res.health(), res.extra.get("guard") or {}
-                    frac = res.fraction_of_bound
+                    def one():
+                        t0 = time.perf_counter()
+                        res = optimize_mei(enc, 0, start, MEISettings(n_vertices=n, steps=steps, seeds=(0,), **kw))
+                        secs = time.perf_counter() - t0
+                        g = res.extra.get("guard") or {}
+                        return dict(fraction_of_bound=res.fraction_of_bound, vertices=res.V.shape[0],
+                                    health=res.health(), refused=g.get("refused", "-"), seconds=secs)
+                    r = finished.get(f"{cell}|{start}|{name}|{n}|{steps}", one)
+                    frac = r["fraction_of_bound"]
                     label = name if n != REF else "(all)"
-                    rows.append([cell, start, n, res.V.shape[0], label, f"{frac:.3f}", *health_cells([h]),
-                                 g.get("refused", "-"), f"{secs:.0f}"])
+                    rows.append([cell, start, n, r["vertices"], label, f"{frac:.3f}", *health_cells([r["health"]]),
+                                 r["refused"], f"{r['seconds']:.0f}"])
                     print(rows[-1], flush=True)
                     for v in VARIANTS if n == REF else (name,):
                         spread.setdefault((cell, start, v), []).append(frac)
@@ -57,7 +67,7 @@ def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-
     body = "\n".join([
         "## The same settings at other vertex counts (`python -m meshmei.benchmarks.resolution`)",
         "",
-        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.{finished.note()}",
         "",
         f"Built-in cells' neuron 0 (simple and complex Gabor cells), 64 px, seed 0, {steps} steps from either "
         "start, the guard and the default barriers on. n = the requested vertex count (the start's own in "
@@ -73,16 +83,19 @@ def run(steps: int, sizes: list[int], starts=("sheet", "sphere"), cells=("gabor-
         "",
         *lines,
     ])
-    return write_section("resolution", body)
+    path = write_section("resolution", body)
+    finished.close()
+    return path
 
 
 def main(argv=None):
     ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--sizes", type=int_list, default="400,2500")
+    add_restart(ap)
     args = ap.parse_args(argv)
     t = time.perf_counter()
-    print(f"wrote {run(args.steps, args.sizes)} in {time.perf_counter() - t:.0f} s")
+    print(f"wrote {run(args.steps, args.sizes, restart=args.restart)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":

@@ -6,6 +6,10 @@ one with ``robust_pose=20`` and one with ``robust_light=20`` (the expected respo
 pose tuning is swept over azimuth x elevation -90 .. 90 degrees (37 x 37, :func:`meshmei.tuning.pose_sweep`)
 and its light tuning over the hemisphere (:func:`meshmei.tuning.light_sweep`); reported are the share of
 the grid above half the sweep's peak and the response in the original scene.
+
+Each run and its two sweeps are saved as they finish (``docs/.robust.partial.json``,
+:class:`~meshmei.benchmarks._report.FinishedRows`): the same command run again after an interruption takes
+them (unless meshmei's source has changed since, or with ``--restart``) and says so in the section.
 """
 
 from __future__ import annotations
@@ -15,8 +19,8 @@ import time
 
 import numpy as np
 
-from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, benchmark_parser, health_cells, int_list,
-                                        machine_line, markdown_table, write_section)
+from meshmei.benchmarks._report import (HEALTH_COLUMNS, HEALTH_LEGEND, FinishedRows, add_restart, benchmark_parser,
+                                        health_cells, int_list, machine_line, markdown_table, write_section)
 from meshmei.encoders import make_encoder
 from meshmei.mei import MEISettings, optimize_mei
 from meshmei.tuning import light_sweep, pose_sweep
@@ -29,18 +33,23 @@ def _above_half(sweep, neuron) -> float:
     return float((r >= 0.5 * r.max()).mean())
 
 
-def run(neurons: list[int]) -> str:
+def run(neurons: list[int], restart: bool = False) -> str:
     load = os.getloadavg()[0]
+    finished = FinishedRows("robust", restart)
     enc = make_encoder("demo")
     rows, checks = [], []
     for n in neurons:
         out = {}
         for name, kw in VARIANTS.items():
-            t0 = time.perf_counter()
-            res = optimize_mei(enc, n, "sheet", MEISettings(**kw))
-            secs = time.perf_counter() - t0
-            pose, light = pose_sweep(res, enc, neurons=[n]), light_sweep(res, enc, neurons=[n])
-            out[name] = (res.activation, _above_half(pose, n), _above_half(light, n), secs, res.health())
+            def one():
+                t0 = time.perf_counter()
+                res = optimize_mei(enc, n, "sheet", MEISettings(**kw))
+                secs = time.perf_counter() - t0
+                pose, light = pose_sweep(res, enc, neurons=[n]), light_sweep(res, enc, neurons=[n])
+                return dict(activation=res.activation, pose_above_half=_above_half(pose, n),
+                            light_above_half=_above_half(light, n), seconds=secs, health=res.health())
+            r = finished.get(f"{n}|{name}", one)
+            out[name] = (r["activation"], r["pose_above_half"], r["light_above_half"], r["seconds"], r["health"])
         plain = out["plain"]
         for name, (act, pa, la, secs, health) in out.items():
             axis = 1 if "pose" in name else 2
@@ -53,7 +62,7 @@ def run(neurons: list[int]) -> str:
     body = "\n".join([
         "## View- and light-robust 3D-MEIs (`python -m meshmei.benchmarks.robust`)",
         "",
-        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}.{finished.note()}",
         "",
         "Demo model, 64 px, sheet, default settings; robust runs maximise the expected response over object "
         "turns (pose) or light positions (light) uniform within +-20 degrees (3 x 3 Gauss-Legendre quadrature; the ranges widen from 0 over the first half of the run, `robust_widen=0.5`). 'response' is in the original scene, with "
@@ -68,15 +77,18 @@ def run(neurons: list[int]) -> str:
         f"Report (issue 19): the response at the original view stays at least 0.8 of the plain 3D-MEI's in "
         f"{keep} of {len(checks)} robust runs.",
     ])
-    return write_section("robust", body)
+    path = write_section("robust", body)
+    finished.close()
+    return path
 
 
 def main(argv=None):
     ap = benchmark_parser(__file__, __doc__)
     ap.add_argument("--neurons", type=int_list, default="6,0,3")
+    add_restart(ap)
     args = ap.parse_args(argv)
     t = time.perf_counter()
-    print(f"wrote {run(args.neurons)} in {time.perf_counter() - t:.0f} s")
+    print(f"wrote {run(args.neurons, args.restart)} in {time.perf_counter() - t:.0f} s")
 
 
 if __name__ == "__main__":
