@@ -12,7 +12,8 @@ Measured in one process, alternating: (a) the model's own forward and backward o
 image that requires a gradient (parameters frozen, as in a 3D-MEI step); (b) a 3D-MEI step with that model
 (``optimize_mei``, sheet, default settings otherwise); and the parts of (b) meshmei owns, each on its own:
 the RBF deformation, the render at 100 px, the regularizers (forward and backward), and the adapter's
-preprocessing. meshmei's share is ``(b - a) / a``.
+preprocessing. meshmei's share is ``(b - a) / a``. Nothing is saved for an interrupted run to resume: its units
+are timings in alternated rounds, and taking some from another run would mix two machine states in one table.
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ same neurons (0 .. B-1, one seed) run through :func:`meshmei.mei.optimize_mei_ba
 :func:`meshmei.mei.optimize_mei` on one neuron. Reported: the median optimisation step of the batch
 (from the run's time history) divided by B, and the end-to-end wall time per item-step (start mesh,
 deformers and the final evaluation included). Rounds alternate the batch sizes, so each sees the same
-machine state.
+machine state. Nothing is saved for an interrupted run to resume: its units are timings in alternated rounds,
+and taking some from another run would mix two machine states in one table.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Time each regularizer (forward+backward) and the cotangent Laplacian, 1k to 1M vertices, next to libigl+scipy.
 
 Run: ``python -m meshmei.benchmarks.regularizers [--sizes 1000 10000 100000 1000000]``; writes the
-"regularizers" section of ``docs/benchmarks.md``.
+"regularizers" section of ``docs/benchmarks.md``. Nothing is saved for an interrupted run to resume: its units
+are timings, and taking some from another run would mix two machine states in one table.
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 
 ``python -m meshmei.benchmarks.render`` writes the section "render" of ``docs/benchmarks.md`` and the plots
 ``docs/render_cost.png`` and ``docs/render_speed_error.png``. Each (mesh, image size) configuration runs in a
-fresh subprocess so that its peak resident memory (``ru_maxrss``) belongs to it alone.
+fresh subprocess so that its peak resident memory (``ru_maxrss``) belongs to it alone. Nothing is saved for an
+interrupted run to resume: its units are timings, and taking some from another run would mix two machine states
+in one table.
 """
 
 from __future__ import annotations
