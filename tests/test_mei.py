@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import os
 import warnings
 from pathlib import Path
@@ -323,6 +324,36 @@ def test_a_damaged_summary_is_one_clear_error(tmp_path):
         (run / "summary.json").write_text(json.dumps({k: v for k, v in good.items() if k != key}))
         with pytest.raises(MEIError, match="summary.json is damaged"):
             load_run(run, rebuild_encoder=True)
+
+
+def test_a_damaged_state_is_one_clear_error_naming_state_pt(tmp_path, capsys):
+    """A state.pt without V failed with a KeyError in the CLI, one with V a list or empty inside torch, one
+    without the image was blamed on summary.json, and NaN offsets passed the reproduction check."""
+    from meshmei.cli import main
+
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40)
+    run = save_run(res, tmp_path / "run", figures=False)
+    good = torch.load(run / "state.pt", weights_only=True)
+    nan_offsets = {**good["deformer"], "offsets": torch.full_like(good["deformer"]["offsets"], math.nan)}
+    for damage, says in [({"V": None}, "missing \\['V'\\]"), ({"image": None}, "missing \\['image'\\]"),
+                         ({"V": good["V"].tolist()}, "V must be tensors, got list"), ({"V": torch.zeros(0, 3)}, "mesh is empty"),
+                         ({"V0": good["V0"][:5]}, "rest pose V0 of shape \\(5, 3\\) does not match"), ({"rotation": None}, "missing \\['rotation'\\]"),
+                         ({"rotation": torch.zeros(3, 3)}, "rotation must have shape \\(3,\\)"),
+                         ({"deformer": nan_offsets}, "deformer offsets holds NaN or Inf"),
+                         ({"translation": torch.tensor([0.0, math.inf, 0.0])}, "translation holds NaN or Inf"),
+                         ({"F": good["F"] + 1000}, "F holds vertex index")]:
+        state = {k: v for k, v in {**good, **damage}.items() if v is not None}
+        torch.save(state, run / "state.pt")
+        with pytest.raises(MEIError, match=rf"^{re.escape(str(run / 'state.pt'))} is damaged: .*{says}"):
+            load_run(run)
+        assert main(["tune", "pose", "--mei", str(run), "--elevation", "0:0:1", "--azimuth", "0:0:1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "state.pt is damaged" in err and "\n" not in err and not (run / "tuning_pose").exists()
+    torch.save([1, 2], run / "state.pt")
+    with pytest.raises(MEIError, match="state.pt is damaged: it holds a list, not the dict save_run writes"):
+        load_run(run)
+    torch.save(good, run / "state.pt")
+    assert torch.equal(load_run(run).V, res.V)
 
 
 def test_a_start_of_your_own_drops_the_vertices_no_face_uses():

@@ -11,8 +11,8 @@ import torch
 
 from .._files import atomic_directory
 from ..encoders import Encoder, encoder_from_spec
-from ..errors import MEIError
-from ..mesh import save_mesh
+from ..errors import MEIError, MeshError
+from ..mesh import check_mesh, check_rest_pose, save_mesh
 from ..plots import mei_figures
 from ..quality import health_report
 from .settings import MEIResult, MEISettings, rebuild_deformer
@@ -93,6 +93,42 @@ def is_complete_summary(summary) -> bool:
     return isinstance(summary, dict) and summary.get("complete") is True and summary.get("format") == RUN_FORMAT
 
 
+def _check_state(state, path: Path) -> None:
+    """Raise MEIError naming ``path`` unless ``state`` holds what :func:`save_run` writes: a mesh, its rest
+    pose, the deformer's finite tensors, the image and the pose (a missing key was blamed on summary.json, a
+    list or an empty V failed inside torch, NaN offsets passed the reproduction check)."""
+
+    def damaged(why: str):
+        return MEIError(f"{path} is damaged: {why}")
+
+    if not isinstance(state, dict):
+        raise damaged(f"it holds a {type(state).__name__}, not the dict save_run writes")
+    missing = [k for k in ("V", "F", "V0", "deformer", "rotation", "translation", "image") if k not in state]
+    if missing:
+        raise damaged(f"missing {missing}")
+    wrong = {k: type(state[k]).__name__ for k in ("V", "F", "V0") if not isinstance(state[k], torch.Tensor)}
+    if wrong:  # check_mesh takes lists and arrays too; save_run writes tensors
+        raise damaged(f"{', '.join(wrong)} must be tensors, got {', '.join(wrong.values())}")
+    try:
+        V, F = check_mesh(state["V"], state["F"])
+        check_rest_pose(state["V0"], V, F)
+    except MeshError as err:
+        raise damaged(str(err)) from None
+    deformer = state["deformer"]
+    if not isinstance(deformer, dict) or not all(isinstance(deformer.get(k), torch.Tensor) for k in ("offsets", "V0")):
+        raise damaged("the deformer state must be a dict with 'offsets' and 'V0' tensors")
+    tensors = {f"deformer {k}": v for k, v in deformer.items() if isinstance(v, torch.Tensor) and v.is_floating_point()}
+    tensors.update((k, state[k]) for k in ("rotation", "translation", "image", "light", "albedo") if state.get(k) is not None)
+    for name, t in tensors.items():
+        if not isinstance(t, torch.Tensor) or not t.is_floating_point() or t.numel() == 0:
+            raise damaged(f"{name} must be a non-empty float tensor, got {type(t).__name__}")
+        if not bool(torch.isfinite(t).all()):
+            raise damaged(f"{name} holds NaN or Inf")
+    for name, shape in (("rotation", (3,)), ("translation", (3,))):
+        if tuple(state[name].shape) != shape:
+            raise damaged(f"{name} must have shape {shape}, got {tuple(state[name].shape)}")
+
+
 def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool = False) -> MEIResult:
     """Read a run directory written by :func:`save_run` back into an :class:`MEIResult`.
 
@@ -122,6 +158,10 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         raise MEIError(f"{directory} holds no complete run of format {RUN_FORMAT}")
     try:
         state = torch.load(directory / "state.pt", map_location="cpu", weights_only=True)
+    except Exception as err:  # torch.load's errors on a damaged or foreign file
+        raise MEIError(f"{directory} is corrupt: {type(err).__name__}: {err}") from None
+    _check_state(state, directory / "state.pt")
+    try:
         settings = MEISettings.from_dict(summary["settings"])
         rbf = rebuild_deformer(state["V0"], state["deformer"], settings)
         with torch.no_grad():
