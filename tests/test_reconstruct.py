@@ -395,11 +395,13 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
 
 def test_cli_auto_gives_rbf_four_levels_on_a_10k_torus(tmp_path, capsys):
     out_dir = tmp_path / "t10k"
-    rc, out = _cli(["--init", "torus", "--n-vertices", 10_000, "--target", "teapot", "--out", out_dir, "--steps", 3,
+    rc, out = _cli(["--init", "torus", "--n-vertices", 10_000, "--target", "teapot", "--out", out_dir, "--steps", 10,
                     "--samples", 500, "--eval-samples", 1000, "--no-progress"], capsys)
     assert rc == 0, out.err
-    settings = json.loads((out_dir / "history.json").read_text())["settings"]
+    history = json.loads((out_dir / "history.json").read_text())
+    settings = history["settings"]
     n = initial_mesh("torus", n_vertices=10_000)[0].shape[0]
+    assert history["n_vertices"] > 0.9 * n  # the last stage ran (3 steps left it out, and the result at 2.5k)
     assert tuple(settings["stages"]) == default_stages(n, 4)[0]
     assert settings["stage_overrides"] == [{**RBF_FOUR_LEVEL_OVERRIDES[0], "n_samples": 250},  # half of --samples
                                            *RBF_FOUR_LEVEL_OVERRIDES[1:]]
@@ -670,7 +672,7 @@ def test_a_source_beyond_float32s_range_asks_to_rescale_whatever_the_schedule(sp
         st, fr, ov = default_schedule("rbf", V.shape[0])
         kw = dict(stages=st, stage_fractions=fr, stage_overrides=ov)
     with pytest.raises(MeshError, match=r"^source: the face areas overflow torch.float32 .*rescale the mesh"):
-        reconstruct((1e20 * V, F), "bunny", steps=2, **SMALL, **kw)
+        reconstruct((1e20 * V, F), "bunny", steps=4, **SMALL, **kw)
     # a float64 target is normalised before it is cast: beyond float32's range it still fits once scaled
     big = torch.cat([torch.tensor([[1e39, 0, 0]], dtype=torch.float64), V[1:].double()])
     assert bool(torch.isfinite(target_surface((big, F))[0]).all())
@@ -904,6 +906,35 @@ def test_stage_settings_that_failed_late_are_refused_up_front():
         with pytest.raises(ReconstructionError, match=rf"^stages must be integer vertex counts of at least 32, got "
                                                       rf"{re.escape(repr(stages))} \(stages=None"):
             ReconstructionSettings(stages=stages).resolved()
+
+
+def test_a_stage_whose_remesh_would_multiply_the_mesh_keeps_the_mesh_it_had(sphere):
+    """A needle's remesh to 40 vertices gave hundreds (to 160: 108,102 on a thinner one, and the run's checks
+    then ran for minutes): the stage runs on the mesh it had, and says so."""
+    from meshmei.reconstruct import ReconstructionWarning
+
+    V, F = initial_mesh("sphere", n_vertices=160)[:2]
+    needle = V * torch.tensor([20.0, 0.02, 0.02])
+    with pytest.warns(ReconstructionWarning, match=r"stage 0: remeshing to about 40 vertices gave \d+: the mesh has "
+                                                   r"parts thinner .*the stage runs on the mesh it had, \d+ vertices"):
+        res = reconstruct((needle, F), "bunny", steps=4, stages=(40, 160), **SMALL)
+    assert res.info["stages"][0]["n_vertices"] == V.shape[0] and len(res.history) == 4
+    assert any("remeshing to about 40 vertices gave" in w for w in res.info["warnings"])
+
+
+def test_a_step_budget_that_leaves_a_stage_without_a_step_is_refused():
+    """--steps 3 --stages auto4 ran four of its five stages and ended on a 60-vertex mesh, without a word."""
+    from meshmei.errors import ReconstructionError
+
+    stages, fractions = (32, 32, 48, 48, 194), (0.1, 0.15, 0.3, 0.2, 0.25)
+    with pytest.raises(ReconstructionError, match=r"^steps=3 gives stage 1 \(32 vertices\) no step with "
+                                                  r"stage_fractions \(0.1, 0.15, 0.3, 0.2, 0.25\); give at least 10 "
+                                                  r"steps, or fewer stages$"):
+        ReconstructionSettings(steps=3, stages=stages, stage_fractions=fractions).resolved()
+    ReconstructionSettings(steps=10, stages=stages, stage_fractions=fractions).resolved()  # each stage a step
+    ReconstructionSettings(time_budget=0.1, stages=stages, stage_fractions=fractions).resolved()  # time: no count
+    with pytest.raises(ReconstructionError, match=r"^steps=2 gives stage 2 \(300 vertices\) no step"):
+        ReconstructionSettings(steps=2, stages=(100, 200, 300)).resolved()  # equal shares: thirds of 2 steps
 
 
 @pytest.mark.parametrize("kwargs, says", [

@@ -3,6 +3,7 @@ unit-diagonal normalisation."""
 
 import doctest
 import math
+import re
 
 import igl
 import numpy as np
@@ -12,6 +13,7 @@ import torch
 from meshmei import shapes
 from meshmei.errors import MeshError
 from meshmei.shapes import initial_mesh, normalize_unit_diagonal, remesh, target_mesh
+from meshmei.shapes.remeshing import MAX_REMESH_GROWTH
 
 KINDS = ("sheet", "sphere", "torus")
 EULER = {"sheet": 1, "sphere": 2, "torus": 0}
@@ -376,6 +378,17 @@ def test_remesh_rejects_bad_counts_and_zero_area(sphere):
         remesh(V, F, 200, iterations=0)
     with pytest.raises(MeshError, match=r"cannot remesh a mesh of zero surface area \(\d+ vertices"):
         remesh(V * 0, F, 200)
+
+
+def test_remesh_refuses_a_result_many_times_the_count_asked_for():
+    """A needle 1,000 long and 1e-3 thick asked for 160 vertices gave 108,102 (the remesher keeps the thin
+    direction's short edges and splits the long ones), and a reconstruction's checks on it ran for minutes."""
+    V, F = initial_mesh("sphere", n_vertices=160)[:2]
+    needle = V.double() * torch.tensor([20.0, 0.02, 0.02], dtype=torch.float64)
+    with pytest.raises(MeshError, match=r"^remeshing to about 40 vertices gave (\d+): the mesh has parts thinner than "
+                                        r"the edge length for that count \(\S+\).*thicken the thin parts") as err:
+        remesh(needle, F, 40)
+    assert int(re.search(r"gave (\d+)", str(err.value)).group(1)) > MAX_REMESH_GROWTH * 40 + 100
 
 
 def test_remesh_keeps_dtype_and_device_and_gives_a_clean_closed_mesh(sphere):

@@ -426,7 +426,10 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
     second: three tries spent a 10 s run's last share and ran it over budget).
     Returns ``(V, F, record)``; the record says how many tries were made (``remesh_tries``)."""
     t0 = time.perf_counter()
-    V2, F2 = remesh(V, F, n)
+    try:
+        V2, F2 = remesh(V, F, n)
+    except MeshError as err:  # thin parts: a result many times the count (MAX_REMESH_GROWTH); no retry helps
+        return V, F, {"remesh_iterations": None, "remesh_refused_count": str(err), "remesh_tries": 1}
     if not clean:
         return V2, F2, {}
     old, shape = self_intersecting_pairs(V, F), topology(F)  # the source's, once for every try
@@ -437,8 +440,12 @@ def _remesh_clean(V, F, n: int, clean: bool, seconds_left: float | None = None):
             if seconds_left is not None and seconds_left - (now - t0) < 2.0 * (now - tried_at):
                 out_of_time = True  # after one more try as long as the last, the stage would have less left
                 break
-            V2, F2 = remesh(V, F, n, iterations=iterations)
             tried_at = now
+            try:
+                V2, F2 = remesh(V, F, n, iterations=iterations)
+            except MeshError:  # this try landed far above the count (MAX_REMESH_GROWTH): refused as one
+                tries += 1
+                continue
         added = _new_intersections(V, F, old, V2, F2)
         changed = sorted(k for k, v in topology(F2).items() if v != shape[k])
         tries += 1
@@ -513,7 +520,10 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         remesh_refused = remeshed.get("remesh_iterations", 0) is None
         refused = remesh_refused and not remeshed.get("remesh_subdivided")  # and the mesh kept as it was
         weights = stage_weights(s, sk, k if n_stage is not None else None, n_source, V.shape[0] if refused else None)
-        if remesh_refused:
+        if "remesh_refused_count" in remeshed:
+            info["warnings"].append(f"stage {k}: {remeshed['remesh_refused_count']}; the stage runs on the mesh it "
+                                    f"had, {V.shape[0]} vertices, with the weights for that count")
+        elif remesh_refused:
             tried = ("every remesh" if not remeshed.get("remesh_out_of_time") else
                      f"the remesh (tried {remeshed['remesh_tries']} of 3 times: the stage's share of the time budget "
                      "left no room for another)")

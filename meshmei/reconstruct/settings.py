@@ -12,7 +12,7 @@ import torch
 from .._checks import is_integral
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
-from ..optim import OPTIMIZERS
+from ..optim import MAX_STEPS, OPTIMIZERS
 from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
@@ -442,7 +442,26 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
         raise ReconstructionError(f"stage_fractions must give one positive, finite share per stage, "
                                   f"got {s.stage_fractions!r}")
     tot = float(sum(fr))
-    return replace(s, stages=stages, stage_fractions=tuple(float(f) / tot for f in fr))
+    fr = tuple(float(f) / tot for f in fr)
+    if s.steps is not None and s.time_budget is None and s.steps <= MAX_STEPS:  # beyond: the budget's own error
+        _check_every_stage_steps(s.steps, stages, fr)
+    return replace(s, stages=stages, stage_fractions=fr)
+
+
+def _check_every_stage_steps(steps: int, stages: tuple, fractions: tuple) -> None:
+    """Refuse a step budget that leaves a stage without a step: stage ``k`` runs from the first step ``i``
+    with ``i / steps`` at or past its share's start while ``i / steps`` is under its end, as ``minimize``
+    stops it (``--steps 3 --stages auto4`` ran four of five stages and ended on a 60-vertex mesh)."""
+    bounds = np.cumsum((0.0,) + fractions)
+    for k in range(len(stages)):
+        end = 1.0 if k == len(stages) - 1 else float(bounds[k + 1])
+        i = max(0, math.ceil(float(bounds[k]) * steps) - 1)
+        while i / steps < float(bounds[k]):
+            i += 1
+        if not (i < steps and i / steps < end):
+            raise ReconstructionError(f"steps={steps} gives stage {k} ({stages[k]} vertices) no step with "
+                                      f"stage_fractions {tuple(round(f, 4) for f in fractions)}; give at least "
+                                      f"{math.ceil(1.0 / min(fractions))} steps, or fewer stages")
 
 
 def _check_overrides(overrides, stages) -> tuple:
