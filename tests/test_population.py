@@ -109,6 +109,14 @@ def test_a_refused_call_writes_nothing_so_the_corrected_one_runs(tmp_path):
         with pytest.raises(MEIError):
             run_population(enc, [0], out, settings=MEISettings(**settings), pixel_steps=0, progress=False, **extra)
         assert not out.exists()
+    # what the pixel MEI would refuse after every 3D-MEI was done, refused first (found by fuzzing: 1e20 pixel
+    # steps failed after the 3D work as "steps must be at most 1e+12"; image_size 1 ran the 3D-MEIs at 1 x 1)
+    for model, settings, pixel_steps, says in (
+            (enc, SMALL, 10**20, r"^pixel_steps must be at most 1e\+12, got 10+$"),
+            (make_encoder("demo"), {**SMALL, "image_size": 1}, 2, "the pixel MEI needs images of at least 2 x 2")):
+        with pytest.raises(MEIError, match=says):
+            run_population(model, [0], out, settings=MEISettings(**settings), pixel_steps=pixel_steps, progress=False)
+        assert not out.exists()
     # an image size the cell cannot take fails at the encoder's probe, before the folder is written (it failed
     # at the first step, and the folder then refused the corrected call)
     with pytest.raises(ValueError, match="constant on this pixel grid"):
@@ -128,8 +136,13 @@ def test_damaged_folders_are_named_in_one_clear_error(tmp_path):
               (folder / "summary.json", json.dumps({k: v for k, v in json.loads(summary).items() if k != "neuron"})),
               *((folder / "summary.json", json.dumps({**json.loads(summary), **bad})) for bad in (
                   {"complete": False}, {"neuron": True}, {"activation": "1.0"}, {"quality": []},
-                  {"pixel_mei_activation": "1.0"})),
-              (folder / "state.pt", None), (folder / "mesh.obj", None)]
+                  {"pixel_mei_activation": "1.0"},
+                  # found by fuzzing: the CLI's min() of the qualities failed on "x"; NaN made the table's means nan
+                  {"quality": {**json.loads(summary)["quality"], "min_quality": "x"}},
+                  {"quality": {**json.loads(summary)["quality"], "watertight": 1}},
+                  {"activation": float("nan")}, {"pixel_mei_activation": float("inf")})),
+              (folder / "state.pt", None), (folder / "mesh.obj", None), (folder / "state.pt", ""),
+              (folder / "mesh.obj", "")]  # an empty file counted as a finished neuron
     for path, text in damage:
         kept = path.read_bytes()
         path.unlink() if text is None else path.write_text(text)

@@ -17,7 +17,7 @@ from ..errors import MEIError
 from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
 from ..mei.batch import check_batch_size
 from ..mei.optimize import check_neuron, initial, settings_for_encoder, start_name
-from ..optim import Progress
+from ..optim import MAX_STEPS, Progress
 from .store import CONFIG_FORMAT, finished_neurons, neuron_dir, prepare_folder, read_summary, table_row, write_table
 
 __all__ = ["run_population", "population_config", "neuron_results", "check_device"]
@@ -181,6 +181,12 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
         raise MEIError("neurons is empty; give at least one neuron")
     if isinstance(pixel_steps, bool) or not isinstance(pixel_steps, int) or pixel_steps < 0:
         raise MEIError(f"pixel_steps must be a non-negative integer, got {pixel_steps!r}")
+    # the pixel MEI runs after each neuron's 3D-MEI: what it refuses is refused here, before any of them (a
+    # pixel_steps of 1e20 failed after the 3D work, as "steps must be at most 1e+12")
+    if pixel_steps > MAX_STEPS:
+        raise MEIError(f"pixel_steps must be at most {MAX_STEPS:.0e}, got {pixel_steps!r}")
+    if pixel_steps and settings.image_size < 2:  # the image size its pixel_mei call is given
+        raise MEIError("the pixel MEI needs images of at least 2 x 2 pixels: raise image_size, or pass pixel_steps=0")
     check_batch_size(batch_size)
     initial(init, settings)  # a start that cannot be built fails here, before anything is written
     if neurons:  # and an encoder that cannot take images of this size (a Gabor cell at 2 px)

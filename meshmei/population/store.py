@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import math
 import os
 import uuid
 from pathlib import Path
@@ -88,7 +89,28 @@ def prepare_folder(out, config: dict) -> str:
 
 
 def _number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+    """A finite real (NaN and Inf in a damaged summary had made the table's responses nan)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+# the quality fields table_row reads, with the type each must have (a damaged "x" failed in the CLI's min())
+_QUALITY_FIELDS = {"self_intersections": int, "flipped_faces": int, "min_quality": (int, float),
+                   "watertight": bool, "nonmanifold_edges": int}
+
+
+def _good_quality(q) -> bool:
+    if not isinstance(q, dict):
+        return False
+    for key, kind in _QUALITY_FIELDS.items():
+        v = q.get(key)
+        if v is None:
+            continue
+        if kind is bool:
+            if not isinstance(v, bool):
+                return False
+        elif isinstance(v, bool) or not isinstance(v, kind) or not math.isfinite(v):
+            return False
+    return True
 
 
 def _well_formed(summary, name: str) -> bool:
@@ -98,7 +120,7 @@ def _well_formed(summary, name: str) -> bool:
         return False
     n, pix = summary.get("neuron"), summary.get("pixel_mei_activation")
     return (isinstance(n, int) and not isinstance(n, bool) and name == f"neuron_{n:05d}"
-            and _number(summary.get("activation")) and isinstance(summary.get("quality", {}), dict)
+            and _number(summary.get("activation")) and _good_quality(summary.get("quality", {}))
             and (pix is None or _number(pix)))
 
 
@@ -107,8 +129,8 @@ def read_summary(d: Path, digest: str) -> dict:
     file is missing or damaged, the summary names another neuron, or the folder was made with other settings."""
     d = Path(d)
     incomplete = MEIError(f"{d} is not a complete run folder; remove it and resume")
-    if any(not (d / name).is_file() for name in RUN_FILES):
-        raise incomplete
+    if any(not (d / name).is_file() or (d / name).stat().st_size == 0 for name in RUN_FILES):
+        raise incomplete  # an empty state.pt or mesh.obj counted as finished, and failed in a later tune
     try:
         summary = json.loads((d / "summary.json").read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError):
