@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 import warnings
@@ -43,6 +44,8 @@ from .tuning import parse_range, run_tuning
 __all__ = ["main", "build_parser"]
 
 ENCODERS = ("gabor-simple", "gabor-complex", "demo")
+# the options that name files or folders (a model spec, path:factory, too)
+PATH_OPTIONS = ("out", "init", "target", "model", "mei")
 
 
 def _add_model_options(p, instead: str) -> None:
@@ -555,6 +558,10 @@ def _join_signed_values(argv: list) -> list:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(_join_signed_values(list(sys.argv[1:] if argv is None else argv)))
+    for name in PATH_OPTIONS:  # a '~' the shell left (quoted, or after '=') named a folder called '~'
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value.startswith("~"):
+            setattr(args, name, os.path.expanduser(value))
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:  # Ctrl-C: one line, the shell's code for it; results are only ever written whole

@@ -266,7 +266,7 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     """
     import trimesh  # deferred: importing trimesh takes about 0.35 s and only file I/O needs it
 
-    path = Path(os.fspath(path))
+    path = Path(os.fspath(path)).expanduser()  # as save_mesh, and as trimesh would
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
     try:
@@ -357,11 +357,19 @@ def _weld(V: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def cast_vertices(V: torch.Tensor, dtype: torch.dtype, where: str) -> torch.Tensor:
-    """``V`` (finite) in ``dtype``, or a MeshError naming ``where`` when a coordinate overflows ``dtype``."""
+    """``V`` (finite) in ``dtype``, or a MeshError naming ``where`` when a coordinate overflows ``dtype`` or the
+    mesh's extent underflows it (a mesh 1e-300 across came back as every vertex at 0, without a word)."""
     out = V.to(dtype)
     if not bool(torch.isfinite(out).all()):
         raise MeshError(f"{where}: coordinates up to {float(V.abs().max()):.3g} do not fit in {dtype} (largest "
                         f"{torch.finfo(dtype).max:.3g}); rescale the mesh or use float64")
+    if out.dtype != V.dtype and len(V):
+        extent = float((V.max(0).values - V.min(0).values).max())
+        kept = float((out.double().max(0).values - out.double().min(0).values).max())
+        if extent > 0 and not kept > 0.5 * extent:
+            raise MeshError(f"{where}: the mesh is {extent:.3g} across, {float(V.abs().max()):.3g} from the origin at "
+                            f"most: in {dtype} its vertices collapse (smallest normal {torch.finfo(dtype).tiny:.3g}, "
+                            f"{torch.finfo(dtype).eps:.3g} relative spacing); rescale or centre it, or use float64")
     return out
 
 
@@ -377,7 +385,9 @@ def save_mesh(path, V, F) -> None:
     import trimesh  # deferred, as in load_mesh
 
     V, F = check_mesh(V, F)
-    path = Path(os.fspath(path))
+    # '~' expanded here, as trimesh expands it: the partial file was made at the literal path and trimesh wrote
+    # to the home folder, so the rename failed and a stray partial file was left there
+    path = Path(os.fspath(path)).expanduser()
     if path.suffix.lower() not in MESH_FORMATS:
         raise MeshError(f"unsupported mesh format {path.suffix!r} for {path}; use one of {', '.join(MESH_FORMATS)}")
     mesh = trimesh.Trimesh(

@@ -300,6 +300,16 @@ def test_cli_refuses_an_output_folder_below_a_file_in_one_line_before_the_run(tm
     assert (tmp_path / "afile").read_text() == "mine"
 
 
+def test_cli_reads_a_tilde_left_by_the_shell_as_the_home_folder(tmp_path, monkeypatch, capsys):
+    """--out '~/run' (quoted, or after '=') made a folder named '~' and failed after the run."""
+    from meshmei.cli import main
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["mei", "--out=~/run", "--steps", "1", "--image-size", "16", "--n-vertices", "40", "--quiet"]) == 0
+    assert (tmp_path / "home" / "run" / "summary.json").is_file() and not (tmp_path / "~").exists()
+
+
 def test_ctrl_c_ends_the_cli_in_one_line_with_code_130_and_writes_nothing(tmp_path, capsys, monkeypatch):
     import meshmei.cli as cli
 

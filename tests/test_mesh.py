@@ -92,6 +92,28 @@ def test_load_mesh_errors(tmp_path):
         load_mesh(nan)
 
 
+def test_a_mesh_too_small_for_float32_is_refused_and_float64_keeps_it(tmp_path):
+    """A mesh 2e-300 across came back in float32 with every vertex at 0, without a word."""
+    V, F = icosphere(1)
+    tiny = tmp_path / "tiny.obj"
+    save_mesh(tiny, V.double() * 1e-300, F)
+    with pytest.raises(MeshError, match=r"tiny\.obj: the mesh is 2e-300 across, .* in torch.float32 its vertices "
+                                        r"collapse .*use float64$"):
+        load_mesh(tiny)
+    V64 = load_mesh(tiny, dtype=torch.float64)[0]
+    torch.testing.assert_close(V64 * 1e300, V.double(), rtol=1e-6, atol=0)
+
+
+def test_paths_starting_with_a_tilde_are_the_home_folder(tmp_path, monkeypatch):
+    """save_mesh made its partial file at the literal '~/...' path while trimesh wrote to the home folder: the
+    rename failed and a stray partial file was left in the home folder."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    V, F = icosphere(0)
+    save_mesh("~/sub/m.obj", V, F)
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["m.obj"]
+    assert torch.equal(load_mesh("~/sub/m.obj")[1], F)
+
+
 def test_save_mesh_rejects_unknown_format(tmp_path):
     V, F = icosphere(0)
     with pytest.raises(MeshError, match="unsupported mesh format '.xyz'"):
