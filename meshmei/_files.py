@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import tempfile
 import uuid
 from pathlib import Path
 from typing import Callable
@@ -104,6 +105,11 @@ def check_output(directory, *, overwrite: bool, error, how: str = _API) -> None:
     directory = Path(directory)
     if directory.exists() and not overwrite:
         raise error(_exists(directory, how))
+    here = Path.cwd()
+    if directory.exists() and (directory.resolve() == here or directory.resolve() in here.parents):
+        # its replacement was refused by the system (errno 16) after the run
+        raise error(f"{directory} is the current folder or holds it; it cannot be replaced: choose another "
+                    "output folder")
     if directory.exists() or directory.is_symlink():
         check_replaceable(directory, error)
     check_creatable(directory, error)
@@ -118,6 +124,12 @@ def check_creatable(directory, error) -> None:
         raise error(f"cannot make {directory}: {above} is a file, not a folder; choose another output path")
     if above is not None and not os.access(above, os.W_OK | os.X_OK):
         raise error(f"cannot make {directory}: no permission to write in {above}; choose another output path")
+    if above is not None:  # the system's word (/proc passes the permission test and takes no folder)
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".meshmei-probe-", dir=above))
+        except OSError as err:
+            raise error(f"cannot make {directory}: {above} takes no new folder ({err.strerror}); choose another "
+                        "output path") from None
 
 
 def check_apart(out, source, error, what: str = "the input") -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import re
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -298,6 +298,31 @@ def test_cli_refuses_an_output_folder_below_a_file_in_one_line_before_the_run(tm
     assert err.endswith(f"cannot make {tmp_path / 'afile' / 'sub'}: {tmp_path / 'afile'} is a file, not a folder; "
                         "choose another output path") and "\n" not in err
     assert (tmp_path / "afile").read_text() == "mine"
+
+
+def test_cli_refuses_the_current_folder_as_an_output_to_replace(tmp_path, monkeypatch, capsys):
+    """--out . --overwrite in a run folder failed with errno 16 after the run."""
+    import meshmei.cli as cli
+
+    (tmp_path / "summary.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli, "optimize_mei", lambda *a, **k: pytest.fail("ran before refusing its output"))
+    for out in (".", "", str(tmp_path.parent)):
+        assert cli.main(["mei", "--out", out, "--overwrite", "--steps", "1", "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "is the current folder or holds it; it cannot be replaced" in err and "\n" not in err
+    assert (tmp_path / "summary.json").read_text() == "{}"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs a folder that takes no new folder: Linux's /proc")
+def test_cli_refuses_an_output_where_no_folder_can_be_made_before_the_run(monkeypatch, capsys):
+    """--out /proc/x passed the permission test and failed after the run, naming a hidden partial folder."""
+    import meshmei.cli as cli
+
+    monkeypatch.setattr(cli, "optimize_mei", lambda *a, **k: pytest.fail("ran before refusing its output"))
+    assert cli.main(["mei", "--out", "/proc/meshmei-x", "--steps", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("meshmei mei: error: cannot make /proc/meshmei-x: /proc takes no new folder") and "\n" not in err
 
 
 def test_cli_reads_a_tilde_left_by_the_shell_as_the_home_folder(tmp_path, monkeypatch, capsys):

@@ -67,6 +67,13 @@ def test_demo_cli_reports_an_occupied_output_without_traceback(tmp_path, capsys)
     (tmp_path / "keep.txt").write_text("mine")
     assert main(["demo", "--quick", "--out", str(tmp_path)]) == 2
     assert "not empty" in capsys.readouterr().err
+    # found by fuzzing: a file as --out (errno 20), and a folder where none can be made (errno 2 after the run)
+    for out, says in ((tmp_path / "keep.txt", "keep.txt is a file, not a folder; choose another output path"),
+                      (tmp_path / "keep.txt" / "sub", "keep.txt is a file, not a folder; choose another output path")):
+        assert main(["demo", "--quick", "--out", str(out), "--overwrite"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.endswith(says) and "\n" not in err
+    assert (tmp_path / "keep.txt").read_text() == "mine"
 
 
 def test_demo_cli_quick_on_the_shipped_model(tmp_path, capsys):
