@@ -22,7 +22,7 @@ RESULT_MARKERS = {"summary.json": ("format", "complete", "neuron", "activation")
 
 
 def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: bool = False,
-                     error: type[Exception] = ValueError) -> Path:
+                     error: type[Exception] = ValueError, kinds=None) -> Path:
     """Build ``directory`` by calling ``write(tmp)`` on a hidden temporary sibling, then rename it into place.
 
     Until ``write`` returns, only ``.NAME.partial-XXXXXXXX`` exists (and is removed if ``write`` raises);
@@ -31,7 +31,7 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     rename onto it fails, and the new folder is removed).
 
     ``overwrite`` replaces only what meshmei wrote: an empty folder, or one holding one of
-    :data:`RESULT_MARKERS` with meshmei's keys in it. A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in
+    :data:`RESULT_MARKERS` with meshmei's keys in it (of ``kinds``, when given: the markers the caller writes). A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in
     the way is never removed.
 
     Raises
@@ -41,7 +41,7 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
         a file, or a folder of files meshmei did not write (the caller's exception type).
     """
     directory = Path(directory)
-    check_output(directory, overwrite=overwrite, error=error)
+    check_output(directory, overwrite=overwrite, error=error, kinds=kinds)
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = directory.parent / f".{directory.name}.partial-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
@@ -98,7 +98,7 @@ def _exists(directory, how: str) -> str:
     return f"{directory} exists; pass {how} to replace it"
 
 
-def check_output(directory, *, overwrite: bool, error, how: str = _API) -> None:
+def check_output(directory, *, overwrite: bool, error, how: str = _API, kinds=None) -> None:
     """Raise ``error`` unless ``directory`` may be written: it does not exist, or ``overwrite`` is given and
     it is an empty folder or a meshmei result (:func:`check_replaceable`). Commands call it before their
     work (``how="--overwrite"``), so that a refused output costs no run; :func:`atomic_directory` again."""
@@ -111,7 +111,7 @@ def check_output(directory, *, overwrite: bool, error, how: str = _API) -> None:
         raise error(f"{directory} is the current folder or holds it; it cannot be replaced: choose another "
                     "output folder")
     if directory.exists() or directory.is_symlink():
-        check_replaceable(directory, error)
+        check_replaceable(directory, error, kinds)
     check_creatable(directory, error)
 
 
@@ -141,16 +141,25 @@ def check_apart(out, source, error, what: str = "the input") -> None:
                     "choose another output folder")
 
 
-def check_replaceable(directory, error) -> None:
-    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote."""
+def check_replaceable(directory, error, kinds=None) -> None:
+    """Raise ``error`` unless ``directory`` is an empty folder or one that meshmei wrote; with ``kinds`` (names
+    in :data:`RESULT_MARKERS`), one holding a result of those kinds (``meshmei tune --out RUN/member_1
+    --overwrite`` replaced a 3D-MEI run with a sweep)."""
     directory = Path(directory)
     if directory.is_symlink() or not directory.is_dir():
         raise error(f"{directory} is {'a link' if directory.is_symlink() else 'a file'}, not a result folder; "
                     "it is not replaced, even with overwrite: choose another output path")
-    if any(directory.iterdir()) and not any(_is_marker(directory / name, keys) for name, keys in RESULT_MARKERS.items()):
+    found = [name for name, keys in RESULT_MARKERS.items() if _is_marker(directory / name, keys)]
+    if any(directory.iterdir()) and not found:
+        lookalike = [name for name in RESULT_MARKERS if (directory / name).exists()]  # named so, not meshmei's
+        why = f"; its {', '.join(lookalike)} is not one meshmei wrote" if lookalike else ""
         raise error(f"{directory} holds files meshmei did not write (no result file of meshmei's: "
-                    f"{', '.join(RESULT_MARKERS)}); it is not replaced, even with overwrite: choose another output "
-                    "folder, or empty it yourself")
+                    f"{', '.join(RESULT_MARKERS)}{why}); it is not replaced, even with overwrite: choose another "
+                    "output folder, or empty it yourself")
+    if kinds is not None and found and not set(found) & set(kinds):  # a sweep's --out naming a 3D-MEI run
+        raise error(f"{directory} holds another kind of meshmei result ({', '.join(found)}, where this command "
+                    f"writes {' or '.join(kinds)}); it is not replaced, even with overwrite: choose another output "
+                    "folder")
 
 
 def _is_marker(path: Path, keys) -> bool:

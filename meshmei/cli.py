@@ -40,6 +40,7 @@ from .shapes import DEFAULT_N_VERTICES, INITIAL_KINDS
 from .shapes.targets import THIN_TARGETS
 from .story import FULL, QUICK, run_story
 from .tuning import parse_range, run_tuning
+from .tuning.files import SWEEP_KINDS
 
 __all__ = ["main", "build_parser"]
 
@@ -460,7 +461,7 @@ def _run_tune(args) -> int:
         out = Path(out) if out is not None else run_dir / f"tuning_{args.what}"
         for source in {root, run_dir}:
             check_apart(out, source, TuningError, "the run being swept")
-        check_output(out, overwrite=args.overwrite, error=TuningError, how="--overwrite")
+        check_output(out, overwrite=args.overwrite, error=TuningError, how="--overwrite", kinds=SWEEP_KINDS)
     for run_dir, out in zip(members, outs):
         run_tuning(args.what, run_dir, out, neurons=args.neurons, distance=args.distance,
                    overwrite=args.overwrite, how="--overwrite", **ranges)

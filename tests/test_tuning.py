@@ -9,7 +9,7 @@ import torch
 
 from meshmei.cli import main
 from meshmei.encoders import make_encoder
-from meshmei.mei import MEISettings, optimize_mei, save_run
+from meshmei.mei import MEISettings, load_run, optimize_mei, save_run
 from meshmei.render import RenderSettings
 from meshmei.shapes import initial_mesh
 from meshmei.tuning import (
@@ -168,6 +168,22 @@ def test_overwrite_replaces_only_what_meshmei_wrote(tmp_path, sheet_mei, simple_
     (tmp_path / "empty").mkdir()
     for target in (first, tmp_path / "empty"):  # an earlier sweep, and an empty folder, are replaced
         assert load_sweep(save_sweep(sw, target, overwrite=True, figures=False)).neurons == sw.neurons
+    # a 3D-MEI run is never replaced by a sweep (found by fuzzing: tune --mei SET/member_0 --out SET/member_1
+    # --overwrite replaced a member of a diverse set), nor taken for a result by a look-alike file name
+    run = save_run(sheet_mei, tmp_path / "run", figures=False)
+    with pytest.raises(TuningError, match=r"run holds another kind of meshmei result \(summary.json, where this "
+                                          r"command writes sweep.json\); it is not replaced, even with overwrite"):
+        save_sweep(sw, run, overwrite=True, figures=False)
+    assert load_run(run).activation == sheet_mei.activation
+    sibling = save_run(sheet_mei, tmp_path / "sibling", figures=False)
+    assert main(["tune", "pose", "--mei", str(run), "--out", str(sibling), "--overwrite", "--elevation", "0:0:1",
+                 "--azimuth", "0:0:1"]) == 2
+    assert load_run(sibling).activation == sheet_mei.activation
+    (tmp_path / "fake").mkdir()
+    (tmp_path / "fake" / "history.json").write_text("{}")
+    with pytest.raises(TuningError, match=r"\(no result file of meshmei's: .*; its history.json is not one meshmei "
+                                          r"wrote\)"):
+        save_sweep(sw, tmp_path / "fake", overwrite=True, figures=False)
 
 
 def test_half_written_sweep_is_not_taken_for_a_finished_one(tmp_path, sheet_mei, simple_cell):

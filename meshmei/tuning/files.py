@@ -13,9 +13,13 @@ from .._files import atomic_directory
 from ..errors import TuningError
 from .sweeps import Sweep, response_groups
 
-__all__ = ["SWEEP_FORMAT", "save_sweep", "load_sweep"]
+__all__ = ["SWEEP_FORMAT", "SWEEP_KINDS", "save_sweep", "load_sweep"]
 
 SWEEP_FORMAT = "meshmei-sweep-1"
+# the result files a sweep folder may replace with --overwrite: a sweep, never a 3D-MEI run (`tune --mei RUN/member_0
+# --out RUN/member_1 --overwrite` replaced a member of a diverse set, which then no longer loaded); the other
+# commands replace any result meshmei wrote
+SWEEP_KINDS = ("sweep.json",)
 
 
 def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: bool = True, images=None) -> Path:
@@ -42,7 +46,7 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
         with open(tmp / "sweep.json", "w") as fh:
             json.dump(meta, fh, indent=1)
 
-    return atomic_directory(directory, write, overwrite=overwrite, error=TuningError)
+    return atomic_directory(directory, write, overwrite=overwrite, error=TuningError, kinds=SWEEP_KINDS)
 
 
 def load_sweep(directory) -> Sweep:
