@@ -187,7 +187,7 @@ def _cli_encoder(args, default=None):
         given = [f"--{k.replace('_', '-')}" for k in ("mean", "std", "norm", "channels", "pixel_range", "clip", "data_key")
                  if getattr(args, k) is not None]
         if given:
-            raise MEIError(f"{', '.join(given)} apply to --model only")
+            raise MEIError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to --model only")
         return make_encoder(_encoder_name(args)) if hasattr(args, "encoder") else default
     if getattr(args, "encoder", None) is not None:  # it was ignored without a word
         raise MEIError(f"--model and --encoder {args.encoder} each name the model: give one of them")

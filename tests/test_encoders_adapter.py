@@ -319,7 +319,7 @@ def test_the_cli_names_a_failing_factory_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "neuron index out of range for 5 neurons" in err
     rc = main(["mei", "--mean", "3", "--out", str(tmp_path / "z"), "--steps", "1", "--quiet"])
-    assert rc == 2 and "apply to --model only" in capsys.readouterr().err
+    assert rc == 2 and "--mean applies to --model only" in capsys.readouterr().err
     for command in (["mei"], ["population", "--neurons", "0"]):  # --encoder was ignored without a word
         rc = main([*command, "--model", f"{path}:build", "--encoder", "demo", "--out", str(tmp_path / "w"),
                    "--steps", "1", "--quiet"])

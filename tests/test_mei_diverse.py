@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -49,8 +50,8 @@ def test_no_diversity_and_no_floor_are_independent_runs_even_below_zero():
 
     cell = GaborSimpleCell(orientation=0.5, frequency=3.0)
     kw = dict(steps=15, image_size=32, n_vertices=100, dtype="float64", seeds=(0,))
-    d = diverse_meis(cell, 0, k=2, init="sphere", diversity=0.0, floor=0.0, **kw)
-    assert max(r.history[0] for r in d.results) < 0  # the case that went wrong: no positive response yet
+    d = diverse_meis(cell, 0, k=np.int64(2), init="sphere", diversity=0.0, floor=0.0, **kw)  # numpy's int: refused
+    assert len(d.results) == 2 and max(r.history[0] for r in d.results) < 0  # the case that went wrong: no positive response yet
     for member in d.results:
         alone = optimize_mei(cell, 0, "sphere", keep="last", **{**kw, "seeds": (member.seed,)})
         torch.testing.assert_close(member.V, alone.V, rtol=1e-9, atol=1e-9)

@@ -67,6 +67,28 @@ def test_angles_beyond_a_turn_are_the_same_rotations_and_stay_finite():
     assert torch.isfinite(light_positions([0.0], [0.0], 1e6)).all()
 
 
+def test_sweeps_refuse_bad_arguments_in_one_line(sheet_mei, simple_cell):
+    """Found by fuzzing: neurons='12' swept neurons (1, 2) and [0.7, 1.9] swept (0, 1); a batch size of 0 or 2.5,
+    a range's text as the angles, an encoder or result of None failed inside the sweep."""
+    V, F = sheet_mei.V, sheet_mei.F
+    for sweep, args, kw, says in [
+            (pose_sweep, (sheet_mei, simple_cell), dict(neurons="12"), "neurons must be None, a neuron index or a "
+                                                                        "sequence of them, got '12'"),
+            (pose_sweep, (sheet_mei, simple_cell), dict(neurons=[0.7, 1.9]), r"got \[0.7, 1.9\]"),
+            (light_sweep, (sheet_mei, simple_cell), dict(batch_size=0), "batch_size must be a positive integer, got 0"),
+            (pose_sweep, (sheet_mei, simple_cell), dict(batch_size=2.5), "batch_size must be a positive integer"),
+            (pose_sweep, (sheet_mei, simple_cell), dict(elevation="0:10:2"), r"elevation must be angles in degrees, "
+                                                                              r"got '0:10:2' \(parse_range reads"),
+            (light_sweep, (None, simple_cell), {}, "result must be an MEIResult, or a"),
+            (pose_sweep, (sheet_mei, None), {}, "encoder must be a meshmei Encoder"),
+            (pose_sweep, ((V, F, None), simple_cell), {}, "a bare mesh's scene must be a dict")]:
+        with pytest.raises(TuningError, match=says) as err:
+            sweep(*args, **{"elevation": [0], "azimuth": [0], **kw})
+        assert "\n" not in str(err.value)
+    np_neuron = pose_sweep(sheet_mei, simple_cell, neurons=np.int64(0), elevation=[0], azimuth=[0])
+    assert tuple(np_neuron.neurons) == (0,)
+
+
 def test_light_positions_on_the_hemisphere():
     P = light_positions([0, 45, 90], [0, 90, 180], 2.0, dtype=torch.float64)
     torch.testing.assert_close(P.norm(dim=-1), torch.full((3, 3), 2.0, dtype=torch.float64))

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from .._checks import is_integral
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Schedule, Trace, make_optimizer, minimize
@@ -103,8 +104,9 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     """
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
     neuron = check_neuron(encoder, neuron)
-    if isinstance(k, bool) or not isinstance(k, int) or not 2 <= k <= MAX_MEMBERS:
+    if not (is_integral(k) and 2 <= k <= MAX_MEMBERS):  # numpy's integers too
         raise MEIError(f"k must be an integer from 2 to {MAX_MEMBERS}, got {k!r}")
+    k = int(k)
     if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in (diversity, floor)) or not (
             diversity >= 0 and math.isfinite(diversity) and 0 <= floor <= 1):
         raise MEIError(f"need diversity >= 0 and floor in [0, 1], got {diversity!r}, {floor!r}")

@@ -28,7 +28,10 @@ __all__ = ["check_angles", "pose_rotations", "light_positions", "parse_range"]
 def check_angles(name, values, lo=None, hi=None) -> np.ndarray:
     """Angles in degrees as a flat float64 array ``(g,)``; raise TuningError if empty, not finite or outside
     ``[lo, hi]``."""
-    a = np.asarray(values, dtype=np.float64).reshape(-1)
+    try:
+        a = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):  # '0:10:2' is a range's text: parse_range reads it
+        raise TuningError(f"{name} must be angles in degrees, got {values!r} (parse_range reads 'lo:hi:n')") from None
     if a.size == 0:
         raise TuningError(f"{name} range is empty; give at least one angle")
     if not np.isfinite(a).all():

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..encoders import frozen_encoder
+from .._checks import is_integral
+from ..encoders import Encoder, frozen_encoder
 from ..errors import TuningError
 from ..render import DEFAULT_DISTANCE, render
 from .grids import check_angles, light_positions, pose_rotations
@@ -94,11 +95,28 @@ def _on_encoder(encoder, V, F, scene):
     return V.to(dev), F.to(dev), {k: v.to(dev) if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
 
 
+def _check_call(encoder, result, batch_size) -> None:
+    """The sweep's own arguments, refused in one line (an encoder of None, a result of None, a batch size of 0
+    or 2.5 failed inside the sweep with an AttributeError, a TypeError or range()'s error)."""
+    if not isinstance(encoder, Encoder):
+        raise TuningError(f"encoder must be a meshmei Encoder (make_encoder, encoder_from_model), got "
+                          f"{type(encoder).__name__}")
+    if not (isinstance(result, tuple) or all(hasattr(result, k) for k in ("V", "F", "scene"))):
+        raise TuningError(f"result must be an MEIResult, or a (V, F) or (V, F, scene) tuple, got {type(result).__name__}")
+    if isinstance(result, tuple) and len(result) == 3 and not isinstance(result[2], dict):
+        raise TuningError(f"a bare mesh's scene must be a dict of render() arguments, got {type(result[2]).__name__}")
+    if not (is_integral(batch_size) and batch_size >= 1):
+        raise TuningError(f"batch_size must be a positive integer, got {batch_size!r}")
+
+
 def _neurons(encoder, neurons, result):
     if neurons is None:
         neurons = [result.neuron] if hasattr(result, "neuron") else list(range(encoder.n_neurons))
-    if isinstance(neurons, (int, np.integer)) and not isinstance(neurons, bool):
+    if is_integral(neurons):
         neurons = [int(neurons)]
+    # '12' was read digit by digit as neurons (1, 2), [0.7, 1.9] as (0, 1)
+    if isinstance(neurons, (str, bytes)) or not hasattr(neurons, "__iter__") or not all(is_integral(n) for n in neurons):
+        raise TuningError(f"neurons must be None, a neuron index or a sequence of them, got {neurons!r}")
     neurons = [int(n) for n in neurons]
     if not neurons:
         raise TuningError("neurons is empty; ask for at least one neuron")
@@ -145,6 +163,7 @@ def pose_sweep(result, encoder, *, neurons=None, elevation=np.linspace(-90, 90, 
     -------
     Sweep with ``responses`` of shape ``(k, E, A)`` or ``(k, E, A, R)``.
     """
+    _check_call(encoder, result, batch_size)
     V, F, scene = _on_encoder(encoder, *_scene(result))
     neurons = _neurons(encoder, neurons, result)
     base = scene.pop("rotation", None)
@@ -172,6 +191,7 @@ def light_sweep(result, encoder, *, neurons=None, elevation=np.linspace(0, 90, 1
     ``distance`` defaults to the camera's distance from the origin. Returns a Sweep with ``responses``
     of shape ``(k, E, A)``; see :func:`response_groups` for the high / mid / low split.
     """
+    _check_call(encoder, result, batch_size)
     V, F, scene = _on_encoder(encoder, *_scene(result))
     neurons = _neurons(encoder, neurons, result)
     if distance is None:
