@@ -233,6 +233,8 @@ def test_bad_input_raises_mei_error():
         MEISettings(keep="first")
     with pytest.raises(MEIError, match="min_quality must lie in"):
         MEISettings(min_quality=1.5)
+    with pytest.raises(MEIError, match=r"contact_distance must lie in \(0, 4\] mean edge lengths, got 5"):
+        MEISettings(contact_distance=5)
     with pytest.raises(MEIError, match="reg_ref_vertices must be a positive integer"):
         MEISettings(reg_ref_vertices=0)
     with pytest.raises(MEIError, match="RenderSettings"):

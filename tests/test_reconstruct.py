@@ -896,6 +896,8 @@ def test_stage_settings_that_failed_late_are_refused_up_front():
         ReconstructionSettings(stages=(100, 200), stage_fractions=0.5).resolved()  # a TypeError
     with pytest.raises(ReconstructionError, match=r"^steps must be a positive integer, got inf$"):
         ReconstructionSettings(steps=float("inf")).resolved()  # an OverflowError
+    with pytest.raises(ReconstructionError, match=r"^contact_distance must be at most 4 mean edge lengths, got 1000000000.0$"):
+        ReconstructionSettings(contact_distance=1e9).resolved()  # a 4-step run took 77 s instead of 0.7 s
     for name in ("n_samples", "target_pool", "eval_samples"):  # 10**9 samples ran out of memory, killed silently
         with pytest.raises(ReconstructionError, match=rf"^{name} must be at most 10,000,000 samples, got 1000000000$"):
             ReconstructionSettings(**{name: 10**9}).resolved()

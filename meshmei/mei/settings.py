@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from .._checks import check_distinct_seeds, is_integral
+from ..contact import MAX_CONTACT_DISTANCE
 from ..deform import RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
@@ -265,8 +266,9 @@ class MEISettings:
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
-        if not self.contact_distance > 0:
-            raise MEIError(f"contact_distance must be positive, got {self.contact_distance!r}")
+        if not 0 < self.contact_distance <= MAX_CONTACT_DISTANCE:
+            raise MEIError(f"contact_distance must lie in (0, {MAX_CONTACT_DISTANCE:g}] mean edge lengths, got "
+                           f"{self.contact_distance!r}")
         r = self.albedo_resolution
         if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
             raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")

@@ -68,11 +68,14 @@ def prepare_folder(out, config: dict) -> str:
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
             raise MEIError(f"{meta} is unreadable ({err}); choose another --out") from None
         if not isinstance(old, dict) or not isinstance(old.get("config", {}), dict):
-            raise MEIError(f"{meta} is not a population description (it holds a {type(old).__name__}); choose "
-                           "another --out")
+            what = (f"it holds a {type(old).__name__}" if not isinstance(old, dict)
+                    else f"its config is a {type(old['config']).__name__}")
+            raise MEIError(f"{meta} is not a population description ({what}); choose another --out")
         if old.get("config_hash") != digest:
             changed = sorted(k for k in set(config) | set(old.get("config", {}))
                              if config.get(k) != old.get("config", {}).get(k))
+            if not changed and old.get("format") == CONFIG_FORMAT:  # the same settings, another recorded hash
+                changed = ["none of the settings; its recorded hash does not match them (was the file edited?)"]
             raise MEIError(f"{out} holds a population run with other settings (config {old.get('config_hash')}, "
                            f"this run {digest}; differing: {', '.join(changed) or 'format'}); use another --out "
                            "or the same settings to resume")

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from .._checks import is_integral
+from ..contact import MAX_CONTACT_DISTANCE
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
 from ..optim import MAX_STEPS, OPTIMIZERS
@@ -340,6 +341,9 @@ def _check_values(s: ReconstructionSettings) -> None:
     for name in ("lr", "r_cut", "sigma_factor", "contact_distance"):
         if not (getattr(s, name) > 0 and math.isfinite(getattr(s, name))):
             raise ReconstructionError(f"{name} must be positive and finite, got {getattr(s, name)!r}")
+    if s.contact_distance > MAX_CONTACT_DISTANCE:
+        raise ReconstructionError(f"contact_distance must be at most {MAX_CONTACT_DISTANCE:g} mean edge lengths, got "
+                                  f"{s.contact_distance!r}")
     for name in ("n_samples", "target_pool", "eval_samples"):  # counts: refused here, not after the run
         n = getattr(s, name)
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
