@@ -378,7 +378,7 @@ def test_a_damaged_state_is_one_clear_error_naming_state_pt(tmp_path, capsys):
                          ({"rotation": torch.zeros(3, 3)}, "rotation must have shape \\(3,\\)"),
                          ({"deformer": nan_offsets}, "deformer offsets holds NaN or Inf"),
                          ({"translation": torch.tensor([0.0, math.inf, 0.0])}, "translation holds NaN or Inf"),
-                         ({"F": good["F"] + 1000}, "F holds vertex index")]:
+                         ({"F": good["F"] + 1000}, "F holds vertex index"), ({"format": 9}, "its format is 9")]:
         state = {k: v for k, v in {**good, **damage}.items() if v is not None}
         torch.save(state, run / "state.pt")
         with pytest.raises(MEIError, match=rf"^{re.escape(str(run / 'state.pt'))} is damaged: .*{says}"):

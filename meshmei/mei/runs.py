@@ -103,6 +103,8 @@ def _check_state(state, path: Path) -> None:
 
     if not isinstance(state, dict):
         raise damaged(f"it holds a {type(state).__name__}, not the dict save_run writes")
+    if state.get("format", RUN_FORMAT) != RUN_FORMAT:  # a format 9 was read as this version's
+        raise damaged(f"its format is {state['format']!r}, not this version's {RUN_FORMAT!r}")
     missing = [k for k in ("V", "F", "V0", "deformer", "rotation", "translation", "image") if k not in state]
     if missing:
         raise damaged(f"missing {missing}")
