@@ -31,8 +31,9 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
     rename onto it fails, and the new folder is removed).
 
     ``overwrite`` replaces only what meshmei wrote: an empty folder, or one holding one of
-    :data:`RESULT_MARKERS` with meshmei's keys in it (of ``kinds``, when given: the markers the caller writes). A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in
-    the way is never removed.
+    :data:`RESULT_MARKERS` with meshmei's keys in it (of ``kinds``, when given: the markers the caller
+    writes). A folder of other files (``--out ~/data --overwrite`` by mistake) or a file in the way is never
+    removed.
 
     Raises
     ------

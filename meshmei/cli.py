@@ -259,7 +259,8 @@ def _run_mei(args) -> int:
         return _run_diverse(args, encoder, settings, out, init)
     res = optimize_mei(encoder, args.neuron, init, settings, progress=not args.quiet)
     frac = res.fraction_of_bound
-    line = f"3D-MEI neuron {res.neuron} ({args.model or _encoder_name(args)}, {args.init}): response {res.activation:.4f}"
+    line = (f"3D-MEI neuron {res.neuron} ({args.model or _encoder_name(args)}, {args.init}): "
+            f"response {res.activation:.4f}")
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:

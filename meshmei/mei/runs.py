@@ -120,7 +120,8 @@ def _check_state(state, path: Path) -> None:
     if not isinstance(deformer, dict) or not all(isinstance(deformer.get(k), torch.Tensor) for k in ("offsets", "V0")):
         raise damaged("the deformer state must be a dict with 'offsets' and 'V0' tensors")
     tensors = {f"deformer {k}": v for k, v in deformer.items() if isinstance(v, torch.Tensor) and v.is_floating_point()}
-    tensors.update((k, state[k]) for k in ("rotation", "translation", "image", "light", "albedo") if state.get(k) is not None)
+    tensors.update((k, state[k]) for k in ("rotation", "translation", "image", "light", "albedo")
+                   if state.get(k) is not None)
     for name, t in tensors.items():
         if not isinstance(t, torch.Tensor) or not t.is_floating_point() or t.numel() == 0:
             raise damaged(f"{name} must be a non-empty float tensor, got {type(t).__name__}")

@@ -140,8 +140,8 @@ class MEISettings:
         ``albedo_shape_lr * lr`` (1 by default; 0.1 lets the albedo lead, which unguarded runs needed to keep
         the shape from folding, docs/mei.md). From the sheet the albedo is an
         ``albedo_resolution`` x ``albedo_resolution`` texture over the sheet's own grid instead (texel
-        neighbours in the penalty; at most 8192, the largest image side); 0: per vertex there too. False (default): shape only, the paper's
-        setting.
+        neighbours in the penalty; at most 8192, the largest image side); 0: per vertex there too. False
+        (default): shape only, the paper's setting.
     robust_pose, robust_light : float
         Degrees (0: off). Maximise the expected response over object turns (azimuth about y, elevation
         about x) uniform within +-``robust_pose``, and over light positions turned the same way about the

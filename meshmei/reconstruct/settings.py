@@ -17,7 +17,8 @@ from ..optim import MAX_STEPS, OPTIMIZERS
 from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
-__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES", "MAX_SAMPLES",
+__all__ = ["METHODS", "STAGE_FIELDS", "DEFAULTS", "DEFAULT_STEPS", "AUTO_EDGE_REFUSALS", "MIN_STAGE_VERTICES",
+           "MAX_SAMPLES",
            "ReconstructionSettings", "ReconstructionResult", "ReconstructionWarning"]
 
 

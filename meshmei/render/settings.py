@@ -83,7 +83,8 @@ class RenderSettings:
 
     def __post_init__(self):
         size = self.image_size
-        if isinstance(size, (bool, np.bool_)) or not isinstance(size, numbers.Integral) or not 1 <= size <= MAX_IMAGE_SIZE:
+        if (isinstance(size, (bool, np.bool_)) or not isinstance(size, numbers.Integral)
+                or not 1 <= size <= MAX_IMAGE_SIZE):
             raise RenderError(f"image_size must be an integer in [1, {MAX_IMAGE_SIZE}], got {size!r}")
         object.__setattr__(self, "image_size", int(size))
         sigma = finite_float("sigma", self.sigma)

@@ -47,7 +47,8 @@ def run_tuning(what: str, mei_dir, out=None, *, neurons=None, elevation=None, az
         raise TuningError("distance places the light of a light sweep; a pose sweep takes elevation, azimuth and roll")
     out = Path(out) if out is not None else Path(mei_dir) / f"tuning_{what}"
     check_apart(out, mei_dir, TuningError, "the run being swept")
-    check_output(out, overwrite=overwrite, error=TuningError, how=how, kinds=SWEEP_KINDS)  # before the sweep's work, not after it
+    # before the sweep's work, not after it
+    check_output(out, overwrite=overwrite, error=TuningError, how=how, kinds=SWEEP_KINDS)
     try:
         run = load_run(mei_dir, rebuild_encoder=True)
     except MEIError as err:

@@ -102,7 +102,8 @@ def _check_call(encoder, result, batch_size) -> None:
         raise TuningError(f"encoder must be a meshmei Encoder (make_encoder, encoder_from_model), got "
                           f"{type(encoder).__name__}")
     if not (isinstance(result, tuple) or all(hasattr(result, k) for k in ("V", "F", "scene"))):
-        raise TuningError(f"result must be an MEIResult, or a (V, F) or (V, F, scene) tuple, got {type(result).__name__}")
+        raise TuningError(f"result must be an MEIResult, or a (V, F) or (V, F, scene) tuple, got "
+                          f"{type(result).__name__}")
     if isinstance(result, tuple) and len(result) == 3 and not isinstance(result[2], dict):
         raise TuningError(f"a bare mesh's scene must be a dict of render() arguments, got {type(result[2]).__name__}")
     if not (is_integral(batch_size) and batch_size >= 1):
@@ -115,7 +116,8 @@ def _neurons(encoder, neurons, result):
     if is_integral(neurons):
         neurons = [int(neurons)]
     # '12' was read digit by digit as neurons (1, 2), [0.7, 1.9] as (0, 1)
-    if isinstance(neurons, (str, bytes)) or not hasattr(neurons, "__iter__") or not all(is_integral(n) for n in neurons):
+    if (isinstance(neurons, (str, bytes)) or not hasattr(neurons, "__iter__")
+            or not all(is_integral(n) for n in neurons)):
         raise TuningError(f"neurons must be None, a neuron index or a sequence of them, got {neurons!r}")
     neurons = [int(n) for n in neurons]
     if not neurons:
