@@ -117,15 +117,13 @@ def check_output(directory, *, overwrite: bool, error, how: str = _API, kinds=No
 
 
 def check_creatable(directory, error) -> None:
-    """Raise ``error`` unless the nearest existing folder above ``directory`` is a folder this process may
-    write in (``--out afile/sub`` failed with errno 17 or 20, after the run)."""
+    """Raise ``error`` unless the nearest existing folder above ``directory`` is a folder this process can make
+    a folder in, by making and removing one (``--out afile/sub`` failed with errno 17 or 20, after the run)."""
     directory = Path(directory)
     above = next((p for p in directory.absolute().parents if p.exists()), None)
     if above is not None and not above.is_dir():
         raise error(f"cannot make {directory}: {above} is a file, not a folder; choose another output path")
-    if above is not None and not os.access(above, os.W_OK | os.X_OK):
-        raise error(f"cannot make {directory}: no permission to write in {above}; choose another output path")
-    if above is not None:  # the system's word (/proc passes the permission test and takes no folder)
+    if above is not None:  # the system's word: no permission, a read-only disk, /proc (which passed os.access)
         try:
             os.rmdir(tempfile.mkdtemp(prefix=".meshmei-probe-", dir=above))
         except OSError as err:

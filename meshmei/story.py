@@ -63,9 +63,7 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
     """
     p = dict(FULL if preset is None else preset)
     out = Path(out)
-    if out.exists() and not out.is_dir():  # listing it raised errno 20
-        raise FileExistsError(f"{out} is a file, not a folder; choose another output path")
-    if out.exists() and any(out.iterdir()) and not overwrite:
+    if out.is_dir() and any(out.iterdir()) and not overwrite:  # a file there: refused by check_output below
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace its contents")
     # the run folder is replaced after the 3D-MEI and the pixel MEI: a folder there that meshmei did not
     # write must stop the story before that work, not after it

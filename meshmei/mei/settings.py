@@ -526,11 +526,9 @@ def make_deformer(V0, settings: MEISettings, centers=None):
     rbf = RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
                       learn_scales=settings.lr_scales > 0)
     with torch.no_grad():  # a kernel this narrow weighs its own centre 0 * inf: NaN vertices at the first render
-        narrow = not bool(torch.isfinite(torch.exp(-2.0 * rbf.log_sigma)).all())
-        width = float(rbf.sigma.min())
-    if narrow:
-        raise MEIError(f"sigma_factor={settings.sigma_factor!r} makes the RBF kernels {width:.3g} wide, too narrow "
-                       f"for {V0.dtype} arithmetic (1 / sigma^2 overflows); raise sigma_factor")
+        if not bool(torch.isfinite(torch.exp(-2.0 * rbf.log_sigma)).all()):
+            raise MEIError(f"sigma_factor={settings.sigma_factor!r} makes the RBF kernels {float(rbf.sigma.min()):.3g} "
+                           f"wide, too narrow for {V0.dtype} arithmetic (1 / sigma^2 overflows); raise sigma_factor")
     return rbf
 
 

@@ -96,24 +96,18 @@ def _number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
-# the quality fields table_row reads, with the type each must have (a damaged "x" failed in the CLI's min())
-_QUALITY_FIELDS = {"self_intersections": int, "flipped_faces": int, "min_quality": (int, float),
-                   "watertight": bool, "nonmanifold_edges": int}
+def _count(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+# the quality fields table_row reads, each with the test its value must pass when present (a damaged "x"
+# failed in the CLI's min())
+_QUALITY_FIELDS = {"self_intersections": _count, "flipped_faces": _count, "nonmanifold_edges": _count,
+                   "min_quality": _number, "watertight": lambda x: isinstance(x, bool)}
 
 
 def _good_quality(q) -> bool:
-    if not isinstance(q, dict):
-        return False
-    for key, kind in _QUALITY_FIELDS.items():
-        v = q.get(key)
-        if v is None:
-            continue
-        if kind is bool:
-            if not isinstance(v, bool):
-                return False
-        elif isinstance(v, bool) or not isinstance(v, kind) or not math.isfinite(v):
-            return False
-    return True
+    return isinstance(q, dict) and all(q.get(k) is None or ok(q[k]) for k, ok in _QUALITY_FIELDS.items())
 
 
 def _well_formed(summary, name: str) -> bool:

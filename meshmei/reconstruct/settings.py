@@ -330,6 +330,8 @@ def _check_values(s: ReconstructionSettings) -> None:
             raise ReconstructionError(f"{name} must be True or False, got {getattr(s, name)!r}")
     if s.steps is not None and not (is_integral(s.steps) and s.steps >= 1):  # inf: an OverflowError before
         raise ReconstructionError(f"steps must be a positive integer, got {s.steps!r}")
+    if s.steps is not None and s.steps > MAX_STEPS:  # as the budget says it, before the target is loaded
+        raise ReconstructionError(f"steps must be at most {MAX_STEPS:.0e}, got {s.steps!r}")
     tb = s.time_budget
     if tb is not None and not (_is_real(tb) and tb > 0 and math.isfinite(tb)):
         raise ReconstructionError(f"time_budget must be positive and finite, got {s.time_budget!r}")
@@ -448,7 +450,7 @@ def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
                                   f"got {s.stage_fractions!r}")
     tot = float(sum(fr))
     fr = tuple(float(f) / tot for f in fr)
-    if s.steps is not None and s.time_budget is None and s.steps <= MAX_STEPS:  # beyond: the budget's own error
+    if s.steps is not None and s.time_budget is None:
         _check_every_stage_steps(s.steps, stages, fr)
     return replace(s, stages=stages, stage_fractions=fr)
 

@@ -76,7 +76,12 @@ def _scene(result):
         if len(result) not in (2, 3):
             raise TuningError(f"a bare mesh is (V, F) or (V, F, scene), got a tuple of {len(result)}")
         V, F, scene = result if len(result) == 3 else (*result, {})
+        if not isinstance(scene, dict):  # None failed in dict()
+            raise TuningError(f"a bare mesh's scene must be a dict of render() arguments, got {type(scene).__name__}")
         return V, F, dict(scene)
+    if not all(hasattr(result, k) for k in ("V", "F", "scene")):  # None failed with an AttributeError
+        raise TuningError(f"result must be an MEIResult, or a (V, F) or (V, F, scene) tuple, got "
+                          f"{type(result).__name__}")
     return result.V, result.F, result.scene()
 
 
@@ -95,17 +100,13 @@ def _on_encoder(encoder, V, F, scene):
     return V.to(dev), F.to(dev), {k: v.to(dev) if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
 
 
-def _check_call(encoder, result, batch_size) -> None:
-    """The sweep's own arguments, refused in one line (an encoder of None, a result of None, a batch size of 0
-    or 2.5 failed inside the sweep with an AttributeError, a TypeError or range()'s error)."""
+def _check_call(encoder, batch_size) -> None:
+    """The sweep's encoder and batch size, refused in one line (an encoder of None, a batch size of 0 or 2.5
+    failed inside the sweep with an AttributeError, a TypeError or range()'s error); the result is
+    :func:`_scene`'s to check."""
     if not isinstance(encoder, Encoder):
         raise TuningError(f"encoder must be a meshmei Encoder (make_encoder, encoder_from_model), got "
                           f"{type(encoder).__name__}")
-    if not (isinstance(result, tuple) or all(hasattr(result, k) for k in ("V", "F", "scene"))):
-        raise TuningError(f"result must be an MEIResult, or a (V, F) or (V, F, scene) tuple, got "
-                          f"{type(result).__name__}")
-    if isinstance(result, tuple) and len(result) == 3 and not isinstance(result[2], dict):
-        raise TuningError(f"a bare mesh's scene must be a dict of render() arguments, got {type(result[2]).__name__}")
     if not (is_integral(batch_size) and batch_size >= 1):
         raise TuningError(f"batch_size must be a positive integer, got {batch_size!r}")
 
@@ -165,7 +166,7 @@ def pose_sweep(result, encoder, *, neurons=None, elevation=np.linspace(-90, 90, 
     -------
     Sweep with ``responses`` of shape ``(k, E, A)`` or ``(k, E, A, R)``.
     """
-    _check_call(encoder, result, batch_size)
+    _check_call(encoder, batch_size)
     V, F, scene = _on_encoder(encoder, *_scene(result))
     neurons = _neurons(encoder, neurons, result)
     base = scene.pop("rotation", None)
@@ -193,7 +194,7 @@ def light_sweep(result, encoder, *, neurons=None, elevation=np.linspace(0, 90, 1
     ``distance`` defaults to the camera's distance from the origin. Returns a Sweep with ``responses``
     of shape ``(k, E, A)``; see :func:`response_groups` for the high / mid / low split.
     """
-    _check_call(encoder, result, batch_size)
+    _check_call(encoder, batch_size)
     V, F, scene = _on_encoder(encoder, *_scene(result))
     neurons = _neurons(encoder, neurons, result)
     if distance is None:
