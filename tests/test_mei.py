@@ -363,6 +363,29 @@ def test_a_damaged_summary_is_one_clear_error(tmp_path):
             load_run(run, rebuild_encoder=True)
 
 
+def test_a_run_is_read_only_with_its_own_encoder_and_image_size(tmp_path, capsys):
+    """An edited summary.json (another cell, another image size) or a model that is not the run's was swept
+    and reported under the run's name; each is now refused, naming what differs."""
+    from meshmei.cli import main
+
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0,), image_size=16, n_vertices=40)
+    run = save_run(res, tmp_path / "run", figures=False)
+    good = json.loads((run / "summary.json").read_text())
+    assert load_run(run, encoder=GaborSimpleCell()).activation == res.activation  # the run's own encoder passes
+    with pytest.raises(MEIError, match="the encoder given gives the saved image a response of .* not the run's"):
+        load_run(run, encoder=GaborSimpleCell(orientation=1.0))
+    other = {**good["encoder"], "params": {**good["encoder"]["params"], "orientation": [1.0]}}
+    size = {**good["settings"], "image_size": 32}
+    for damage, says in [({"encoder": other}, "the encoder summary.json describes .* not the run's encoder"),
+                         ({"settings": size}, "the saved image has shape \\(1, 1, 16, 16\\), not the \\(1, 1, 32, 32\\)")]:
+        (run / "summary.json").write_text(json.dumps({**good, **damage}))
+        with pytest.raises(MEIError, match=says):
+            load_run(run, rebuild_encoder=True)
+        assert main(["tune", "pose", "--mei", str(run), "--elevation", "0:0:1", "--azimuth", "0:0:1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert re.search(says, err) and "\n" not in err and not (run / "tuning_pose").exists()
+
+
 def test_a_damaged_state_is_one_clear_error_naming_state_pt(tmp_path, capsys):
     """A state.pt without V failed with a KeyError in the CLI, one with V a list or empty inside torch, one
     without the image was blamed on summary.json, and NaN offsets passed the reproduction check."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from .._files import atomic_directory
-from ..encoders import Encoder, encoder_from_spec
+from ..encoders import Encoder, encoder_from_spec, eval_mode
 from ..errors import MEIError, MeshError
 from ..mesh import check_mesh, check_rest_pose, save_mesh
 from ..plots import mei_figures
@@ -132,6 +132,21 @@ def _check_state(state, path: Path) -> None:
             raise damaged(f"{name} must have shape {shape}, got {tuple(state[name].shape)}")
 
 
+def _check_response(module: Encoder, image: torch.Tensor, neuron: int, activation: float, directory: Path,
+                    given: bool) -> None:
+    """Raise MEIError unless ``module`` gives the saved image the response the run recorded (to 1e-3 of its
+    size: another device or thread count rounds differently). A summary.json whose encoder was edited, or a
+    model that is not the run's, would otherwise be swept and reported under the run's name."""
+    param = next(iter(module.parameters()), None)
+    device = image.device if param is None else param.device
+    with torch.no_grad(), eval_mode(module):  # as the run read it
+        response = float(module(image.to(device), neuron)[0, 0])
+    if not abs(response - activation) <= 1e-3 * (1 + abs(activation)):
+        which = "the encoder given" if given else f"the encoder summary.json describes ({directory / 'summary.json'})"
+        raise MEIError(f"{directory}: {which} gives the saved image a response of {response:.6g} for neuron "
+                       f"{neuron}; the run recorded {activation:.6g}, so it is not the run's encoder")
+
+
 def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool = False) -> MEIResult:
     """Read a run directory written by :func:`save_run` back into an :class:`MEIResult`.
 
@@ -183,12 +198,18 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     bound += 1e-5 * (1 + float(state["V"].abs().max()))
     if V.shape != state["V"].shape or float((V.double() - state["V"].double()).abs().max()) > bound:
         raise MEIError(f"{directory}: the deformer state does not reproduce the saved vertices")
+    size = settings.image_size
+    if tuple(state["image"].shape) != (1, 1, size, size):  # render.image_size yields to image_size when read
+        raise MEIError(f"{directory}: the saved image has shape {tuple(state['image'].shape)}, not the (1, 1, {size}, "
+                       f"{size}) of summary.json's image_size")
     try:  # a summary.json of the right format whose fields are missing or of the wrong type
         module = None
         if encoder is not None or rebuild_encoder:
             module = encoder if encoder is not None else encoder_from_spec(summary["encoder"])
             if module.n_neurons <= int(summary["neuron"]):
                 raise MEIError(f"the encoder has {module.n_neurons} neurons; the run used neuron {summary['neuron']}")
+            _check_response(module, state["image"], int(summary["neuron"]), float(summary["activation"]), directory,
+                            given=encoder is not None)
         return MEIResult(
             V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
             history=summary["history"], loss_history=summary["loss_history"], reg_history=summary["reg_history"],
