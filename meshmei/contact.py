@@ -621,7 +621,9 @@ class ContactBarrier:
                             f"{self._least_vertices}, got {tuple(V.shape)}")
         Vn = V.detach().cpu().double().numpy()
         self._since += 1
-        moved = None if self._built_at is None else np.sqrt(_sqlen(Vn - self._built_at))
+        # another vertex count: another mesh on the same faces, searched afresh (it failed in the subtraction)
+        fresh = self._built_at is None or self._built_at.shape != Vn.shape
+        moved = None if fresh else np.sqrt(_sqlen(Vn - self._built_at))
         if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
             self._pairs = self._candidates(Vn, compiled)
             self._built_at = Vn.copy()
@@ -673,6 +675,8 @@ class ContactBarrier:
 
     def __call__(self, V: torch.Tensor) -> torch.Tensor:
         """The contact energy of ``V`` (a scalar with a graph to ``V`` where some pair is within reach)."""
+        if not isinstance(V, torch.Tensor):  # an array failed on its missing .device
+            V = torch.as_tensor(np.asarray(V, dtype=np.float64))
         return contact_energies([self], V[None])[0]
 
 

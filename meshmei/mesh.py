@@ -266,9 +266,12 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     """
     import trimesh  # deferred: importing trimesh takes about 0.35 s and only file I/O needs it
 
+    dtype = _float_dtype(dtype)
     path = Path(os.fspath(path)).expanduser()  # as save_mesh, and as trimesh would
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
+    if path.suffix.lower() == ".obj":
+        _check_obj_indices(path)
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     except Exception as err:  # trimesh raises many types for unreadable files
@@ -290,6 +293,34 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
         raise MeshError(f"{path}: {err}") from None
     V, F = _weld(V, F)
     return cast_vertices(V, dtype, str(path)).to(device=device), F.to(device=device)
+
+
+# a face corner with an index of 0 ("0", "0/2", "1/0/1", "1//0"): OBJ counts from 1 (negative: from the end)
+_OBJ_ZERO_INDEX = re.compile(rb"^f[ \t](?:[^\n]*[ \t/])?0(?=[/ \t\r\n]|$)", re.MULTILINE)
+
+
+def _check_obj_indices(path: Path) -> None:
+    """Refuse an OBJ whose faces use index 0 (of a vertex, texture coordinate or normal). trimesh reads it as
+    -1, the last one: a file written with 0-based indices (a common exporter slip) came back as another,
+    degenerate mesh without a word, and a texture index 0 turned a face into one point."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return  # trimesh names the unreadable file
+    hit = _OBJ_ZERO_INDEX.search(data)
+    if hit is not None:
+        line = data.count(b"\n", 0, hit.start()) + 1
+        raise MeshError(f"{path}, line {line}: a face uses index 0; OBJ indices count from 1 (was the file written "
+                        "with 0-based indices?)")
+
+
+def _float_dtype(dtype) -> torch.dtype:
+    """``dtype`` as a torch floating dtype; its name ("float64") is taken too."""
+    named = getattr(torch, dtype, None) if isinstance(dtype, str) else dtype
+    if not isinstance(named, torch.dtype) or not named.is_floating_point:
+        raise MeshError(f"dtype must be a torch floating dtype such as torch.float32 or torch.float64 (or its name), "
+                        f"got {dtype!r}")
+    return named
 
 
 def _point_count(path: Path) -> int:
@@ -390,6 +421,9 @@ def save_mesh(path, V, F) -> None:
     path = Path(os.fspath(path)).expanduser()
     if path.suffix.lower() not in MESH_FORMATS:
         raise MeshError(f"unsupported mesh format {path.suffix!r} for {path}; use one of {', '.join(MESH_FORMATS)}")
+    if path.suffix.lower() in (".ply", ".stl"):  # binary float32 coordinates: refused here, not misread later
+        cast_vertices(V.detach().cpu().double(), torch.float32, f"{path} ({path.suffix.lower()[1:].upper()} stores "
+                      "float32; OBJ and OFF keep every digit)")
     mesh = trimesh.Trimesh(
         vertices=V.detach().cpu().double().numpy(), faces=F.cpu().numpy(), process=False, validate=False
     )

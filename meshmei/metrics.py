@@ -16,7 +16,9 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .mesh import numpy_mesh
+from ._checks import check_positive
+from .errors import MeshError
+from .mesh import as_faces, numpy_mesh
 from .operators import doublearea, face_normals
 from .quality import count_degenerate_faces, count_self_intersections, edge_use, triangle_quality
 from .sampling import sample_points
@@ -203,7 +205,10 @@ def surface_metrics(V, F, Vt, Ft, *, n_samples: int = EVAL_SAMPLES, seed: int = 
 def face_components(F, n_vertices: int) -> np.ndarray:
     """Label each face with its piece: faces that share a vertex, directly or through other faces, are in
     the same piece. Returns an ``(m,)`` int array of labels ``0 .. pieces - 1``."""
-    F = np.asarray(F.cpu() if isinstance(F, torch.Tensor) else F, dtype=np.int64)
+    check_positive("n_vertices", n_vertices, integer=True)
+    F = as_faces(F).cpu().numpy()  # float, bool and quad faces were read as triangles of indices
+    if int(F.max()) >= n_vertices:
+        raise MeshError(f"F holds vertex index {int(F.max())}, but n_vertices is {n_vertices}")
     i = F[:, [0, 1, 2]].ravel()
     j = F[:, [1, 2, 0]].ravel()
     graph = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(int(n_vertices), int(n_vertices)))
@@ -268,6 +273,9 @@ def hidden_surface(V, F, *, n_samples: int = EVAL_SAMPLES, seed: int = 0, offset
     samples of the squared distance from each hidden sample to the nearest visible sample), and
     ``hidden`` (boolean mask over the samples) with ``points`` ``(n_samples, 3)``.
     """
+    check_positive("offset", offset)  # 0 or inf gave a meaningless fraction without a word
+    if offset >= 0.1:
+        raise ValueError(f"offset must be below 0.1 of the bounding-box diagonal, got {offset!r}")
     V, F = numpy_mesh(V, F)
     Q, N = _sample_np(V, F, int(n_samples), seed + 1)
     h = offset * float(np.linalg.norm(V.max(0) - V.min(0)))

@@ -30,11 +30,13 @@ several losses as an optimisation step does, those three in one pass.
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
 from . import native
 from .errors import MeshError
-from .mesh import check_mesh, check_rest_pose
+from .mesh import as_faces, check_mesh, check_rest_pose
 from .operators import (
     EPS,
     corners,
@@ -110,7 +112,10 @@ def regularizer_values(V, V0, F, names) -> dict:
     """``{name: REGULARIZERS[name](V, V0, F)}`` for ``names``, each () or (B,): the uniform Laplacian, edge and
     area losses among them in one compiled pass with one autograd node (:mod:`meshmei.native`), the others (or
     all of them, where the kernels do not apply) one by one. What an optimisation step evaluates."""
-    names = list(names)
+    names = [names] if isinstance(names, str) else list(names)  # "laplacian" was read letter by letter
+    unknown = [k for k in names if k not in REGULARIZERS]
+    if unknown:
+        raise ValueError(f"unknown regularizers {unknown}; known: {', '.join(REGULARIZERS)}")
     together = [k for k in _COMPILED if k in names]
     values = {}
     if len(together) > 1:
@@ -298,7 +303,11 @@ def arap_loss(V, V0, F, *, eps: float | None = EPS) -> torch.Tensor:
 def albedo_roughness(a, F) -> torch.Tensor:
     """Roughness of a per-vertex scalar field ``a`` (n,) or (B, n) such as an albedo: ``mean_i (a_i - mean of a
     over i's 1-ring)^2`` over vertices with neighbours. Returns () or (B,)."""
-    topo = mesh_topology(torch.as_tensor(F, device=a.device).long(), a.shape[-1])
+    _check_field("a", a, 1, "(n,) or (B, n)")
+    F = as_faces(F)  # float faces were truncated to indices
+    if int(F.max()) >= a.shape[-1]:
+        raise MeshError(f"F holds vertex index {int(F.max())}, but a has values for {a.shape[-1]} vertices")
+    topo = mesh_topology(F.to(a.device), a.shape[-1])
     d = uniform_laplacian_from_topology(a.unsqueeze(-1), topo).squeeze(-1)
     live = topo.degree > 0
     return ((d * d) * live).sum(-1) / live.sum().clamp_min(1)
@@ -307,8 +316,20 @@ def albedo_roughness(a, F) -> torch.Tensor:
 def texture_roughness(T) -> torch.Tensor:
     """:func:`albedo_roughness` of a texture ``(H, W)`` or ``(B, H, W)`` over its grid: ``mean (t - mean of
     the 4 neighbours)^2`` over interior texels. Returns () or (B,)."""
+    _check_field("T", T, 2, "(H, W) or (B, H, W)")  # an RGB (H, W, 3) would be read as a batch of H
+    if min(T.shape[-2:]) < 3:
+        raise ValueError(f"T must be at least 3 x 3 texels to have an interior, got {tuple(T.shape[-2:])}")
     d = T[..., 1:-1, 1:-1] - 0.25 * (T[..., :-2, 1:-1] + T[..., 2:, 1:-1] + T[..., 1:-1, :-2] + T[..., 1:-1, 2:])
     return (d * d).mean((-1, -2))
+
+
+def _check_field(name: str, x, dims: int, shapes: str) -> None:
+    """ValueError unless ``x`` is a real float tensor of ``dims`` or ``dims + 1`` (batched) dimensions."""
+    if not isinstance(x, torch.Tensor) or not x.is_floating_point():
+        got = f"dtype {x.dtype}" if isinstance(x, torch.Tensor) else f"a {type(x).__name__}"
+        raise ValueError(f"{name} must be a float torch tensor, got {got}")
+    if x.ndim not in (dims, dims + 1) or x.numel() == 0:
+        raise ValueError(f"{name} must have shape {shapes}, got {tuple(x.shape)}")
 
 
 REGULARIZERS = {
@@ -344,5 +365,11 @@ def scale_weights(weights: dict, n_vertices: int, ref_vertices: int | None) -> d
     smoothness at every resolution. ``ref_vertices=None`` returns the weights unchanged."""
     if ref_vertices is None:
         return dict(weights)
+    for name, count in (("n_vertices", n_vertices), ("ref_vertices", ref_vertices)):
+        if isinstance(count, bool) or not isinstance(count, numbers.Integral) or count < 1:
+            raise ValueError(f"{name} must be a positive integer, got {count!r}")
+    unknown = sorted(set(weights) - set(RESOLUTION_POWERS))
+    if unknown:
+        raise ValueError(f"unknown regularizers {unknown}; known: {', '.join(RESOLUTION_POWERS)}")
     ratio = n_vertices / ref_vertices
     return {k: w * ratio ** RESOLUTION_POWERS[k] for k, w in weights.items()}

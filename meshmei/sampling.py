@@ -30,6 +30,8 @@ def _generator(generator, device):
     if generator is None or isinstance(generator, torch.Generator):
         return generator
     if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
+        if not -2**63 <= int(generator) < 2**64:  # torch's own "Overflow when unpacking long long" otherwise
+            raise ValueError(f"an int generator is a seed in [-2**63, 2**64 - 1], got {int(generator)}")
         return torch.Generator(device=device).manual_seed(int(generator))
     raise TypeError(f"generator must be None, an int seed or a torch.Generator, got {type(generator).__name__}")
 
@@ -71,7 +73,8 @@ def sample_points(V, F, n: int, *, generator=None, return_normals: bool = False,
     (True, True)
     """
     V, F = check_mesh(V, F)
-    if isinstance(n, bool) or int(n) != n or n < 0:
+    if isinstance(n, bool) or not isinstance(n, (int, float, np.integer, np.floating)) or not 0 <= n < math.inf \
+            or int(n) != n:  # None or "10" failed inside int()
         raise ValueError(f"n must be a non-negative integer, got {n!r}")
     n = int(n)
     g = _generator(generator, V.device)

@@ -719,3 +719,15 @@ def test_the_contact_energy_is_the_sum_over_every_near_vertex_face_pair_over_the
                 d = math.sqrt(d2[v])
                 total += -(d - d_hat) ** 2 * math.log(d / d_hat)
     assert total > 0 and energy == pytest.approx(total / len(Vn), rel=1e-10)
+
+
+def test_a_barrier_called_on_another_vertex_count_searches_afresh():
+    """A barrier called again with fewer vertices (the same faces) failed in NumPy's broadcasting; an
+    array failed on its missing .device."""
+    V, F = initial_mesh("sphere", n_vertices=100)[:2]
+    V = V.double()
+    tri = torch.tensor([[0, 1, 2]])
+    used = ContactBarrier(tri, 0.01)
+    used(V)
+    assert float(used(V[:10])) == float(ContactBarrier(tri, 0.01)(V[:10]))
+    assert float(ContactBarrier(F, 0.05)(V.numpy())) == float(ContactBarrier(F, 0.05)(V))

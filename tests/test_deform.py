@@ -376,3 +376,22 @@ def test_the_dense_map_with_its_mask_in_the_exponent_is_the_masked_product_bit_f
         for a, b in zip(*grads):
             assert torch.equal(a, b) or (a.isnan() == b.isnan()).all() and torch.equal(a.nan_to_num(), b.nan_to_num())
     assert bool(torch.isfinite(grads[0][0]).all()) is False  # inv = inf: NaN at the centre either way
+
+
+def test_kernels_too_narrow_for_the_dtype_and_odd_arguments_are_refused():
+    """sigma=1e-300 passed "positive and finite" and gave NaN vertices once the offsets moved; a string
+    sigma, r_cut None and an infinite headroom (every pair kept) passed or failed inside Python."""
+    V, _ = icosphere(1)
+    V = V.float()
+    for kw, says in [(dict(sigma=1e-300), "kernels are 1e-300 wide, too narrow for torch.float32"),
+                     (dict(sigma=1e-20), "too narrow for torch.float32"),
+                     (dict(sigma_factor=1e-300), "too narrow for torch.float32"),
+                     (dict(sigma="1"), "sigma must be a positive number, got '1'"),
+                     (dict(r_cut=None), "r_cut must be a positive number, got None"),
+                     (dict(headroom=math.inf), "headroom must be a finite number of at least 1")]:
+        with pytest.raises(ValueError, match=says):
+            RBFDeformer(V, **kw)
+    rbf = RBFDeformer(V.double(), sigma=1e-20)  # float64 holds 1 / sigma^2
+    with torch.no_grad():
+        rbf.offsets.fill_(1e-3)
+    assert bool(torch.isfinite(rbf()).all())

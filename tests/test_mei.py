@@ -244,7 +244,7 @@ def test_bad_input_raises_mei_error():
     with pytest.raises(MEIError, match="grid"):
         grid_search(cell, 0, "sheet", {"laplacian": []}, **TINY)
     # kernels too narrow for float32 gave NaN vertices, reported as a mesh error at the first render
-    with pytest.raises(MEIError, match=r"^sigma_factor=1e-30 makes the RBF kernels \S+ wide, too narrow for "
+    with pytest.raises(MEIError, match=r"^sigma_factor=1e-30: the RBF kernels are \S+ wide, too narrow for "
                                        r"torch.float32 arithmetic \(1 / sigma\^2 overflows\); raise sigma_factor$"):
         optimize_mei(cell, 0, "sheet", **{**TINY, "sigma_factor": 1e-30})
 

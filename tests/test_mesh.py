@@ -326,3 +326,45 @@ def test_a_tiny_mesh_keeps_its_shape_in_text_formats(tmp_path, suffix):
     V2, F2 = load_mesh(tmp_path / f"tiny{suffix}", dtype=torch.float64)
     assert torch.equal(F2, F)
     assert float((V2 - V).abs().max()) <= 1e-8 * 1e-9
+
+
+@pytest.mark.parametrize("face", ["f 0 1 2", "f 2 3 0", "f\t0 1 2", "f 1/0/1 2/0/2 3//3", "f 1//1 2//2 3//0", "f 2 3 0\r"])
+def test_an_obj_with_index_0_is_refused_naming_its_line(tmp_path, face):
+    """OBJ counts from 1; trimesh read index 0 as the last vertex, so a 0-based file came back as another,
+    degenerate mesh without a word (and a texture index 0 turned the face into one point)."""
+    path = tmp_path / "zero.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n" + face + "\n")
+    with pytest.raises(MeshError, match=rf"zero.obj, line 9: a face uses index 0; OBJ indices count from 1"):
+        load_mesh(path)
+
+
+def test_obj_indices_that_only_contain_0_still_load(tmp_path):
+    path = tmp_path / "ten.obj"
+    path.write_text("".join(f"v {i} {i % 3} {i % 5}\n" for i in range(12)) + "vt 0 0\n" * 12
+                    + "f 10/10 2/1 3/2\nf 1 11 12\nf -1 -2 -3\n")
+    V, F = load_mesh(path, dtype=torch.float64)  # the reader renumbers the vertices: compare corners
+    corner = [[[float(i), i % 3, i % 5] for i in face] for face in ([9, 1, 2], [0, 10, 11], [11, 10, 9])]
+    assert V[F].tolist() == corner
+
+
+def test_load_mesh_takes_float_dtypes_and_their_names_only(tmp_path):
+    path = tmp_path / "tri.obj"
+    save_mesh(path, torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), torch.tensor([[0, 1, 2]]))
+    assert load_mesh(path, dtype="float64")[0].dtype == torch.float64
+    for dtype in (torch.int64, torch.complex64, "int64", "cuda", np.float32):
+        with pytest.raises(MeshError, match="dtype must be a torch floating dtype"):
+            load_mesh(path, dtype=dtype)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".stl"])
+def test_save_mesh_refuses_coordinates_the_formats_float32_cannot_hold(tmp_path, suffix):
+    """PLY and STL store float32: a mesh 1e-50 across was written as one point and read back as the face
+    [0, 0, 0]; one at 1e300 was written as inf. OBJ keeps every digit."""
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)
+    F = torch.tensor([[0, 1, 2]])
+    for scale, says in ((1e-50, "its vertices collapse"), (1e300, "do not fit in torch.float32")):
+        with pytest.raises(MeshError, match=rf"{suffix[1:].upper()} stores float32.*{says}"):
+            save_mesh(tmp_path / f"m{suffix}", V * scale, F)
+        assert not list(tmp_path.iterdir())
+    save_mesh(tmp_path / "m.obj", V * 1e-50, F)
+    assert torch.equal(load_mesh(tmp_path / "m.obj", dtype=torch.float64)[0], V * 1e-50)

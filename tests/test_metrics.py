@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import igl
 import numpy as np
 import pytest
@@ -185,3 +187,20 @@ def test_surface_metrics_count_health_defects_that_are_there():
     m = surface_metrics(W, T, W, T, n_samples=2000)
     assert (m.self_intersections, m.degenerate_faces) == (1, 1)
 
+
+def test_face_components_and_hidden_surface_check_their_arguments():
+    V, F = icosphere(1)
+    n = V.shape[0]
+    assert face_components(F, n).tolist() == [0] * F.shape[0]
+    for faces, count, error, says in [(F, 2, MeshError, f"F holds vertex index {n - 1}, but n_vertices is 2"),
+                                      (F.double(), n, MeshError, "integer dtype"),
+                                      ([[0, 1, 2, 3]], n, MeshError, "shape \\(1, 4\\)"),
+                                      (F, "4", ValueError, "n_vertices must be a positive integer"),
+                                      (-F, n, MeshError, "negative vertex index")]:
+        with pytest.raises(error, match=says):
+            face_components(faces, count)
+    for offset in (0, -1, math.inf):  # offset 0 reported 0.46 of a convex surface as hidden
+        with pytest.raises(ValueError, match="offset must be positive and finite"):
+            hidden_surface(V, F, n_samples=100, offset=offset)
+    with pytest.raises(ValueError, match="offset must be below 0.1"):
+        hidden_surface(V, F, n_samples=100, offset=0.5)

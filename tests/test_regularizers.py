@@ -648,3 +648,35 @@ def test_albedo_roughness_is_the_mean_over_vertices_of_the_squared_umbrella():
             neighbours[x] |= set(f) - {x}
     expected = np.mean([(float(a[i]) - np.mean([float(a[j]) for j in s])) ** 2 for i, s in enumerate(neighbours) if s])
     assert float(reg.albedo_roughness(a, F)) == pytest.approx(expected, rel=1e-12)
+
+
+def test_regularizer_values_and_scale_weights_name_what_they_do_not_know():
+    V, F = icosphere(1)
+    assert set(reg.regularizer_values(V, V, F, "laplacian")) == {"laplacian"}  # was read letter by letter
+    with pytest.raises(ValueError, match="unknown regularizers \\['smooth'\\]"):
+        reg.regularizer_values(V, V, F, ["laplacian", "smooth"])
+    assert reg.scale_weights({"laplacian": 1.0}, 800, 400) == {"laplacian": 4.0}
+    for n, ref, says in [(100, 0, "ref_vertices must be a positive integer, got 0"),
+                         (100, -5, "ref_vertices must be"), (2.5, 400, "n_vertices must be")]:
+        with pytest.raises(ValueError, match=says):
+            reg.scale_weights({"laplacian": 1.0}, n, ref)
+    with pytest.raises(ValueError, match="unknown regularizers \\['smooth'\\]"):
+        reg.scale_weights({"smooth": 1.0}, 100, 400)
+
+
+def test_albedo_and_texture_roughness_refuse_what_they_cannot_read():
+    V, F = icosphere(1)
+    a = torch.rand(V.shape[0], dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(reg.albedo_roughness(a, F)) and torch.isfinite(reg.texture_roughness(torch.rand(8, 8)))
+    with pytest.raises(ValueError, match="a must be a float torch tensor, got a ndarray"):
+        reg.albedo_roughness(a.numpy(), F)
+    with pytest.raises(ValueError, match="a must have shape \\(n,\\) or \\(B, n\\), got \\(\\)"):
+        reg.albedo_roughness(a[0], F)
+    with pytest.raises(MeshError, match="F must have an integer dtype"):  # float faces were truncated
+        reg.albedo_roughness(a, F.double() + 0.7)
+    with pytest.raises(MeshError, match=f"a has values for {V.shape[0] - 1} vertices"):
+        reg.albedo_roughness(a[:-1], F)
+    with pytest.raises(ValueError, match="at least 3 x 3 texels"):  # NaN before: no interior texel
+        reg.texture_roughness(torch.rand(2, 2))
+    with pytest.raises(ValueError, match="T must have shape \\(H, W\\) or \\(B, H, W\\), got \\(8,\\)"):
+        reg.texture_roughness(torch.rand(8))

@@ -503,3 +503,30 @@ def test_texture_albedo_matches_vertex_albedo_on_a_linear_ramp_and_has_exact_gra
                                     eps=1e-6, atol=1e-5, rtol=1e-3)
     with pytest.raises(RenderError, match="uv must have shape"):
         render(V, F, settings=st, albedo=T, uv=uv[:2])
+
+
+def test_camera_numbers_given_as_text_are_kept_as_the_floats_checked():
+    """Camera(fov_degrees='30') passed its check and failed inside the renderer with a TypeError."""
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64) - 0.3
+    F = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    text = Camera(fov_degrees="30", znear="0.1", zfar="100")
+    assert (text.fov_degrees, text.znear, text.zfar) == (30.0, 0.1, 100.0)
+    assert torch.equal(render(V, F, camera=text), render(V, F, camera=Camera()))
+    assert camera_from_angles(0.0, 0.0, znear="0.1").znear == 0.1
+    with pytest.raises(RenderError, match="znear must be a real number, got 'x'"):
+        camera_from_angles(0.0, 0.0, znear="x")
+
+
+def test_a_texture_and_its_uv_must_hold_real_numbers():
+    """A complex texture rendered a complex image (through the zero-weight anchor); bool ones were read as
+    0 and 1."""
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64) - 0.3
+    F = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    uv = torch.rand(4, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    assert render(V, F, albedo=torch.ones(4, 4), uv=uv).dtype == torch.float64
+    for albedo, coords, says in [(torch.ones(4, 4, dtype=torch.complex64), uv, "albedo \\(a texture\\) .*complex64"),
+                                 (torch.ones(4, 4, dtype=torch.bool), uv, "albedo \\(a texture\\) .*bool"),
+                                 (torch.ones(4, 4), uv > 0.5, "uv must hold real numbers"),
+                                 ("abc", uv, "albedo \\(a texture\\) must hold real numbers")]:
+        with pytest.raises(RenderError, match=says):
+            render(V, F, albedo=albedo, uv=coords)

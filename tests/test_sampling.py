@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import doctest
 import importlib
+import math
 
 import numpy as np
 import pytest
@@ -256,3 +257,13 @@ def test_chamfer_names_the_argument_holding_nan():
     for args, name in (((bad, P), "P"), ((P, bad), "Q")):
         with pytest.raises(ValueError, match=f"{name} holds NaN or Inf \\(1 of 10 points, first at index 3\\)"):
             chamfer_distance(*args)
+
+
+def test_sample_counts_and_seeds_are_checked_before_torch_sees_them():
+    V, F = icosphere(1)
+    assert sample_points(V, F, 5.0, generator=3).shape == (5, 3)
+    for n in (None, "10", math.inf, math.nan, -1, 2.5):
+        with pytest.raises(ValueError, match="n must be a non-negative integer"):
+            sample_points(V, F, n)
+    with pytest.raises(ValueError, match="an int generator is a seed in \\[-2\\*\\*63, 2\\*\\*64 - 1\\]"):
+        sample_points(V, F, 5, generator=2**64)

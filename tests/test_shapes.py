@@ -514,3 +514,16 @@ def test_shape_arguments_that_gave_garbage_are_refused(call, match):
 def test_normalize_unit_diagonal_checks_its_input(V, match):
     with pytest.raises(MeshError, match=match):
         normalize_unit_diagonal(V)
+
+
+def test_remesher_iterations_have_a_ceiling():
+    """initial_mesh(iterations=10**6) ran for over an hour in pymeshlab's loop, which Python cannot
+    interrupt."""
+    from meshmei.shapes.remeshing import MAX_REMESH_ITERATIONS
+
+    V, F = initial_mesh("sphere", n_vertices=100)[:2]
+    for call in (lambda it: initial_mesh("sphere", n_vertices=50, iterations=it), lambda it: remesh(V, F, 100, iterations=it)):
+        with pytest.raises(ValueError, match=f"iterations must be at most {MAX_REMESH_ITERATIONS:,}, got 1000000"):
+            call(10**6)
+        with pytest.raises(ValueError, match="iterations must be a positive integer, got 2.5"):
+            call(2.5)

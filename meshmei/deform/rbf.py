@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 import warnings
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from .._checks import check_positive
 from ..errors import MeshError
 from ..sampling import nn_spacing
 
@@ -178,10 +180,9 @@ def _check_rest(V0, r_cut, headroom) -> None:
         raise MeshError("V0 is empty: shape (0, 3)")
     if not bool(torch.isfinite(V0).all()):
         raise MeshError(f"V0 holds NaN or Inf coordinates (shape {tuple(V0.shape)})")
-    if not (r_cut > 0 and math.isfinite(r_cut)):
-        raise ValueError(f"r_cut must be positive and finite, got {r_cut!r}")
-    if not headroom >= 1.0:
-        raise ValueError(f"headroom must be at least 1, got {headroom!r}")
+    check_positive("r_cut", r_cut)  # None or "4" failed in the comparison
+    if isinstance(headroom, bool) or not isinstance(headroom, numbers.Real) or not 1.0 <= headroom < math.inf:
+        raise ValueError(f"headroom must be a finite number of at least 1, got {headroom!r}")  # inf: every pair
 
 
 def _center_index(V0, centers) -> torch.Tensor:
@@ -280,13 +281,14 @@ class RBFDeformer(torch.nn.Module):
             spacing = nn_spacing(self._c_np) if K > 1 else math.inf
             if not math.isfinite(spacing):  # one kernel, or all at one point
                 spacing = float(np.linalg.norm(self._v0_np.max(0) - self._v0_np.min(0))) or 1.0
-            if not (sigma_factor > 0 and math.isfinite(sigma_factor)):
-                raise ValueError(f"sigma_factor must be positive and finite, got {sigma_factor!r}")
+            check_positive("sigma_factor", sigma_factor)
             sigma = sigma_factor * spacing
-        if not (sigma > 0 and math.isfinite(sigma)):
-            raise ValueError(f"sigma must be positive and finite, got {sigma!r}")
+        check_positive("sigma", sigma)
         self.offsets = torch.nn.Parameter(torch.zeros(K, 3, dtype=V0.dtype, device=V0.device))
         log_sigma = torch.full((K,), math.log(sigma), dtype=V0.dtype, device=V0.device)
+        if not bool(torch.isfinite(torch.exp(-2.0 * log_sigma)).all()):  # a kernel's own centre: 0 * inf, NaN
+            raise ValueError(f"the RBF kernels are {sigma:.3g} wide, too narrow for {V0.dtype} arithmetic "
+                             "(1 / sigma^2 overflows)")
         if not isinstance(learn_scales, (bool, np.bool_)):  # "no" would switch them on
             raise ValueError(f"learn_scales must be True or False, got {learn_scales!r}")
         if learn_scales:

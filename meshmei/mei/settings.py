@@ -523,13 +523,11 @@ def _render_settings(render, image_size: int) -> RenderSettings:
 def make_deformer(V0, settings: MEISettings, centers=None):
     if centers is None:
         centers = settings.centers
-    rbf = RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
-                      learn_scales=settings.lr_scales > 0)
-    with torch.no_grad():  # a kernel this narrow weighs its own centre 0 * inf: NaN vertices at the first render
-        if not bool(torch.isfinite(torch.exp(-2.0 * rbf.log_sigma)).all()):
-            raise MEIError(f"sigma_factor={settings.sigma_factor!r} makes the RBF kernels {float(rbf.sigma.min()):.3g} "
-                           f"wide, too narrow for {V0.dtype} arithmetic (1 / sigma^2 overflows); raise sigma_factor")
-    return rbf
+    try:  # a kernel too narrow for the dtype: NaN vertices at the first render, were it built
+        return RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
+                           learn_scales=settings.lr_scales > 0)
+    except ValueError as err:
+        raise MEIError(f"sigma_factor={settings.sigma_factor!r}: {err}; raise sigma_factor") from None
 
 
 def rebuild_deformer(V0, state, settings):

@@ -364,17 +364,26 @@ def _stall_warning(k: int, stage: dict, V, F, max_step) -> str:
             f"start unchanged")
 
 
-def _check_start(param, V, k: int, method: str) -> None:
-    """A stage's parameterisation must reproduce its start: at a scale where its arithmetic under- or
-    overflows (an rbf kernel 1e-20 wide), it gives NaN, which would otherwise surface at the first step."""
-    with torch.no_grad():
-        start = param.vertices()
-    if not bool(torch.isfinite(start).all()):
+def _check_start(build, V, k: int, method: str):
+    """The stage's parameterisation, ``build()``, which must reproduce its start: at a scale where its
+    arithmetic under- or overflows (an rbf kernel 1e-20 wide) it gives NaN, which would otherwise surface at
+    the first step, or its deformer refuses to be built."""
+    try:
+        param = build()
+        with torch.no_grad():
+            fails = not bool(torch.isfinite(param.vertices()).all())
+        why = ""
+    except ValueError as err:  # the deformer's own check (RBFDeformer: kernels too narrow for the dtype)
+        if type(err) is not ValueError:  # meshmei's errors (MeshError, ReconstructionError) say what they mean
+            raise
+        fails, why = True, f" ({err})"
+    if fails:
         Vd = V.detach().double()
         size = float((Vd.max(0).values - Vd.min(0).values).norm())
         raise ReconstructionError(f"stage {k}: the {method} deformation gives non-finite vertices at its start, a mesh "
                                   f"{size:.3g} across (bounding-box diagonal, {V.dtype}), too small or too large for "
-                                  f"its arithmetic; scale the source toward the target's size (unit diagonal)")
+                                  f"its arithmetic{why}; scale the source toward the target's size (unit diagonal)")
+    return param
 
 
 def _guarded_step(s: ReconstructionSettings, sk: ReconstructionSettings, n_stage: int) -> ReconstructionSettings:
@@ -543,8 +552,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
             # a kernel count at a stage's requested size: the remesh lands a few vertices off (300 gave 296),
             # and a stage has at most one kernel per vertex (the count it got is in the stage's n_kernels)
             sk = replace(sk, centers=V.shape[0])
-        param = _parameterisation(sk, V.detach(), F)
-        _check_start(param, V, k, sk.method)
+        param = _check_start(lambda: _parameterisation(sk, V.detach(), F), V, k, sk.method)
         contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
                    if s.w_contact > 0 else None)
         left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit

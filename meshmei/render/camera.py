@@ -84,6 +84,8 @@ class Camera:
         near, far = finite_float("znear", self.znear), finite_float("zfar", self.zfar)
         if not 0 < near < far:
             raise RenderError(f"need 0 < znear < zfar, got znear={self.znear!r}, zfar={self.zfar!r}")
+        for name, value in (("fov_degrees", fov), ("znear", near), ("zfar", far)):  # kept as checked: "30" was
+            object.__setattr__(self, name, value)  # accepted here and failed inside the renderer
         sizes = {_batch_of(name, getattr(self, name)) for name in ("eye", "at", "up")}
         sizes.discard(1)
         if len(sizes) > 1:
@@ -177,6 +179,7 @@ def camera_from_angles(azimuth, elevation, distance=DEFAULT_DISTANCE, *, at=(0.0
             raise RenderError(f"{name} must be a scalar or a (B,) tensor, got shape {tuple(t.shape)}")
         if not bool(torch.isfinite(t).all()):
             raise RenderError(f"{name} holds NaN or Inf")
+    znear = finite_float("znear", znear)  # a string failed in the comparison below
     if bool((ts[2] <= znear).any()):  # a camera that close sees the object's centre clipped away
         raise RenderError(f"distance must be > znear ({znear}), got {ts[2].tolist()}")
     sizes = {t.numel() for t in ts} - {1}

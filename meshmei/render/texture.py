@@ -5,19 +5,18 @@ from __future__ import annotations
 import torch
 
 from .settings import RenderError
+from .transforms import real_numbers
 
 __all__ = ["check_texture", "sample_texture"]
 
 
 def check_texture(texture, uv, n: int, B: int, dtype, device):
     """``texture`` as ``(B, H, W)`` and per-vertex ``uv`` as ``(n, 2)``; RenderError for bad ones."""
-    T = texture if isinstance(texture, torch.Tensor) else torch.as_tensor(texture, dtype=dtype, device="cpu")
-    T = T.to(dtype=dtype, device=device)
+    T = real_numbers("albedo (a texture)", texture, dtype).to(dtype=dtype, device=device)  # complex or bool: refused
     if T.ndim not in (2, 3) or min(T.shape[-2:]) < 2 or (T.ndim == 3 and T.shape[0] not in (1, B)):
         raise RenderError(f"a texture albedo must have shape (H, W) or (B, H, W) with H, W >= 2 and B = {B}, "
                           f"got {tuple(T.shape)}")
-    u = uv if isinstance(uv, torch.Tensor) else torch.as_tensor(uv, dtype=dtype, device="cpu")
-    u = u.to(dtype=dtype, device=device)
+    u = real_numbers("uv", uv, dtype).to(dtype=dtype, device=device)
     if u.shape != (n, 2):
         raise RenderError(f"uv must have shape (n, 2) = ({n}, 2), got {tuple(u.shape)}")
     if not (bool(torch.isfinite(T).all()) and bool(torch.isfinite(u).all())):

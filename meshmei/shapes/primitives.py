@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .._checks import check_positive
-from .remeshing import count_for_edge_length, edge_length_for_count, isotropic_remesh
+from .remeshing import check_iterations, count_for_edge_length, edge_length_for_count, isotropic_remesh
 
 __all__ = ["initial_mesh", "INITIAL_KINDS", "DEFAULT_N_VERTICES", "SPHERE_RADIUS", "TORUS_MAJOR_RADIUS",
            "TORUS_MINOR_RADIUS", "SHEET_SIDE"]
@@ -169,7 +169,8 @@ def initial_mesh(
     ------
     ValueError
         Unknown ``kind``, both or invalid ``target_edge_length`` / ``n_vertices``, non-positive ``size``
-        or ``iterations``, or a request implying fewer than 32 or more than 5,000,000 vertices.
+        or ``iterations`` (or ``iterations`` above ``MAX_REMESH_ITERATIONS``, 1,000), or a request implying
+        fewer than 32 or more than 5,000,000 vertices.
 
     Examples
     --------
@@ -182,7 +183,7 @@ def initial_mesh(
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:  # an int dtype truncated every vertex to 0
         raise ValueError(f"dtype must be a torch floating-point dtype, got {dtype!r}")
     check_positive("size", size)
-    check_positive("iterations", iterations, integer=True)
+    check_iterations(iterations)
     if target_edge_length is not None and n_vertices is not None:
         raise ValueError(
             f"give target_edge_length or n_vertices, not both (got {target_edge_length!r} and {n_vertices!r})"

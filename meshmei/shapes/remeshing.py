@@ -114,6 +114,17 @@ UNCHECKED_FROM = 8000
 # edge length, which it cannot coarsen, while it splits every long edge: a needle 1,000 long and 1e-3 thick
 # asked for 160 vertices gave 108,102, and the checks that followed ran for minutes. remesh refuses it.
 MAX_REMESH_GROWTH = 4
+# iterations of pymeshlab's remesher a call may ask for: 1,000 take about 5 s on a small sphere, and the loop
+# cannot be interrupted from Python (10**6 ran for over an hour)
+MAX_REMESH_ITERATIONS = 1000
+
+
+def check_iterations(iterations) -> int:
+    """``iterations`` as an int, or a ValueError when it is not an integer in 1..MAX_REMESH_ITERATIONS."""
+    check_positive("iterations", iterations, integer=True)
+    if iterations > MAX_REMESH_ITERATIONS:
+        raise ValueError(f"iterations must be at most {MAX_REMESH_ITERATIONS:,}, got {iterations!r}")
+    return int(iterations)
 
 
 def remesh(V, F, n_vertices: int, *, iterations: int = 5):
@@ -142,7 +153,8 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
     Raises
     ------
     ValueError
-        ``n_vertices`` or ``iterations`` is not a positive integer.
+        ``n_vertices`` or ``iterations`` is not a positive integer, or ``iterations`` is above
+        :data:`MAX_REMESH_ITERATIONS`.
     MeshError
         An invalid mesh, or one of zero area, or a result of more than :data:`MAX_REMESH_GROWTH` times
         ``n_vertices`` (plus 100) vertices: parts thinner than the edge length for that count.
@@ -157,7 +169,7 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
     import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
 
     check_positive("n_vertices", n_vertices, integer=True)
-    check_positive("iterations", iterations, integer=True)
+    check_iterations(iterations)
     V, F = check_mesh(V, F)
     Vn = V.detach().cpu().double().numpy()
     Fn = F.cpu().numpy().astype(np.int32)
