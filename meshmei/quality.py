@@ -15,6 +15,7 @@ import igl.predicates
 import numpy as np
 import torch
 
+from ._checks import check_non_negative
 from .errors import MeshError
 from .mesh import as_faces, check_mesh, check_rest_pose, numpy_mesh
 from .operators import corners, doublearea_from_corners, edges, face_normals, sq_edge_sum_from_corners
@@ -84,6 +85,7 @@ def in_range(V):
 
 def count_degenerate_faces(V, F, *, eps: float = 1e-12) -> int:
     """Faces whose double area is at most ``eps`` times their summed squared edge lengths (in float64)."""
+    check_non_negative("eps", eps)  # inf counted every face, None failed in the comparison
     V, F = check_mesh(V, F)
     dbl, l2 = triangle_measures(in_range(V.detach().double()), F)
     return int((dbl <= eps * l2).sum())

@@ -169,3 +169,14 @@ def test_a_mesh_at_an_extreme_scale_gets_the_health_of_the_same_mesh_at_size_one
     for k in ("min_quality", "mean_quality"):  # V * scale is V rounded once: the same to rounding
         assert far.pop(k) == pytest.approx(near.pop(k), rel=1e-12, abs=0)
     assert far == near
+
+
+def test_the_degenerate_face_tolerance_must_be_a_finite_non_negative_number():
+    """eps=inf counted every face of a regular tetrahedron as degenerate; None failed in the comparison."""
+    V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    F = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    assert count_degenerate_faces(V, F) == 0 and count_degenerate_faces(V, F, eps=0.0) == 0
+    for eps in (None, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="eps must be a finite non-negative number"):
+            count_degenerate_faces(V, F, eps=eps)
+

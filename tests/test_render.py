@@ -515,6 +515,9 @@ def test_camera_numbers_given_as_text_are_kept_as_the_floats_checked():
     assert camera_from_angles(0.0, 0.0, znear="0.1").znear == 0.1
     with pytest.raises(RenderError, match="znear must be a real number, got 'x'"):
         camera_from_angles(0.0, 0.0, znear="x")
+    for eye in ("abc", [True, False, True]):  # text failed inside torch; bools were read as 1 and 0
+        with pytest.raises(RenderError, match="eye must hold real numbers"):
+            Camera(eye=eye)
 
 
 def test_a_texture_and_its_uv_must_hold_real_numbers():

@@ -33,7 +33,7 @@ DEFAULT_FOV_DEGREES = 30.0
 
 def _vec3(name, x, dtype, device):
     """``x`` as a ``(B, 3)`` tensor (B >= 1) on ``device`` in ``dtype``, keeping its autograd graph."""
-    t = x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=torch.float64, device="cpu")
+    t = real_numbers(name, x, torch.float64)  # text failed inside torch.as_tensor
     if not t.is_floating_point() and t.dtype not in (torch.int32, torch.int64):
         raise RenderError(f"{name} must hold real numbers, got dtype {t.dtype}")
     if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
@@ -139,7 +139,7 @@ def _immutable(x) -> bool:
 
 
 def _batch_of(name, x):
-    t = x if isinstance(x, torch.Tensor) else torch.as_tensor(x, dtype=torch.float64, device="cpu")
+    t = real_numbers(name, x, torch.float64)
     if t.ndim not in (1, 2) or t.shape[-1] != 3 or t.shape[0] == 0:
         raise RenderError(f"{name} must have shape (3,) or (B, 3), got {tuple(t.shape)}")
     return 1 if t.ndim == 1 else t.shape[0]
