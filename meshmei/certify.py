@@ -51,6 +51,7 @@ import torch
 
 from . import native
 from .contact import pair_distance_bounds
+from .errors import MeshError
 from .metrics import face_components
 from .quality import edge_use
 from .topology import mesh_topology
@@ -106,6 +107,7 @@ class GraphCertificate:
                             for a in (sn[i.numpy(), 0], sn[i.numpy(), 1], sn[j.numpy(), 0], sn[j.numpy(), 1]))
         # for the compiled check: faces, each vertex's kind (0 no face, 1 interior, 2 boundary), the basis rows
         self._F = np.ascontiguousarray(F.numpy(), dtype=np.int64)
+        self._n_vertices = n_vertices
         self._kind = (self._interior.astype(np.uint8) + 2 * self._boundary.astype(np.uint8))
         self._u, self._w = np.ascontiguousarray(basis[0].numpy()), np.ascontiguousarray(basis[1].numpy())
 
@@ -143,6 +145,8 @@ class GraphCertificate:
         else in NumPy (on arrays this size its per-operation cost is a fraction of torch's); pass float64
         normals, or the margins may fail on rounding."""
         normals, V = normals.detach().cpu().double(), V.detach().cpu().double()
+        if not _proper_input(V, normals, self._n_vertices, len(self._F), exact=True):
+            return False
         if native.enabled() if compiled is None else compiled:
             Vn, Nn = np.ascontiguousarray(V.numpy()), np.ascontiguousarray(normals.numpy())
             work = np.empty(3 * len(Vn))
@@ -207,6 +211,8 @@ class StarCertificate:
         whatever the inputs' device: compiled where the kernels are built (``meshmei/_contact.c``, the same
         rules with rough angles: 0.07 against 0.22 ms a call on the 3D-MEI's sphere), else coordinate by
         coordinate in NumPy."""
+        if not _proper_input(V, normals, int(self._used[-1]) + 1 if len(self._used) else 0, len(self._F)):
+            return False
         Vn = V.detach().cpu().double().numpy()
         if native.enabled() if compiled is None else compiled:
             Vn = np.ascontiguousarray(Vn)
@@ -233,6 +239,20 @@ class StarCertificate:
         cosine = x1 * x2 + y1 * y2 + z1 * z2 - (rx * x1 + ry * y1 + rz * z1) * (rx * x2 + ry * y2 + rz * z2) / r2
         turn = np.bincount(c, weights=np.arctan2(sine, cosine), minlength=len(x))
         return bool((np.abs(turn[self._used] - 2 * math.pi) <= 1e-6).all())
+
+
+def _proper_input(V: torch.Tensor, normals: torch.Tensor, n: int, m: int, exact: bool = False) -> bool:
+    """MeshError unless ``V`` is ``(n, 3)`` (at least ``n`` rows unless ``exact``) and ``normals`` ``(m, 3)``:
+    the compiled checks index them by the certificate's faces, and a shorter array was read (and its work
+    buffer written) past its end. False where either holds NaN or Inf: nothing is proven (every rule is
+    'fail if above', which NaN never is)."""
+    rows_ok = V.shape[0] == n if exact else V.shape[0] >= n
+    if V.ndim != 2 or V.shape[1] != 3 or not rows_ok:
+        raise MeshError(f"V must have shape ({n}{'' if exact else ' or more'}, 3) for the certificate's faces, got "
+                        f"{tuple(V.shape)}")
+    if tuple(normals.shape) != (m, 3):
+        raise MeshError(f"normals must have shape ({m}, 3), one per face, got {tuple(normals.shape)}")
+    return bool(torch.isfinite(V).all()) and bool(torch.isfinite(normals).all())
 
 
 def _segments_closer_than(x: np.ndarray, y: np.ndarray, a0, a1, b0, b1, tol: float) -> bool:
@@ -388,6 +408,11 @@ class SeparationCertificate:
     def unfolded(self, V: np.ndarray, compiled: bool | None = None) -> np.ndarray:
         """``(n,)`` bool: the vertices whose star is proven a fan that wraps once (rule 2), float64 ``V``
         (compiled where the kernels are built: the same rule, about 20 times faster at 10k vertices)."""
+        V = np.asarray(V.detach().cpu() if isinstance(V, torch.Tensor) else V, dtype=np.float64)
+        if V.shape != (self.n_vertices, 3):  # the kernel reads n_vertices rows: a shorter V was read past its end
+            raise MeshError(f"V must have shape ({self.n_vertices}, 3), the certificate's mesh; got {V.shape}")
+        if not np.isfinite(V).all():
+            return np.zeros(self.n_vertices, dtype=bool)  # nothing proven (NaN passes every 'fail if above')
         if native.enabled() if compiled is None else compiled:
             V = np.ascontiguousarray(V, dtype=np.float64)
             ok = np.empty(self.n_vertices, dtype=np.uint8)

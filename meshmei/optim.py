@@ -227,7 +227,11 @@ def make_optimizer(name: str, groups: list) -> torch.optim.Optimizer:
     Adam runs its per-tensor loop (``foreach=False``): the same arithmetic, bit for bit, as the default
     multi-tensor path, and 0.1-0.2 ms a step cheaper with the one to four tensors of these problems.
     """
-    if name == "adam":
+    if name == "adam":  # torch checks its default lr only: a group's negative lr climbed the loss without a word
+        for k, group in enumerate(groups):
+            lr = group.get("lr", 1e-3) if isinstance(group, dict) else 1e-3
+            if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0 <= lr < math.inf:
+                raise ValueError(f"parameter group {k}: lr must be a finite non-negative number, got {lr!r}")
         return torch.optim.Adam(groups, foreach=False)
     if name == "uniform":
         return AdamUniform(groups)

@@ -80,7 +80,8 @@ def in_range(V):
     m = float(abs(V).max()) if len(V) else 0.0
     if m == 0.0 or not math.isfinite(m) or 1e-50 < m < 1e50:
         return V
-    return V * 2.0 ** -math.frexp(m)[1]
+    e = -math.frexp(m)[1]  # below 2**-1022 (subnormal) 2**e alone overflows a float: two exact factors
+    return (V * 2.0 ** (e // 2)) * 2.0 ** (e - e // 2)
 
 
 def count_degenerate_faces(V, F, *, eps: float = 1e-12) -> int:

@@ -488,3 +488,33 @@ def test_the_guard_with_the_separation_certificate_gives_libigls_verdicts(monkey
     assert sep_guard.reasons == plain.reasons and plain.reasons["intersection"] > 0
     assert subset_refusals > 0
     assert sep_guard.separated > 0.5 * (sep_guard.checks - sep_guard.failures)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_certificates_refuse_arrays_of_another_mesh_and_prove_nothing_non_finite(compiled):
+    """The compiled checks index V and the normals by the certificate's faces: a V of 10 rows was read (and
+    its work buffer written) past its end, a segmentation fault or heap corruption, and normals of 3 rows
+    'proved' the sheet from memory beyond them. NaN passed every 'fail if above' rule of the NumPy path."""
+    from meshmei.certify import SeparationCertificate
+    from meshmei.errors import MeshError
+
+    if compiled:
+        from meshmei import native
+        if not native.enabled():
+            pytest.skip("the compiled kernels are not built here")
+    for kind, cls in (("sheet", GraphCertificate), ("sphere", StarCertificate)):
+        V, F = initial_mesh(kind, n_vertices=300, dtype=torch.float64)[:2]
+        N, _ = face_frame(V, F)
+        cert = cls.for_start(V, F, N)
+        assert cert.holds(V, N, compiled=compiled)
+        with pytest.raises(MeshError, match="V must have shape"):
+            cert.holds(V[:10], N, compiled=compiled)
+        with pytest.raises(MeshError, match=rf"normals must have shape \({F.shape[0]}, 3\), one per face, got \(3, 3\)"):
+            cert.holds(V, N[:3], compiled=compiled)
+        assert not cert.holds(V * math.nan, N * math.nan, compiled=compiled)
+        assert not cert.holds(V * math.inf, N, compiled=compiled)
+    sep = SeparationCertificate.for_mesh(F, V.shape[0])
+    assert sep.unfolded(V.numpy(), compiled=compiled).all()
+    with pytest.raises(MeshError, match=rf"V must have shape \({V.shape[0]}, 3\), the certificate's mesh; got \(10, 3\)"):
+        sep.unfolded(V[:10].numpy(), compiled=compiled)
+    assert not sep.unfolded(V.numpy() * math.nan, compiled=compiled).any()

@@ -459,3 +459,12 @@ def test_a_step_count_beyond_a_floats_range_is_refused_in_one_line():
     with pytest.raises(ValueError, match=r"^steps must be at most 1e\+12, got 1000"):
         Budget(10**400)
     assert Budget(MAX_STEPS).steps == MAX_STEPS
+
+
+def test_an_adam_group_with_a_negative_or_non_finite_lr_is_refused():
+    """torch checks Adam's default lr only: a group's lr of -1 climbed the loss from 3 to 26 without a word."""
+    p = torch.ones(3, requires_grad=True)
+    assert isinstance(make_optimizer("adam", [{"params": [p], "lr": 0.0}]), torch.optim.Adam)  # 0: held still
+    for lr in (-1.0, math.nan, math.inf, "0.1"):
+        with pytest.raises(ValueError, match=f"parameter group 0: lr must be a finite non-negative number"):
+            make_optimizer("adam", [{"params": [p], "lr": lr}])

@@ -163,3 +163,18 @@ def test_torus_through_a_given_opening_equals_the_found_one_and_checks_it():
                 (np.array([np.nan, 0, 0]), axis, clearance), (centre[:2], axis, clearance), (centre, axis)]:
         with pytest.raises(ValueError, match="opening"):
             torus_through_opening(Vt, Ft, n_vertices=400, opening=bad)
+
+
+def test_the_opening_is_found_past_stray_vertices_and_at_any_scale():
+    """A vertex no face uses widened the search lattice until the hole fell between its points (None); the
+    diagonal's square underflowed below 1e-154 (None) and overflowed above 1e154 (OverflowError)."""
+    from meshmei.reconstruct.openings import find_opening
+
+    V, F = initial_mesh("torus", n_vertices=300, dtype=torch.float64)[:2]
+    centre, axis, clearance = find_opening(V, F)
+    stray = torch.cat([V, torch.tensor([[10.0, 10.0, 10.0]], dtype=torch.float64)])
+    c2, a2, d2 = find_opening(stray, F)
+    assert np.array_equal(c2, centre) and np.array_equal(a2, axis) and d2 == clearance
+    for scale in (2.0 ** -700, 2.0 ** 540):  # powers of two: the search is exact at any of them
+        c3, a3, d3 = find_opening(V * scale, F)
+        assert np.array_equal(c3 / scale, centre) and np.array_equal(a3, axis) and d3 / scale == clearance

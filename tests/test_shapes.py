@@ -527,3 +527,11 @@ def test_remesher_iterations_have_a_ceiling():
             call(10**6)
         with pytest.raises(ValueError, match="iterations must be a positive integer, got 2.5"):
             call(2.5)
+
+
+def test_subnormal_coordinates_are_normalised_too():
+    """Below 2**-1022 the single power-of-two factor overflowed a float: OverflowError from the CLI."""
+    V = torch.tensor([[0.0, 0, 0], [1e-310, 0, 0], [0, 1e-310, 0]], dtype=torch.float64)
+    W = normalize_unit_diagonal(V)
+    assert torch.allclose(W, normalize_unit_diagonal(V * 1e300 * 1e10), rtol=0, atol=1e-6)
+    assert math.isclose(float((W.max(0).values - W.min(0).values).norm()), 1.0, rel_tol=1e-12)

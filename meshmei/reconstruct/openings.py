@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..errors import MeshError
-from ..mesh import check_mesh
+from ..mesh import check_mesh, remove_unreferenced
 from ..shapes.primitives import DEFAULT_N_VERTICES, TORUS_MAJOR_RADIUS, TORUS_MINOR_RADIUS, initial_mesh
 
 __all__ = ["find_opening", "torus_through_opening", "opening_parts", "plane_basis"]
@@ -237,12 +237,15 @@ def find_opening(V, F, *, grid: int = 28, rays: int = 24, directions: int = 64):
     """
     _check_search(grid, rays, directions)
     V, F = check_mesh(torch.as_tensor(V), torch.as_tensor(F))
+    V, F = remove_unreferenced(V, F)  # a stray vertex widened the lattice until the opening fell between its points
     Vn = np.ascontiguousarray(V.detach().cpu().double().numpy())
     Fn = np.ascontiguousarray(F.cpu().numpy())
     # libigl's ray caster has absolute tolerances: on a mesh under about 1e-2 across it misses every hit, so
     # no opening was found. Search at about unit size: a power-of-two scale is exact, so a unit-size mesh
     # is searched exactly as before, and the results are scaled back.
-    diag = float(np.linalg.norm(Vn.max(0) - Vn.min(0)))
+    extent = Vn.max(0) - Vn.min(0)
+    top = float(extent.max())  # the diagonal as top * |extent / top|: its square under- or overflowed beyond 1e154
+    diag = top * float(np.linalg.norm(extent / top)) if top > 0 else 0.0
     unit = float(np.ldexp(1.0, int(np.round(np.log2(diag))))) if diag > 0 else 1.0
     Vn = Vn / unit
     lo, hi = Vn.min(0), Vn.max(0)
