@@ -73,3 +73,13 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return value
+
+
+def float_dtype(dtype, *, error: type[ValueError] = ValueError) -> torch.dtype:
+    """``dtype`` as a torch floating dtype (its name, "float64", is taken too), or ``error``: an int dtype
+    truncated or zeroed every vertex, and a name reached torch as a device string."""
+    named = getattr(torch, dtype, None) if isinstance(dtype, str) else dtype
+    if not isinstance(named, torch.dtype) or not named.is_floating_point:
+        raise error(f"dtype must be a torch floating dtype such as torch.float32 or torch.float64 (or its name), "
+                    f"got {dtype!r}")
+    return named

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
+import time
 import uuid
 from pathlib import Path
 from typing import Callable
@@ -65,7 +70,26 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     _sync(directory.parent)
+    _remove_stale(directory)
     return directory
+
+
+# a temporary sibling untouched this long was left by a process killed while it wrote (SIGKILL, power):
+# writing takes seconds (the results are computed before), so no live writer's folder is this old
+STALE_SECONDS = 3600.0
+
+
+def _remove_stale(directory: Path) -> None:
+    """Remove the temporary siblings of ``directory`` (``.NAME.partial-*``, ``.NAME.old-*``) that a killed
+    process left, once ``directory`` has been written whole: they were never removed before."""
+    now = time.time()
+    for kind in ("partial", "old"):
+        for stale in directory.parent.glob(f".{glob.escape(directory.name)}.{kind}-*"):
+            try:
+                if stale.is_dir() and not stale.is_symlink() and now - stale.stat().st_mtime > STALE_SECONDS:
+                    shutil.rmtree(stale, ignore_errors=True)
+            except OSError:  # gone meanwhile, or not ours to read: left as it is
+                continue
 
 
 def _sync(path: Path) -> None:
@@ -171,3 +195,22 @@ def _is_marker(path: Path, keys) -> bool:
     except (OSError, UnicodeDecodeError, ValueError):
         return False
     return isinstance(data, dict) and all(k in data for k in keys)
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """SIGTERM (a scheduler cancelling the job, ``kill``) raises KeyboardInterrupt for the block, so that it
+    ends a run as Ctrl-C does: what finished is kept, what was being written is written whole or not at all.
+    Outside the main thread, where Python takes no signal handler, nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)

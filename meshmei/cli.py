@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from ._checks import positive_int
-from ._files import atomic_directory, check_apart, check_output
+from ._files import atomic_directory, check_apart, check_output, terminate_as_interrupt
 from .encoders import load_model, make_encoder
 from .errors import MEIError, ReconstructionError, TuningError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
@@ -565,7 +565,8 @@ def main(argv=None) -> int:
         if isinstance(value, str) and value.startswith("~"):
             setattr(args, name, os.path.expanduser(value))
     try:
-        return int(args.func(args) or 0)
+        with terminate_as_interrupt():  # SIGTERM ended `meshmei mei` with code 143 and no word
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:  # Ctrl-C: one line, the shell's code for it; results are only ever written whole
         print(f"meshmei {args.command}: interrupted (runs and sweeps are written whole or not at all)", file=sys.stderr)
         return 130

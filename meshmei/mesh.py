@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ._checks import all_finite
+from ._checks import all_finite, float_dtype
 from .errors import MeshError
 from .topology import same_faces
 
@@ -266,7 +266,7 @@ def load_mesh(path, *, dtype: torch.dtype = torch.float32, device=None):
     """
     import trimesh  # deferred: importing trimesh takes about 0.35 s and only file I/O needs it
 
-    dtype = _float_dtype(dtype)
+    dtype = float_dtype(dtype, error=MeshError)
     path = Path(os.fspath(path)).expanduser()  # as save_mesh, and as trimesh would
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
@@ -312,15 +312,6 @@ def _check_obj_indices(path: Path) -> None:
         line = data.count(b"\n", 0, hit.start()) + 1
         raise MeshError(f"{path}, line {line}: a face uses index 0; OBJ indices count from 1 (was the file written "
                         "with 0-based indices?)")
-
-
-def _float_dtype(dtype) -> torch.dtype:
-    """``dtype`` as a torch floating dtype; its name ("float64") is taken too."""
-    named = getattr(torch, dtype, None) if isinstance(dtype, str) else dtype
-    if not isinstance(named, torch.dtype) or not named.is_floating_point:
-        raise MeshError(f"dtype must be a torch floating dtype such as torch.float32 or torch.float64 (or its name), "
-                        f"got {dtype!r}")
-    return named
 
 
 def _point_count(path: Path) -> int:

@@ -34,9 +34,11 @@ def new_figure(**kwargs):
 def _save(fig, stem) -> list[Path]:
     """Write ``fig`` as ``stem.png`` and ``stem.pdf``; returns both paths."""
     stem = Path(stem)
+    if stem.suffix.lower() in (".png", ".pdf"):  # "fig.png" names the pair fig.png and fig.pdf
+        stem = stem.with_suffix("")
     paths = []
     for ext in (".png", ".pdf"):
-        p = stem.with_suffix(ext)
+        p = stem.with_name(stem.name + ext)  # with_suffix cut a stem's last dotted part: run.a and run.b wrote run.png
         fig.savefig(p, dpi=120, bbox_inches="tight")
         paths.append(p)
     return paths

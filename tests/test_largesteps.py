@@ -82,6 +82,11 @@ def test_adam_uniform_step_uses_one_scale_per_tensor():
     torch.testing.assert_close(p.detach(), before - 0.2 * g / g.abs().max())
     with pytest.raises(ValueError, match="lr"):
         AdamUniform([p], lr=0.0)
+    q = torch.ones(4, requires_grad=True)  # an all-zero gradient with eps 0: the step was 0 / 0, NaN parameters
+    still = AdamUniform([q], lr=0.1, eps=0.0)
+    (q * 0).sum().backward()
+    still.step()
+    assert torch.equal(q.detach(), torch.ones(4))
 
 
 def test_adam_uniform_and_system_matrix_refuse_bad_arguments():

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import re
+import time
 import warnings
 from pathlib import Path
 
@@ -347,6 +348,46 @@ def test_ctrl_c_ends_the_cli_in_one_line_with_code_130_and_writes_nothing(tmp_pa
     assert cli.main(["mei", "--out", str(tmp_path / "run"), "--steps", "2", "--quiet"]) == 130
     err = capsys.readouterr().err.strip()
     assert err.startswith("meshmei mei: interrupted") and "\n" not in err and not (tmp_path / "run").exists()
+
+
+def test_sigterm_ends_the_cli_as_ctrl_c_does(tmp_path):
+    """SIGTERM (a scheduler cancelling the job) ended `meshmei mei` with code 143 and no word; it now ends it
+    as Ctrl-C does, in one line with code 130, and nothing is written."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "meshmei.cli", "mei", "--encoder", "gabor-simple", "--init", "sphere", "--steps",
+           "100000", "--seeds", "0", "--image-size", "16", "--n-vertices", "60", "--out", str(out)]
+    proc = subprocess.Popen(cmd, env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    first = proc.stderr.read(1)  # the progress bar's first character: imports done, the handler in place
+    assert first and proc.poll() is None, "the run ended before it could be stopped"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    last = err.strip().splitlines()[-1]
+    assert last == "meshmei mei: interrupted (runs and sweeps are written whole or not at all)"
+    assert not out.exists() and not list(tmp_path.glob(".run.partial-*"))
+
+
+def test_a_whole_write_removes_what_killed_writers_left_beside_it(tmp_path):
+    """A process killed while it wrote (SIGKILL) leaves its hidden .NAME.partial-XXXX folder; it was never
+    removed. The next whole write of NAME removes those untouched for STALE_SECONDS; a recent one (a
+    writer still at work) and other names' stay."""
+    from meshmei._files import STALE_SECONDS, atomic_directory
+
+    old, recent, other = (tmp_path / n for n in (".run.partial-0000dead", ".run.partial-0000live",
+                                                  ".other.partial-0000dead"))
+    for folder in (old, recent, other):
+        folder.mkdir()
+        (folder / "state.pt").write_text("half")
+    then = time.time() - STALE_SECONDS - 60
+    for folder in (old, other):
+        os.utime(folder, (then, then))
+    atomic_directory(tmp_path / "run", lambda tmp: (tmp / "summary.json").write_text("{}"))
+    assert not old.exists() and recent.exists() and other.exists() and (tmp_path / "run" / "summary.json").is_file()
 
 
 def test_a_damaged_summary_is_one_clear_error(tmp_path):

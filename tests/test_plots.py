@@ -88,3 +88,13 @@ def test_figures_leave_pyplot_and_the_backend_alone(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
+
+
+def test_a_dotted_stem_keeps_its_dots(tmp_path):
+    """with_suffix cut a stem's last dotted part: pose.v1 and pose.v2 both wrote pose.png, the second over
+    the first. A stem ending in .png or .pdf names the pair."""
+    first = plot_pose_heatmap(_sweep("pose"), 0, tmp_path / "pose.v1")
+    second = plot_pose_heatmap(_sweep("pose"), 0, tmp_path / "pose.v2")
+    assert [p.name for p in first + second] == ["pose.v1.png", "pose.v1.pdf", "pose.v2.png", "pose.v2.pdf"]
+    assert all(p.is_file() for p in first + second)
+    assert [p.name for p in plot_pose_heatmap(_sweep("pose"), 0, tmp_path / "fig.png")] == ["fig.png", "fig.pdf"]

@@ -178,3 +178,14 @@ def test_the_opening_is_found_past_stray_vertices_and_at_any_scale():
     for scale in (2.0 ** -700, 2.0 ** 540):  # powers of two: the search is exact at any of them
         c3, a3, d3 = find_opening(V * scale, F)
         assert np.array_equal(c3 / scale, centre) and np.array_equal(a3, axis) and d3 / scale == clearance
+
+
+def test_the_placed_torus_takes_float_dtypes_only():
+    """An int dtype truncated the torus's coordinates; a dtype's name reached torch as a device string."""
+    from meshmei.reconstruct.openings import torus_through_opening
+
+    V, F = initial_mesh("torus", n_vertices=300, dtype=torch.float64)[:2]
+    assert torus_through_opening(V, F, n_vertices=200, dtype="float64")[0].dtype == torch.float64
+    for dtype in (torch.int64, "cuda"):
+        with pytest.raises(ValueError, match="dtype must be a torch floating dtype"):
+            torus_through_opening(V, F, dtype=dtype)

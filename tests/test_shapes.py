@@ -488,12 +488,12 @@ def test_pymeshlab_meshes_do_not_depend_on_earlier_filter_calls(sphere):
 
 def test_an_integer_dtype_is_refused():
     """dtype=torch.int64 truncated every coordinate to 0."""
-    with pytest.raises(ValueError, match="dtype must be a torch floating-point dtype"):
+    with pytest.raises(ValueError, match="dtype must be a torch floating dtype"):
         initial_mesh("sphere", n_vertices=100, dtype=torch.int64)
 
 
 @pytest.mark.parametrize("call, match", [
-    (lambda: target_mesh("teapot", resolution=2, dtype=torch.int64), "dtype must be a torch floating-point dtype"),
+    (lambda: target_mesh("teapot", resolution=2, dtype=torch.int64), "dtype must be a torch floating dtype"),
     (lambda: target_mesh("teapot", resolution=1), "resolution must be at least 2"),  # not edge-manifold at 1
     (lambda: target_mesh("dumbbell", resolution=4), "resolution applies to the teapot only"),  # silently ignored
     (lambda: initial_mesh("sphere", n_vertices=100, size=1e40), "out of torch.float32's range"),  # inf vertices

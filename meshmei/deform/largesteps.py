@@ -173,5 +173,6 @@ class AdamUniform(torch.optim.Optimizer):
                 state["v"].mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
                 m_hat = state["m"] / (1 - b1**t)
                 denom = (state["v"].max() / (1 - b2**t)).sqrt() + group["eps"]
-                p.sub_(group["lr"] * m_hat / denom)
+                if bool(denom > 0):  # 0 only for gradients all zero so far (or squared to 0): no step, not 0 / 0
+                    p.sub_(group["lr"] * m_hat / denom)
         return loss

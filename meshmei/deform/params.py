@@ -51,6 +51,7 @@ class VertexParameterisation(Parameterisation):
     """Free per-vertex offsets ``V = V0 + D`` (the classic "deform a sphere" recipe)."""
 
     def __init__(self, V0: torch.Tensor, *, lr: float):
+        check_non_negative("lr", lr)  # as the RBF's: a negative lr climbed the loss
         super().__init__(V0)
         self.D = torch.zeros_like(self.V0, requires_grad=True)
         self.groups = [{"params": [self.D], "lr": lr}]
@@ -63,6 +64,7 @@ class LargeStepsParameterisation(Parameterisation):
     """``V = (I + lam L)^{-1} u`` with ``u`` learnable (:mod:`meshmei.deform.largesteps`)."""
 
     def __init__(self, V0: torch.Tensor, F: torch.Tensor, *, lr: float, lam: float):
+        check_non_negative("lr", lr)
         super().__init__(V0)
         self.solver = DifferentialSolver(system_matrix(F, V0.shape[0], lam))
         self.u = self.solver.to_differential(self.V0).requires_grad_(True)

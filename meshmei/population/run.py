@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import signal
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import torch
 
+from .._files import terminate_as_interrupt
 from ..encoders import Encoder, encoder_identity, frozen_encoder
 from ..errors import MEIError
 from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
@@ -88,27 +86,6 @@ def neuron_results(encoder: Encoder, neurons, init, settings: MEISettings, *, ba
             extra["pixel_mei_activation"] = pm.activation
         # the neuron's share of its batches, and its own pixel MEI
         yield n, replace(res, extra=extra), res.wall_time + time.perf_counter() - t0
-
-
-class _Interrupted(KeyboardInterrupt):
-    pass
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """SIGTERM (a scheduler cancelling the job) ends the run like Ctrl-C: finished neurons are kept."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise _Interrupted(f"signal {signum}")
-
-    old = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
 
 
 def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures: bool) -> dict:
@@ -205,7 +182,7 @@ def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", setti
     bar = Progress(len(todo) * len(settings.seeds), "population", unit="item", enabled=progress and bool(todo),
                    postfix=lambda rec: {"neuron": rec["neuron"], "3D-MEI": f"{rec['response']:.3f}"})
     try:
-        with _terminate_as_interrupt():
+        with terminate_as_interrupt():  # a cancelled job keeps its finished neurons
             if cluster is None:
                 results = neuron_results(encoder, todo, init, settings, batch_size=batch_size,
                                          pixel_steps=pixel_steps)

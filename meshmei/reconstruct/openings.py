@@ -8,6 +8,7 @@ import igl
 import numpy as np
 import torch
 
+from .._checks import float_dtype
 from ..errors import MeshError
 from ..mesh import check_mesh, remove_unreferenced
 from ..shapes.primitives import DEFAULT_N_VERTICES, TORUS_MAJOR_RADIUS, TORUS_MINOR_RADIUS, initial_mesh
@@ -337,6 +338,7 @@ def torus_through_opening(V, F, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=t
         ``opening`` is not ``(centre, axis, clearance)`` with a finite centre, a non-zero axis and a positive
         clearance.
     """
+    dtype = float_dtype(dtype)  # before the search: an int dtype truncated the torus, a name failed in torch
     found = find_opening(V, F) if opening is None else opening
     if found is None:
         raise MeshError("the target has no through-hole that find_opening can see; start from a centred torus")

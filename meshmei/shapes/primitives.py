@@ -7,7 +7,7 @@ import math
 import numpy as np
 import torch
 
-from .._checks import check_positive
+from .._checks import check_positive, float_dtype
 from .remeshing import check_iterations, count_for_edge_length, edge_length_for_count, isotropic_remesh
 
 __all__ = ["initial_mesh", "INITIAL_KINDS", "DEFAULT_N_VERTICES", "SPHERE_RADIUS", "TORUS_MAJOR_RADIUS",
@@ -180,8 +180,7 @@ def initial_mesh(
     """
     if kind not in INITIAL_KINDS:
         raise ValueError(f"kind must be one of {INITIAL_KINDS}, got {kind!r}")
-    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:  # an int dtype truncated every vertex to 0
-        raise ValueError(f"dtype must be a torch floating-point dtype, got {dtype!r}")
+    dtype = float_dtype(dtype)  # an int dtype truncated every vertex to 0
     check_positive("size", size)
     check_iterations(iterations)
     if target_edge_length is not None and n_vertices is not None:

@@ -15,7 +15,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .._checks import check_positive
+from .._checks import check_positive, float_dtype
 from ..errors import MeshError
 from ..quality import in_range
 from .remeshing import isotropic_parameters, mesh_arrays
@@ -285,8 +285,7 @@ def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
                          f"got {resolution!r}")
     if name != "teapot" and resolution != 16:
         raise ValueError(f"resolution applies to the teapot only; the {name} has one mesh (got {resolution!r})")
-    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:  # an int dtype zeroed every vertex
-        raise ValueError(f"dtype must be a torch floating-point dtype, got {dtype!r}")
+    dtype = float_dtype(dtype)  # an int dtype zeroed every vertex
     if name == "bunny":
         V, F = _bunny()
         if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
