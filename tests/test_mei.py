@@ -453,6 +453,9 @@ def test_a_damaged_state_is_one_clear_error_naming_state_pt(tmp_path, capsys):
     torch.save([1, 2], run / "state.pt")
     with pytest.raises(MEIError, match="state.pt is damaged: it holds a list, not the dict save_run writes"):
         load_run(run)
+    (run / "state.pt").write_bytes(b"garbage " * 10)  # not torch's advice to load it with weights_only=False
+    with pytest.raises(MEIError, match=r"is corrupt: state.pt: UnpicklingError: it is not a file save_run wrote$"):
+        load_run(run)
     torch.save(good, run / "state.pt")
     assert torch.equal(load_run(run).V, res.V)
 

@@ -142,17 +142,36 @@ def test_damaged_folders_are_named_in_one_clear_error(tmp_path):
                   {"quality": {**json.loads(summary)["quality"], "watertight": 1}},
                   {"activation": float("nan")}, {"pixel_mei_activation": float("inf")})),
               (folder / "state.pt", None), (folder / "mesh.obj", None), (folder / "state.pt", ""),
-              (folder / "mesh.obj", "")]  # an empty file counted as a finished neuron
+              (folder / "mesh.obj", ""),  # an empty file counted as a finished neuron
+              (folder / "state.pt", "garbage, not torch's zip archive")]  # so did other bytes
     for path, text in damage:
         kept = path.read_bytes()
         path.unlink() if text is None else path.write_text(text)
         with pytest.raises(MEIError, match="neuron_00001 is not a complete run folder; remove it and resume"):
             run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
         path.write_bytes(kept)
+    both = out / "neurons" / "neuron_00000" / "mesh.obj", folder / "mesh.obj"
+    kept = [p.read_bytes() for p in both]
+    for p in both:  # named together: one per rerun before
+        p.unlink()
+    with pytest.raises(MEIError, match=r"2 folders in .*neurons are not complete run folders \(neuron_00000, "
+                                       r"neuron_00001\); remove them and resume"):
+        run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    for p, data in zip(both, kept):
+        p.write_bytes(data)
     meta = out / "population.json"
     meta.write_text("[1]")
     with pytest.raises(MEIError, match="is not a population description"):
         run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    # cut short (by a full disk, say): the finished neurons, all made with these settings, are resumed
+    meta.write_text('{"format": ')
+    with pytest.warns(UserWarning, match="population.json was unreadable .* rewritten with this run's settings"):
+        rows = run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    assert [r["neuron"] for r in rows] == [0, 1] and json.loads(meta.read_text())["config"]
+    meta.write_text('{"format": ')  # other settings than the neurons': refused as before
+    with pytest.raises(MEIError, match="population.json is unreadable .*; choose another --out"):
+        run_population(enc, [0, 1], out, settings=MEISettings(**{**SMALL, "steps": SMALL["steps"] + 1}),
+                       pixel_steps=0, progress=False)
 
 
 def test_a_neuron_another_job_finished_meanwhile_is_kept_and_the_run_goes_on(tmp_path, monkeypatch):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import pickle
 from pathlib import Path
 
 import torch
@@ -177,7 +178,9 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     try:
         state = torch.load(directory / "state.pt", map_location="cpu", weights_only=True)
     except Exception as err:  # torch.load's errors on a damaged or foreign file
-        raise MEIError(f"{directory} is corrupt: {type(err).__name__}: {err}") from None
+        # not torch's advice to load it with weights_only=False, which would run whatever the file holds
+        why = "it is not a file save_run wrote" if isinstance(err, pickle.UnpicklingError) else str(err).split("\n")[0]
+        raise MEIError(f"{directory} is corrupt: state.pt: {type(err).__name__}: {why}") from None
     _check_state(state, directory / "state.pt")
     try:
         settings = MEISettings.from_dict(summary["settings"])

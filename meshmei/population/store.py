@@ -23,6 +23,7 @@ import json
 import math
 import os
 import uuid
+import warnings
 from pathlib import Path
 
 from .._files import check_creatable
@@ -66,7 +67,15 @@ def prepare_folder(out, config: dict) -> str:
         try:
             old = json.loads(meta.read_text())
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise MEIError(f"{meta} is unreadable ({err}); choose another --out") from None
+            if not _neurons_made_with(out, digest):
+                raise MEIError(f"{meta} is unreadable ({err}); choose another --out") from None
+            # every finished neuron says it was made with these settings: the description is rewritten, and
+            # they are resumed (before, "choose another --out" left them behind)
+            warnings.warn(f"{meta} was unreadable ({err}); rewritten with this run's settings, which every finished "
+                          "neuron there was made with", UserWarning, stacklevel=2)
+            _write_atomic(meta, json.dumps({"format": CONFIG_FORMAT, "config_hash": digest, "config": config},
+                                           indent=1, default=str))
+            return digest
         if not isinstance(old, dict) or not isinstance(old.get("config", {}), dict):
             what = (f"it holds a {type(old).__name__}" if not isinstance(old, dict)
                     else f"its config is a {type(old['config']).__name__}")
@@ -89,6 +98,20 @@ def prepare_folder(out, config: dict) -> str:
                                    default=str))
     (out / "neurons").mkdir(exist_ok=True)
     return digest
+
+
+def _neurons_made_with(out: Path, digest: str) -> bool:
+    """Whether ``out`` holds finished neuron folders and every readable summary there names ``digest``."""
+    found = False
+    for summary in sorted((out / "neurons").glob("neuron_*/summary.json")):
+        try:
+            made = json.loads(summary.read_text()).get("config_hash")
+        except (OSError, ValueError, AttributeError):  # a damaged summary: resumed, it is named then
+            continue
+        if made != digest:
+            return False
+        found = True
+    return found
 
 
 def _number(x) -> bool:
@@ -128,6 +151,9 @@ def read_summary(d: Path, digest: str) -> dict:
     incomplete = MEIError(f"{d} is not a complete run folder; remove it and resume")
     if any(not (d / name).is_file() or (d / name).stat().st_size == 0 for name in RUN_FILES):
         raise incomplete  # an empty state.pt or mesh.obj counted as finished, and failed in a later tune
+    with open(d / "state.pt", "rb") as fh:  # torch.save's zip archive; other bytes counted as finished too
+        if fh.read(4) != b"PK\x03\x04":
+            raise incomplete
     try:
         summary = json.loads((d / "summary.json").read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError):
@@ -146,8 +172,23 @@ def finished_neurons(out, digest: str) -> dict[int, dict]:
     root = Path(out) / "neurons"
     if not root.is_dir():
         return {}
-    summaries = (read_summary(d, digest) for d in sorted(root.glob("neuron_*")))
-    return {s["neuron"]: s for s in summaries}
+    summaries, damaged = {}, []
+    for d in sorted(root.glob("neuron_*")):
+        try:
+            s = read_summary(d, digest)
+        except MEIError as err:
+            if "not a complete run folder" not in str(err):  # other settings: refused as it is
+                raise
+            damaged.append(d)
+            continue
+        summaries[s["neuron"]] = s
+    if len(damaged) == 1:
+        raise MEIError(f"{damaged[0]} is not a complete run folder; remove it and resume")
+    if damaged:  # all at once: one per rerun before
+        names = ", ".join(d.name for d in damaged[:10]) + (f" and {len(damaged) - 10} more" if len(damaged) > 10 else "")
+        raise MEIError(f"{len(damaged)} folders in {root} are not complete run folders ({names}); remove them and "
+                       "resume")
+    return summaries
 
 
 def table_row(summary: dict) -> dict:
