@@ -189,3 +189,16 @@ def test_the_placed_torus_takes_float_dtypes_only():
     for dtype in (torch.int64, "cuda"):
         with pytest.raises(ValueError, match="dtype must be a torch floating dtype"):
             torus_through_opening(V, F, dtype=dtype)
+
+
+def test_the_search_sizes_have_floors_and_ceilings():
+    """grid=300 ran for minutes and grid=1000 or rays=100000 ran out of memory inside numpy or libigl."""
+    from meshmei.reconstruct.openings import SEARCH_LIMITS, find_opening
+
+    V, F = initial_mesh("torus", n_vertices=300, dtype=torch.float64)[:2]
+    for name, least in (("grid", 4), ("rays", 8), ("directions", 0)):
+        with pytest.raises(ValueError, match=f"{name} must be at most {SEARCH_LIMITS[name]:,}, got "):
+            find_opening(V, F, **{name: SEARCH_LIMITS[name] + 1})
+        with pytest.raises(ValueError, match=f"{name} must be an integer of at least {least}"):
+            find_opening(V, F, **{name: least - 1})
+

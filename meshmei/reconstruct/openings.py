@@ -103,10 +103,17 @@ class _Probe:
         return igl.point_mesh_squared_distance(Q, self.V, self.F)[0]
 
 
+# the search's sizes a call may ask for (defaults 28, 24, 64): grid 300 ran for minutes (grid^3 winding
+# numbers), grid 1,000 and rays 100,000 ran out of memory inside numpy and libigl
+SEARCH_LIMITS = {"grid": 128, "rays": 1024, "directions": 4096}
+
+
 def _check_search(grid, rays, directions):
     for name, value, least in (("grid", grid, 4), ("rays", rays, 8), ("directions", directions, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise ValueError(f"{name} must be an integer of at least {least}, got {value!r}")
+        if value > SEARCH_LIMITS[name]:
+            raise ValueError(f"{name} must be at most {SEARCH_LIMITS[name]:,}, got {value!r}")
 
 
 def _most_open_point(probe, P, directions):
