@@ -8,10 +8,11 @@ from .params import (
     RBFParameterisation,
     VertexParameterisation,
 )
-from .rbf import RBFDeformer, farthest_point_sampling, rbf_dense
+from .rbf import NarrowKernelError, RBFDeformer, farthest_point_sampling, rbf_dense
 
 __all__ = [
     "RBFDeformer",
+    "NarrowKernelError",
     "farthest_point_sampling",
     "rbf_dense",
     "system_matrix",

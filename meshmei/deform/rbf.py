@@ -26,7 +26,7 @@ from .._checks import check_positive
 from ..errors import MeshError
 from ..sampling import nn_spacing
 
-__all__ = ["RBFDeformer", "farthest_point_sampling", "rbf_dense"]
+__all__ = ["RBFDeformer", "NarrowKernelError", "farthest_point_sampling", "rbf_dense"]
 
 
 def farthest_point_sampling(X, k: int, *, start: int = 0) -> torch.Tensor:
@@ -171,6 +171,11 @@ def dense_negatives(D2: torch.Tensor, mask: torch.Tensor) -> tuple:
     return neg.masked_fill(mask == 0, -math.inf), neg
 
 
+class NarrowKernelError(ValueError):
+    """Kernels too narrow for the vertices' dtype: ``1 / sigma^2`` overflows and a kernel weighs its own
+    centre ``0 * inf``, NaN vertices. Callers that chose sigma from their own settings name them."""
+
+
 def _check_rest(V0, r_cut, headroom) -> None:
     if not isinstance(V0, torch.Tensor) or not V0.is_floating_point() or V0.ndim != 2 or V0.shape[1] != 3:
         got = (f"a {type(V0).__name__} of dtype {V0.dtype} and shape {tuple(V0.shape)}" if hasattr(V0, "shape")
@@ -287,8 +292,8 @@ class RBFDeformer(torch.nn.Module):
         self.offsets = torch.nn.Parameter(torch.zeros(K, 3, dtype=V0.dtype, device=V0.device))
         log_sigma = torch.full((K,), math.log(sigma), dtype=V0.dtype, device=V0.device)
         if not bool(torch.isfinite(torch.exp(-2.0 * log_sigma)).all()):  # a kernel's own centre: 0 * inf, NaN
-            raise ValueError(f"the RBF kernels are {sigma:.3g} wide, too narrow for {V0.dtype} arithmetic "
-                             "(1 / sigma^2 overflows)")
+            raise NarrowKernelError(f"the RBF kernels are {sigma:.3g} wide, too narrow for {V0.dtype} arithmetic "
+                                    "(1 / sigma^2 overflows)")
         if not isinstance(learn_scales, (bool, np.bool_)):  # "no" would switch them on
             raise ValueError(f"learn_scales must be True or False, got {learn_scales!r}")
         if learn_scales:

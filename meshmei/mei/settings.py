@@ -12,7 +12,7 @@ import torch
 
 from .._checks import check_distinct_seeds, is_integral
 from ..contact import MAX_CONTACT_DISTANCE
-from ..deform import RBFDeformer
+from ..deform import NarrowKernelError, RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
 from ..optim import MAX_STEPS
@@ -526,7 +526,7 @@ def make_deformer(V0, settings: MEISettings, centers=None):
     try:  # a kernel too narrow for the dtype: NaN vertices at the first render, were it built
         return RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
                            learn_scales=settings.lr_scales > 0)
-    except ValueError as err:
+    except NarrowKernelError as err:
         raise MEIError(f"sigma_factor={settings.sigma_factor!r}: {err}; raise sigma_factor") from None
 
 

@@ -144,11 +144,15 @@ def _well_formed(summary, name: str) -> bool:
             and (pix is None or _number(pix)))
 
 
+class IncompleteFolder(MEIError):
+    """A neuron folder with a file missing, empty or damaged: removed and resumed, not reused."""
+
+
 def read_summary(d: Path, digest: str) -> dict:
     """The summary of the finished neuron folder ``d`` made with configuration ``digest``; MEIError when a
     file is missing or damaged, the summary names another neuron, or the folder was made with other settings."""
     d = Path(d)
-    incomplete = MEIError(f"{d} is not a complete run folder; remove it and resume")
+    incomplete = IncompleteFolder(f"{d} is not a complete run folder; remove it and resume")
     if any(not (d / name).is_file() or (d / name).stat().st_size == 0 for name in RUN_FILES):
         raise incomplete  # an empty state.pt or mesh.obj counted as finished, and failed in a later tune
     with open(d / "state.pt", "rb") as fh:  # torch.save's zip archive; other bytes counted as finished too
@@ -176,9 +180,7 @@ def finished_neurons(out, digest: str) -> dict[int, dict]:
     for d in sorted(root.glob("neuron_*")):
         try:
             s = read_summary(d, digest)
-        except MEIError as err:
-            if "not a complete run folder" not in str(err):  # other settings: refused as it is
-                raise
+        except IncompleteFolder:  # collected (another configuration's MEIError is raised at once, as before)
             damaged.append(d)
             continue
         summaries[s["neuron"]] = s

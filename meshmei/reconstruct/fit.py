@@ -19,7 +19,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..contact import IN_CONTACT, ContactBarrier
-from ..deform import PARAMETERISATIONS
+from ..deform import PARAMETERISATIONS, NarrowKernelError
 from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
 from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
@@ -373,9 +373,7 @@ def _check_start(build, V, k: int, method: str):
         with torch.no_grad():
             fails = not bool(torch.isfinite(param.vertices()).all())
         why = ""
-    except ValueError as err:  # the deformer's own check (RBFDeformer: kernels too narrow for the dtype)
-        if type(err) is not ValueError:  # meshmei's errors (MeshError, ReconstructionError) say what they mean
-            raise
+    except NarrowKernelError as err:  # the deformer's own check: kernels too narrow for the dtype
         fails, why = True, f" ({err})"
     if fails:
         Vd = V.detach().double()
