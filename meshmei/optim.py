@@ -52,7 +52,7 @@ class Schedule:
         if self.shape not in SCHEDULE_SHAPES:
             raise ValueError(f"schedule shape must be one of {SCHEDULE_SHAPES}, got {self.shape!r}")
         lo = 0.0 if self.shape == "cosine" else math.ulp(0.0)
-        if not lo <= self.floor <= 1.0:
+        if isinstance(self.floor, bool) or not isinstance(self.floor, numbers.Real) or not lo <= self.floor <= 1.0:
             raise ValueError(f"a {self.shape} schedule's floor must lie in [{lo:g}, 1], got {self.floor!r}")
 
     def factor(self, f: float) -> float:
@@ -78,8 +78,9 @@ class Budget:
             raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
         if self.steps is not None and self.steps > MAX_STEPS:
             raise ValueError(f"steps must be at most {MAX_STEPS:.0e}, got {self.steps!r}")
-        if self.seconds is not None and not (self.seconds > 0 and math.isfinite(self.seconds)):
-            raise ValueError(f"seconds must be positive and finite, got {self.seconds!r}")
+        if self.seconds is not None and (isinstance(self.seconds, bool) or not isinstance(self.seconds, numbers.Real)
+                                         or not (self.seconds > 0 and math.isfinite(self.seconds))):
+            raise ValueError(f"seconds must be positive and finite, got {self.seconds!r}")  # "5" failed in '>'
 
     def fraction(self, step: int, seconds: float) -> float:
         """The share of the budget used after ``step`` steps and ``seconds`` of optimisation."""
@@ -415,7 +416,7 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
     evaluate_last : bool
         With ``keep="last"``, also evaluate the final iterate's loss (the outcome's ``loss``); without it
         the outcome reports the loss before the last step, and the objective is not called again (a
-        sampled objective would draw from its generator).
+        sampled objective would draw from its generator), unless the run holds no step to report.
     trace : Trace, optional
         Continue a run (steps, time and history go on from it).
     stop_at : float
@@ -511,8 +512,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         for cb in callbacks:
             cb(rec)
     spent = budget.fraction(trace.step, trace.seconds) >= 1.0
-    if keep == "last" and not evaluate_last:
-        loss = trace.history[-1]["loss"] if trace.history else math.nan
+    if keep == "last" and not evaluate_last and trace.history:  # without a step there is no loss but the final
+        loss = trace.history[-1]["loss"]  # iterate's (it was reported as NaN): it is evaluated below
         return Outcome(loss, [trace.step] * len(loss) if isinstance(loss, list) else trace.step, spent)
     # the final iterate, where the run stopped: the budget's end, or stop_at's fraction of it (an objective
     # that changes with the fraction, a continuation, scores it there, as the steps before it)

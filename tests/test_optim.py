@@ -468,3 +468,19 @@ def test_an_adam_group_with_a_negative_or_non_finite_lr_is_refused():
     for lr in (-1.0, math.nan, math.inf, "0.1"):
         with pytest.raises(ValueError, match=f"parameter group 0: lr must be a finite non-negative number"):
             make_optimizer("adam", [{"params": [p], "lr": lr}])
+
+
+def test_budget_and_schedule_numbers_and_a_run_without_a_step():
+    """Budget(seconds="5") and Schedule(floor=None) failed in a comparison; a keep="last" run that took no
+    step reported its loss as NaN."""
+    for bad in ("5", True):
+        with pytest.raises(ValueError, match="seconds must be positive and finite"):
+            Budget(seconds=bad)
+    for bad in (None, "0.1"):
+        with pytest.raises(ValueError, match="floor must lie in"):
+            Schedule("cosine", bad)
+    p = torch.ones(3, requires_grad=True)
+    out = minimize(lambda point: ((p ** 2).sum(), {}), make_optimizer("adam", [{"params": [p], "lr": 0.1}]),
+                   Budget(steps=3), keep="last", stop_step=0)
+    assert out.loss == 3.0 and out.step == 0 and torch.equal(p.detach(), torch.ones(3))
+
