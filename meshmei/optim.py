@@ -487,6 +487,9 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         _guard(values, trace.step, optimizer, error, where)
         if keep == "best" and f >= keep_from:
             best.offer(values, trace.step)
+        if not loss.requires_grad:  # torch's "element 0 of tensors does not require grad" said neither which nor why
+            raise ValueError("the objective's loss carries no gradient: the optimiser's parameters must require "
+                             "grad and the loss must be computed from them (not detached, not under no_grad)")
         (loss if loss.ndim == 0 else loss.sum()).backward()  # items share no parameter: one backward for all
         _guard_gradients(params, trace.step, error, where)
         before = None if accept is None else [p.detach().clone() for p in params]

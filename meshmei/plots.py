@@ -251,6 +251,9 @@ def plot_light_polar(sweep, neuron: int, stem, images: dict | None = None) -> li
         ``{"high" | "mid" | "low": ((H, W) array, example)}`` as :func:`meshmei.tuning.example_renders`
         returns, ``example`` a dict with the condition's ``azimuth``, ``elevation`` and ``response``.
     """
+    if images and not {"high", "mid", "low"} <= set(images):  # a KeyError halfway through the figure before
+        raise ValueError(f"images needs 'high', 'mid' and 'low' (as example_renders returns them), got "
+                         f"{sorted(map(str, images))}")
     r = sweep.of(neuron)
     az, el = sweep.axis("azimuth"), sweep.axis("elevation")
     ncol = 1 + (3 if images else 0)
@@ -293,6 +296,9 @@ def summary_sheet(run, stem, views, *, pixel_image=None, pixel_activation=None) 
     pixel_activation : float, optional
         Its response, drawn as a second bar.
     """
+    views = list(views)
+    if len(views) > 3:  # the page has three places for them (a fourth was matplotlib's IndexError)
+        raise ValueError(f"summary_sheet draws at most 3 views, got {len(views)}")
     fig = new_figure(figsize=(13, 6.2))
     gs = fig.add_gridspec(2, 4)
     _gray(fig.add_subplot(gs[0, 0]), run.image[0, 0].cpu().numpy(),

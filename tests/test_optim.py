@@ -484,3 +484,13 @@ def test_budget_and_schedule_numbers_and_a_run_without_a_step():
                    Budget(steps=3), keep="last", stop_step=0)
     assert out.loss == 3.0 and out.step == 0 and torch.equal(p.detach(), torch.ones(3))
 
+
+def test_a_loss_without_a_gradient_is_named():
+    """Parameters that do not require grad, or a detached loss, ended in torch's "element 0 of tensors does
+    not require grad"."""
+    free = torch.ones(3)
+    held = torch.ones(3, requires_grad=True)
+    for p, loss in ((free, lambda: (free ** 2).sum()), (held, lambda: (held ** 2).sum().detach())):
+        with pytest.raises(ValueError, match="the objective's loss carries no gradient"):
+            minimize(lambda point: (loss(), {}), make_optimizer("adam", [{"params": [p], "lr": 0.1}]), Budget(steps=2))
+

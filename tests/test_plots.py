@@ -66,12 +66,17 @@ def test_light_polar_with_example_renders(tmp_path):
     wide = matplotlib.image.imread(paths[0]).shape[1]
     narrow = matplotlib.image.imread(plot_light_polar(_sweep("light"), 0, tmp_path / "alone")[0]).shape[1]
     assert wide > 2 * narrow  # the three examples sit beside the polar plot
+    with pytest.raises(ValueError, match="images needs 'high', 'mid' and 'low'"):  # a KeyError mid-figure before
+        plot_light_polar(_sweep("light"), 0, tmp_path / "part", images={"high": (img, ex)})
+    assert not list(tmp_path.glob("part*"))
 
 
 def test_summary_sheet_takes_rendered_views(tmp_path, tiny_run):
     views = [(az, 0, np.full((16, 16), 0.5)) for az in (0, 90, 180)]
     paths = summary_sheet(tiny_run, tmp_path / "summary", views, pixel_image=np.zeros((32, 32)), pixel_activation=0.9)
     assert [p.name for p in paths] == ["summary.png", "summary.pdf"] and all(p.is_file() for p in paths)
+    with pytest.raises(ValueError, match="summary_sheet draws at most 3 views, got 4"):  # matplotlib's IndexError
+        summary_sheet(tiny_run, tmp_path / "four", views + views[:1])
 
 
 def test_figures_leave_pyplot_and_the_backend_alone(tmp_path):
