@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import glob
 import json
 import os
 import shutil
@@ -79,17 +78,33 @@ def atomic_directory(directory, write: Callable[[Path], None], *, overwrite: boo
 STALE_SECONDS = 3600.0
 
 
+# the hidden temporary folders in each parent, listed once per process: a population writes thousands of
+# neuron folders into one parent, and a listing at every write would make its saves quadratic in their count
+_LEFT_OVER: dict[Path, set[str]] = {}
+
+
 def _remove_stale(directory: Path) -> None:
     """Remove the temporary siblings of ``directory`` (``.NAME.partial-*``, ``.NAME.old-*``) that a killed
     process left, once ``directory`` has been written whole: they were never removed before."""
+    parent = directory.parent.resolve()
+    if parent not in _LEFT_OVER:
+        try:
+            with os.scandir(parent) as entries:
+                _LEFT_OVER[parent] = {e.name for e in entries
+                                      if e.name.startswith(".") and (".partial-" in e.name or ".old-" in e.name)}
+        except OSError:
+            _LEFT_OVER[parent] = set()
+    left = _LEFT_OVER[parent]
+    prefixes = tuple(f".{directory.name}.{kind}-" for kind in ("partial", "old"))
     now = time.time()
-    for kind in ("partial", "old"):
-        for stale in directory.parent.glob(f".{glob.escape(directory.name)}.{kind}-*"):
-            try:
-                if stale.is_dir() and not stale.is_symlink() and now - stale.stat().st_mtime > STALE_SECONDS:
-                    shutil.rmtree(stale, ignore_errors=True)
-            except OSError:  # gone meanwhile, or not ours to read: left as it is
-                continue
+    for name in [n for n in left if n.startswith(prefixes)]:
+        left.discard(name)  # looked at once: a recent one is a live writer's, and stays
+        stale = parent / name
+        try:
+            if stale.is_dir() and not stale.is_symlink() and now - stale.stat().st_mtime > STALE_SECONDS:
+                shutil.rmtree(stale, ignore_errors=True)
+        except OSError:  # gone meanwhile, or not ours to read: left as it is
+            continue
 
 
 def _sync(path: Path) -> None:

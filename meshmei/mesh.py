@@ -412,12 +412,11 @@ def save_mesh(path, V, F) -> None:
     path = Path(os.fspath(path)).expanduser()
     if path.suffix.lower() not in MESH_FORMATS:
         raise MeshError(f"unsupported mesh format {path.suffix!r} for {path}; use one of {', '.join(MESH_FORMATS)}")
+    Vd = V.detach().cpu().double()
     if path.suffix.lower() in (".ply", ".stl"):  # binary float32 coordinates: refused here, not misread later
-        cast_vertices(V.detach().cpu().double(), torch.float32, f"{path} ({path.suffix.lower()[1:].upper()} stores "
-                      "float32; OBJ and OFF keep every digit)")
-    mesh = trimesh.Trimesh(
-        vertices=V.detach().cpu().double().numpy(), faces=F.cpu().numpy(), process=False, validate=False
-    )
+        cast_vertices(Vd, torch.float32, f"{path} ({path.suffix.lower()[1:].upper()} stores float32; OBJ and OFF "
+                      "keep every digit)")
+    mesh = trimesh.Trimesh(vertices=Vd.numpy(), faces=F.cpu().numpy(), process=False, validate=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     # written beside it and renamed into place: an interrupted write leaves the old file or none, never a
     # truncated one (trimesh reads a cut OBJ or OFF as a smaller mesh, without a word)

@@ -138,10 +138,8 @@ def _check_response(module: Encoder, image: torch.Tensor, neuron: int, activatio
     """Raise MEIError unless ``module`` gives the saved image the response the run recorded (to 1e-3 of its
     size: another device or thread count rounds differently). A summary.json whose encoder was edited, or a
     model that is not the run's, would otherwise be swept and reported under the run's name."""
-    param = next(iter(module.parameters()), None)
-    device = image.device if param is None else param.device
     with torch.no_grad(), eval_mode(module):  # as the run read it
-        response = float(module(image.to(device), neuron)[0, 0])
+        response = float(module(image.to(module.device), neuron)[0, 0])
     if not abs(response - activation) <= 1e-3 * (1 + abs(activation)):
         which = "the encoder given" if given else f"the encoder summary.json describes ({directory / 'summary.json'})"
         raise MEIError(f"{directory}: {which} gives the saved image a response of {response:.6g} for neuron "

@@ -180,14 +180,15 @@ def finished_neurons(out, digest: str) -> dict[int, dict]:
     for d in sorted(root.glob("neuron_*")):
         try:
             s = read_summary(d, digest)
-        except IncompleteFolder:  # collected (another configuration's MEIError is raised at once, as before)
-            damaged.append(d)
+        except IncompleteFolder as err:  # collected (another configuration's MEIError is raised at once, as before)
+            damaged.append((d, err))
             continue
         summaries[s["neuron"]] = s
     if len(damaged) == 1:
-        raise MEIError(f"{damaged[0]} is not a complete run folder; remove it and resume")
+        raise damaged[0][1]
     if damaged:  # all at once: one per rerun before
-        names = ", ".join(d.name for d in damaged[:10]) + (f" and {len(damaged) - 10} more" if len(damaged) > 10 else "")
+        more = f" and {len(damaged) - 10} more" if len(damaged) > 10 else ""
+        names = ", ".join(d.name for d, _ in damaged[:10]) + more
         raise MEIError(f"{len(damaged)} folders in {root} are not complete run folders ({names}); remove them and "
                        "resume")
     return summaries
