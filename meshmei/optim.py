@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numpy as np
 import torch
 
 from ._checks import all_finite, is_integral
@@ -335,6 +336,27 @@ def _as_record(values: torch.Tensor):
     return float(values) if values.ndim == 0 else values.tolist()
 
 
+def _verdict(value) -> bool:
+    """``accept()``'s answer as a bool; anything else (None from a check that forgot to return) is refused,
+    since it would read as a refusal and undo every step without a word."""
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and value.dtype == torch.bool:
+        return bool(value)
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise TypeError(f"accept() must return a bool, got {type(value).__name__}")
+
+
+def _verdicts(value, items: int) -> torch.Tensor:
+    """A batched ``accept(pending)``'s answer as a ``(items,)`` bool tensor on the CPU."""
+    if isinstance(value, (list, tuple, np.ndarray, torch.Tensor)):
+        verdicts = torch.as_tensor(value, device="cpu") if not isinstance(value, torch.Tensor) else value.cpu()
+        if verdicts.dtype == torch.bool and verdicts.shape == (items,):
+            return verdicts
+        raise TypeError(f"accept(pending) must return {items} bools, got {tuple(verdicts.shape)} of "
+                        f"{verdicts.dtype}")
+    raise TypeError(f"accept(pending) must return {items} bools, got {type(value).__name__}")
+
+
 @torch.no_grad()
 def _backtrack(params, before, accept, max_halvings: int, items: int | None = None, states=(), before_states=()):
     """Shrink the step just taken until ``accept()`` holds; the scale kept (0: the step is undone, and
@@ -348,7 +370,7 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
     if items is None:
         scale = 1.0
         for _ in range(max_halvings + 1):
-            if accept():
+            if _verdict(accept()):
                 return scale
             scale *= 0.5
             for p, b, a in zip(params, before, after):
@@ -361,7 +383,7 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
     scale = torch.ones(items, dtype=torch.float64, device="cpu")  # the bookkeeping stays on the CPU
     done = torch.zeros(items, dtype=torch.bool, device="cpu")
     for _ in range(max_halvings + 1):
-        done |= torch.as_tensor(accept(~done), dtype=torch.bool, device="cpu")
+        done |= _verdicts(accept(~done), items)
         if bool(done.all()):
             return scale.tolist()
         scale = torch.where(done, scale, 0.5 * scale)
@@ -430,7 +452,8 @@ def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budg
         on the vertices they give). A refused step is halved, ``p = p_before + s (p_after - p_before)`` with
         ``s = 1/2, 1/4, ...``, up to ``max_halvings`` times, and undone (``s = 0``) if none is accepted; the
         record's ``step_scale`` says which ``s`` was taken. The optimiser's own state (Adam's moments) keeps
-        the full step's update.
+        the full step's update. An answer that is not a bool (a Python, NumPy or one-element torch bool; a
+        batched objective's ``(B,)`` bool tensor, array or list) is a TypeError.
     max_halvings : int
     states : sequence
         What the objective depends on besides the parameters, as objects with ``snapshot()`` and

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -494,3 +495,28 @@ def test_a_loss_without_a_gradient_is_named():
         with pytest.raises(ValueError, match="the objective's loss carries no gradient"):
             minimize(lambda point: (loss(), {}), make_optimizer("adam", [{"params": [p], "lr": 0.1}]), Budget(steps=2))
 
+
+
+@pytest.mark.parametrize("answer", [None, 1, "yes", torch.tensor([True, True])])
+def test_accept_must_answer_with_a_bool(answer):
+    # accept=lambda: None read as a refusal: every step was undone and the run ended where it began, silently
+    x = torch.nn.Parameter(torch.tensor([1.0, -2.0]))
+    with pytest.raises(TypeError, match=r"accept\(\) must return a bool"):
+        minimize(lambda p: ((x ** 2).sum(), {}), make_optimizer("adam", [{"params": [x], "lr": 0.1}]),
+                 Budget(steps=2), accept=lambda: answer)
+
+
+@pytest.mark.parametrize("answer", [True, np.bool_(True), torch.tensor(True)])
+def test_accept_answers_of_any_bool_type_are_taken(answer):
+    x = torch.nn.Parameter(torch.tensor([1.0, -2.0]))
+    minimize(lambda p: ((x ** 2).sum(), {}), make_optimizer("adam", [{"params": [x], "lr": 0.1}]),
+             Budget(steps=2), accept=lambda: answer)
+    assert float((x ** 2).sum()) < 5.0
+
+
+@pytest.mark.parametrize("answer", [None, [1, 0], torch.tensor([True]), torch.tensor([[True, True]])])
+def test_a_batched_accept_must_answer_with_one_bool_per_item(answer):
+    x = torch.nn.Parameter(torch.tensor([[1.0], [-2.0]]))
+    with pytest.raises(TypeError, match=r"accept\(pending\) must return 2 bools"):
+        minimize(lambda p: ((x ** 2).sum(1), {}), make_optimizer("adam", [{"params": [x], "lr": 0.1}]),
+                 Budget(steps=2), accept=lambda pending: answer)
