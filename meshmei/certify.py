@@ -81,8 +81,10 @@ class GraphCertificate:
     """
 
     def __init__(self, F: torch.Tensor, direction: torch.Tensor, n_vertices: int):
-        F = F.cpu()
+        F = _faces(F)
         d = torch.as_tensor(direction, dtype=torch.float64, device="cpu")
+        if d.shape != (3,) or not 0 < float(d.norm()) < math.inf:
+            raise MeshError(f"direction must be a finite, non-zero 3-vector, got {d.tolist()}")  # NaN basis before
         d = d / d.norm()
         a = torch.tensor([1.0, 0.0, 0.0] if abs(float(d[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64,
                          device="cpu")
@@ -118,7 +120,7 @@ class GraphCertificate:
         the mesh is not a consistently oriented topological disc (connected, one boundary loop, Euler
         characteristic 1, no edge used by more than two faces), or some face turns more than
         ``acos(min_cos)`` from the faces' mean normal, the projection direction."""
-        V0, F, normals = V0.detach().cpu().double(), F.cpu(), normals.detach().cpu().double()
+        V0, F, normals = _double(V0), _faces(F), _double(normals)
         n = V0.shape[0]
         boundary_edges, nonmanifold = edge_use(F)
         if nonmanifold or not boundary_edges:
@@ -144,7 +146,7 @@ class GraphCertificate:
         rules with rough angles at interior vertices: 0.08 against 0.17 ms a call on the 3D-MEI's sheet),
         else in NumPy (on arrays this size its per-operation cost is a fraction of torch's); pass float64
         normals, or the margins may fail on rounding."""
-        normals, V = normals.detach().cpu().double(), V.detach().cpu().double()
+        normals, V = _double(normals), _double(V)
         if not _proper_input(V, normals, self._n_vertices, len(self._F), exact=True):
             return False
         if native.enabled() if compiled is None else compiled:
@@ -186,7 +188,7 @@ class StarCertificate:
     """
 
     def __init__(self, F: torch.Tensor):
-        F = F.cpu()
+        F = _faces(F)
         self._first = F[:, 0].numpy()
         self._corner = F.reshape(-1).numpy()
         self._next, self._prev = F.roll(-1, 1).reshape(-1).numpy(), F.roll(1, 1).reshape(-1).numpy()
@@ -198,7 +200,7 @@ class StarCertificate:
         """A certificate for the start ``(V0, F)`` with unit face ``normals``, or None when it does not apply:
         the mesh is not connected, closed (every edge used by two faces) and consistently oriented with
         outward normals, or the start itself is not star-shaped about its centroid."""
-        V0, F, normals = V0.detach().cpu().double(), F.cpu(), normals.detach().cpu().double()
+        V0, F, normals = _double(V0), _faces(F), _double(normals)
         boundary_edges, nonmanifold = edge_use(F)
         if boundary_edges or nonmanifold or not _consistently_oriented(F) or not _connected(F, V0.shape[0]):
             return None
@@ -211,12 +213,13 @@ class StarCertificate:
         whatever the inputs' device: compiled where the kernels are built (``meshmei/_contact.c``, the same
         rules with rough angles: 0.07 against 0.22 ms a call on the 3D-MEI's sphere), else coordinate by
         coordinate in NumPy."""
+        V, normals = _double(V), _double(normals)
         if not _proper_input(V, normals, int(self._used[-1]) + 1 if len(self._used) else 0, len(self._F)):
             return False
-        Vn = V.detach().cpu().double().numpy()
+        Vn = V.numpy()
         if native.enabled() if compiled is None else compiled:
             Vn = np.ascontiguousarray(Vn)
-            N = np.ascontiguousarray(normals.detach().cpu().double().numpy())
+            N = np.ascontiguousarray(normals.numpy())
             used = np.zeros(len(Vn), dtype=np.uint8)
             used[self._used] = 1
             work = np.empty(4 * len(Vn))
@@ -224,7 +227,7 @@ class StarCertificate:
                                                     N.ctypes.data, used.ctypes.data, ORIENTATION_MARGIN,
                                                     work.ctypes.data))
         x, y, z = (np.ascontiguousarray(Vn[:, k] - Vn[self._used, k].mean()) for k in range(3))  # from c
-        N = normals.detach().cpu().double().numpy()
+        N = normals.numpy()
         f = self._first
         ax, ay, az = x[f], y[f], z[f]
         if not (N[:, 0] * ax + N[:, 1] * ay + N[:, 2] * az > ORIENTATION_MARGIN * np.sqrt(ax * ax + ay * ay + az * az)).all():
@@ -239,6 +242,19 @@ class StarCertificate:
         cosine = x1 * x2 + y1 * y2 + z1 * z2 - (rx * x1 + ry * y1 + rz * z1) * (rx * x2 + ry * y2 + rz * z2) / r2
         turn = np.bincount(c, weights=np.arctan2(sine, cosine), minlength=len(x))
         return bool((np.abs(turn[self._used] - 2 * math.pi) <= 1e-6).all())
+
+
+def _double(x) -> torch.Tensor:
+    """Vertices or normals, a tensor or a NumPy array (an AttributeError before), as float64 on the CPU."""
+    if not isinstance(x, (torch.Tensor, np.ndarray)):
+        raise MeshError(f"vertices and normals must be tensors or NumPy arrays, got {type(x).__name__}")
+    return torch.as_tensor(x).detach().cpu().double()
+
+
+def _faces(F) -> torch.Tensor:
+    if not isinstance(F, (torch.Tensor, np.ndarray)):
+        raise MeshError(f"faces must be a tensor or a NumPy array, got {type(F).__name__}")
+    return torch.as_tensor(F).cpu().long()
 
 
 def _proper_input(V: torch.Tensor, normals: torch.Tensor, n: int, m: int, exact: bool = False) -> bool:

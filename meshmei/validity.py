@@ -202,6 +202,15 @@ class ValidityRules:
             check_positive("max_step", self.max_step)
 
 
+def _as_tensor(V) -> torch.Tensor:
+    """Candidate vertices as a tensor: a NumPy array is taken as it is (it ended in an AttributeError)."""
+    if isinstance(V, np.ndarray):
+        return torch.from_numpy(V)
+    if not isinstance(V, torch.Tensor):
+        raise MeshError(f"candidate vertices must be a tensor or a NumPy array, got {type(V).__name__}")
+    return V
+
+
 class StepGuard:
     """Checks candidate meshes against :class:`ValidityRules`, from a valid start.
 
@@ -378,7 +387,7 @@ class StepGuard:
         """None when ``V`` meets the rules, else which rule it breaks (cheapest checks first). A question, not a
         check: it counts in neither :attr:`checks` nor :attr:`certified`."""
         certified, separated = self.certified, self.separated
-        why = self._verdict(V)[1]
+        why = self._verdict(_as_tensor(V))[1]
         self.certified, self.separated = certified, separated
         return why
 
@@ -386,6 +395,7 @@ class StepGuard:
         """Whether ``V`` meets the rules; an accepted ``V`` becomes the reference under ``turn_from="step"``.
         ``frame``: :func:`face_frame` of ``V`` in float64, when already computed."""
         t0 = time.perf_counter()
+        V = _as_tensor(V)
         self._candidate_pairs = None
         rule, _, frame = self._verdict(V, frame)
         self.checks += 1

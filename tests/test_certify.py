@@ -518,3 +518,25 @@ def test_certificates_refuse_arrays_of_another_mesh_and_prove_nothing_non_finite
     with pytest.raises(MeshError, match=rf"V must have shape \({V.shape[0]}, 3\), the certificate's mesh; got \(10, 3\)"):
         sep.unfolded(V[:10].numpy(), compiled=compiled)
     assert not sep.unfolded(V.numpy() * math.nan, compiled=compiled).any()
+
+
+def test_certificates_and_the_guard_take_numpy_arrays_and_name_what_they_cannot_take(compiled):
+    # numpy arrays ended in "'numpy.ndarray' object has no attribute 'detach'"; a zero direction gave a NaN basis
+    from meshmei.errors import MeshError
+
+    for kind, cls in (("sheet", GraphCertificate), ("sphere", StarCertificate)):
+        V, F = initial_mesh(kind, n_vertices=300, dtype=torch.float64)[:2]
+        N, _ = face_frame(V, F)
+        cert = cls.for_start(V.numpy(), F.numpy(), N.numpy())
+        assert cert is not None and cert.holds(V.numpy(), N.numpy(), compiled=compiled)
+        assert cert.holds(V, N, compiled=compiled)
+        with pytest.raises(MeshError, match="must be tensors or NumPy arrays, got list"):
+            cert.holds(V.tolist(), N, compiled=compiled)
+        guard = StepGuard(V, F)
+        assert guard.accept(V.numpy()) and guard.why_not(V.numpy()) is None
+        with pytest.raises(MeshError, match="candidate vertices must be a tensor or a NumPy array, got list"):
+            guard.accept(V.tolist())
+    V, F = grid()
+    for direction in ([0.0, 0.0, 0.0], [0.0, math.nan, 1.0], [0.0, 1.0]):
+        with pytest.raises(MeshError, match="direction must be a finite, non-zero 3-vector"):
+            GraphCertificate(F, torch.tensor(direction), V.shape[0])
