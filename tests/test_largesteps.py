@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import igl
 import numpy as np
 import pytest
@@ -101,3 +103,18 @@ def test_adam_uniform_and_system_matrix_refuse_bad_arguments():
         system_matrix(torch.tensor([[0, 1, 50]]), 10)
     with pytest.raises(MeshError, match="integer dtype"):
         system_matrix(torch.tensor([[0.0, 1.5, 2.0]]), 10)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_lam_too_large_for_the_dtype_is_refused_not_a_start_far_from_v0(dtype):
+    # u = (I + lam L) V0 rounded in the run's dtype came back as a start about 3 times the sphere's size off
+    lam = 1e16
+    from meshmei.deform.params import LargeStepsParameterisation
+
+    V, F = icosphere(3)
+    V = V.to(dtype)
+    with pytest.raises(ValueError, match=re.escape(f"lam {lam:g} is too large for {str(dtype)[6:]}: ")):
+        LargeStepsParameterisation(V, F, lr=0.1, lam=lam)
+    p = LargeStepsParameterisation(V, F, lr=0.1, lam=19.0)  # the default: its start comes back to rounding
+    with torch.no_grad():
+        assert float((p.vertices() - V).abs().max()) < 1e-5
