@@ -21,8 +21,9 @@ from .errors import MEIError, ReconstructionError, TuningError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
 from .mei.diverse import MAX_MEMBERS
 from .mei.optimize import start_from_file
+from .mei.settings import ALBEDO_MIN_STEPS, DEFAULT_STEPS
 from .plots import diverse_figure
-from .population import check_device, parse_neurons, run_population
+from .population import DEFAULT_BATCH_SIZE, DEFAULT_PIXEL_STEPS, check_device, parse_neurons, run_population
 from .quality import closedness, health_line
 from .regularizer_table import tabulate_regularizers
 from .reconstruct import (
@@ -45,6 +46,14 @@ from .tuning.files import SWEEP_KINDS
 __all__ = ["main", "build_parser"]
 
 ENCODERS = ("gabor-simple", "gabor-complex", "demo")
+
+
+def _steps_help(mesh_files: bool) -> str:
+    return (f"Adam steps per seed (default: {DEFAULT_STEPS['sheet']} from the sheet"
+            + (f", {DEFAULT_STEPS['custom']} from a mesh file" if mesh_files else "")
+            + f", {DEFAULT_STEPS['sphere']} from the sphere or torus; at least {ALBEDO_MIN_STEPS} with --albedo)")
+
+
 # the options that name files or folders (a model spec, path:factory, too)
 PATH_OPTIONS = ("out", "init", "target", "model", "mei")
 
@@ -88,8 +97,7 @@ def _add_mei(sub) -> None:
                    help=f"{', '.join(INITIAL_KINDS)} (default sheet), or a mesh file, centred and scaled to a "
                         "largest side of 1 as the built-in starts")
     p.add_argument("--out", required=True, help="run directory to write (must not exist unless --overwrite)")
-    p.add_argument("--steps", type=int, default=None,
-                   help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
+    p.add_argument("--steps", type=int, default=None, help=_steps_help(mesh_files=True))
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
@@ -361,9 +369,10 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--facing-weight", type=float, default=d.w_facing,
                    help="weight of the term on surface turned away from the target's nearest normal, which "
                         f"unfolds folds lying on the target (0: off; default {d.w_facing:g})")
-    p.add_argument("--contact-edges", choices=("auto", "on", "off"), default="auto",
-                   help="pair edges with edges in the contact barrier: 'auto' (default) in a stage once the guard "
-                        "has refused a few steps at an edge contact, 'on' in every stage (slower), 'off' never")
+    edges = {"auto": "auto", True: "on", False: "off"}[d.contact_edges]
+    p.add_argument("--contact-edges", choices=("auto", "on", "off"), default=edges,
+                   help="pair edges with edges in the contact barrier: 'auto' in a stage once the guard has refused "
+                        f"a few steps at an edge contact, 'on' in every stage (slower), 'off' never (default {edges})")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_reconstruct)
 
@@ -478,8 +487,7 @@ def _add_population(sub) -> None:
     _add_encoder_options(p, "demo")
     p.add_argument("--neurons", required=True, help="ranges and lists, e.g. 0-99 or 0-9,20,30-32")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds))
-    p.add_argument("--steps", type=int, default=None,
-                   help="Adam steps per seed (default: 300 from the sheet, 800 from the sphere or torus)")
+    p.add_argument("--steps", type=int, default=None, help=_steps_help(mesh_files=False))
     p.add_argument("--init", default="sheet", choices=INITIAL_KINDS)
     p.add_argument("--image-size", type=int, default=None,
                    help=f"render size in pixels (default {d.image_size}); with --model, the model's input size "
@@ -487,8 +495,10 @@ def _add_population(sub) -> None:
                         "longer side, then centre-cropped)")
     p.add_argument("--n-vertices", type=int, default=d.n_vertices)
     p.add_argument("--out", required=True, help="the population folder (created, or resumed)")
-    p.add_argument("--batch-size", type=int, default=8, help="(neuron, seed) items optimised together (default 8)")
-    p.add_argument("--pixel-steps", type=int, default=200, help="steps of each pixel MEI (0: none; default 200)")
+    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
+                   help=f"(neuron, seed) items optimised together (default {DEFAULT_BATCH_SIZE})")
+    p.add_argument("--pixel-steps", type=int, default=DEFAULT_PIXEL_STEPS,
+                   help=f"steps of each pixel MEI (0: none; default {DEFAULT_PIXEL_STEPS})")
     p.add_argument("--cluster", default=None, metavar="ray|ray://HOST:PORT",
                    help="run batches as Ray tasks (pip install 'meshmei[cluster]'); default: in this process")
     p.add_argument("--device", default="cpu",

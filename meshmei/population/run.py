@@ -18,7 +18,11 @@ from ..mei.optimize import check_neuron, initial, settings_for_encoder, start_na
 from ..optim import MAX_STEPS, Progress
 from .store import CONFIG_FORMAT, finished_neurons, neuron_dir, prepare_folder, read_summary, table_row, write_table
 
-__all__ = ["run_population", "population_config", "neuron_results", "check_device"]
+__all__ = ["run_population", "population_config", "neuron_results", "check_device", "DEFAULT_BATCH_SIZE",
+           "DEFAULT_PIXEL_STEPS"]
+
+DEFAULT_BATCH_SIZE = 8  # (neuron, seed) items optimised together
+DEFAULT_PIXEL_STEPS = 200  # steps of each neuron's pixel MEI
 
 
 def population_config(encoder: Encoder, init: str, settings: MEISettings, pixel_steps: int) -> dict:
@@ -102,7 +106,7 @@ def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures
 
 
 def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", settings: MEISettings | None = None,
-                   batch_size: int = 8, pixel_steps: int = 200, cluster: str | None = None, device=None,
+                   batch_size: int = DEFAULT_BATCH_SIZE, pixel_steps: int = DEFAULT_PIXEL_STEPS, cluster: str | None = None, device=None,
                    figures: bool = False, progress: bool = True, **overrides) -> list[dict]:
     """3D-MEIs (and pixel MEIs) of ``neurons``, one run folder each under ``out``, and a table of them.
 

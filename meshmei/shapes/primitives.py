@@ -148,8 +148,8 @@ def initial_mesh(
     n_vertices : int, optional
         Approximate vertex count (usually within 10 %). The edge length is derived from the surface
         area ``A`` as ``h = sqrt(2 A / (sqrt(3) n))`` (a near-equilateral closed mesh has two triangles
-        per vertex), then corrected by ``sqrt(n_got / n)`` (up to three times, the closest count kept) if the
-        count misses by more than 10 %.
+        per vertex), then, if the count misses by more than 10 %, corrected by ``sqrt(n_got / n)`` until the
+        count is bracketed and by bisection after (up to five more remeshes, the closest count kept).
         Default 2500 when neither argument is given.
     size : float
         Overall scale (see above).
