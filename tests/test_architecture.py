@@ -73,3 +73,30 @@ def test_every_package_reexports_explicitly():
         assert not any(isinstance(n, ast.ImportFrom) and any(a.name == "*" for a in n.names) for n in tree.body), name
         names = [t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)]
         assert "__all__" in names, name
+
+
+def test_the_command_line_takes_its_defaults_from_the_settings():
+    # docs/architecture.md: every default lives in one place and the CLI reads it from there
+    import inspect
+
+    from meshmei.cli import build_parser
+    from meshmei.mei import MEISettings
+    from meshmei.population import run_population
+    from meshmei.reconstruct.settings import ReconstructionSettings
+
+    parser = build_parser()
+    mei = vars(parser.parse_args(["mei", "--out", "x"]))
+    d = MEISettings()
+    assert (mei["seeds"], mei["lr"], mei["valid_steps"], mei["reg_ref_vertices"]) == (
+        list(d.seeds), d.lr, d.valid_steps, d.reg_ref_vertices)  # --n-vertices None: the settings' for a built-in
+    population = vars(parser.parse_args(["population", "--neurons", "0", "--out", "x"]))
+    signature = inspect.signature(run_population).parameters
+    assert (population["batch_size"], population["pixel_steps"], population["seeds"], population["n_vertices"]) == (
+        signature["batch_size"].default, signature["pixel_steps"].default, list(d.seeds), d.n_vertices)
+    recon = vars(parser.parse_args(["reconstruct", "--target", "bunny", "--out", "x"]))
+    r = ReconstructionSettings()
+    edges = {"auto": "auto", "on": True, "off": False}[recon["contact_edges"]]
+    assert (recon["method"], recon["steps"], recon["time_budget"], recon["lr"], recon["samples"], recon["eval_every"],
+            recon["eval_samples"], recon["seed"], recon["valid_steps"], recon["contact_weight"], recon["facing_weight"],
+            edges) == (r.method, r.steps, r.time_budget, r.lr, r.n_samples, r.eval_every, r.eval_samples, r.seed,
+                       r.valid_steps, r.w_contact, r.w_facing, r.contact_edges)
