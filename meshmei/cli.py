@@ -18,7 +18,7 @@ from ._checks import positive_int
 from ._files import atomic_directory, check_apart, check_output, terminate_as_interrupt
 from .encoders import load_model, make_encoder
 from .errors import MEIError, ReconstructionError, TuningError
-from .mei import MEISettings, diverse_meis, optimize_mei, pixel_mei, save_run
+from .mei import MEISettings, diverse_meis, optimize_mei, pixel_image_size, pixel_mei, save_run
 from .mei.diverse import MAX_MEMBERS
 from .mei.optimize import start_from_file
 from .mei.settings import ALBEDO_MIN_STEPS, DEFAULT_STEPS
@@ -272,7 +272,7 @@ def _run_mei(args) -> int:
     if frac is not None:
         line += f" = {frac:.3f} of the upper bound"
     if args.pixel_mei:
-        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", image_size),
+        pm = pixel_mei(encoder, args.neuron, image_size=pixel_image_size(encoder, image_size),
                        seeds=settings.seeds)  # --seeds for both
         line += f"; pixel MEI {pm.activation:.4f}"
         res = replace(res, extra={**res.extra, "pixel_mei_activation": pm.activation})
@@ -296,7 +296,7 @@ def _run_diverse(args, encoder, settings, out: Path, init) -> int:
     summary.update({k: v for k, v in d.results[0].extra["diverse"].items() if k != "member"})  # k, seeds, weights
     pixel = ""
     if args.pixel_mei:  # one baseline for the neuron, recorded with every member
-        pm = pixel_mei(encoder, args.neuron, image_size=getattr(encoder, "image_size", settings.image_size),
+        pm = pixel_mei(encoder, args.neuron, image_size=pixel_image_size(encoder, settings.image_size),
                        seeds=settings.seeds)
         results = [replace(r, extra={**r.extra, "pixel_mei_activation": pm.activation}) for r in results]
         summary["pixel_mei_activation"] = pm.activation

@@ -15,7 +15,7 @@ import numpy as np
 
 from ._files import check_output
 from .encoders import DEMO_MODEL_PATH, is_demo_model, load_demo_model
-from .mei import MEISettings, optimize_mei, pixel_mei, save_run
+from .mei import MEISettings, optimize_mei, pixel_image_size, pixel_mei, save_run
 from .plots import summary_sheet
 from .quality import health_line
 from .tuning import example_renders, light_sweep, pose_sweep, save_sweep, turned_views
@@ -110,7 +110,7 @@ def run_story(out, *, encoder=None, neuron: int | None = None, init: str = "shee
 
 def _optimise(encoder, neuron, init, p, log):
     """Steps 1 and 2: the 3D-MEI (carrying the pixel MEI's activation in its ``extra``) and the pixel MEI."""
-    size = getattr(encoder, "image_size", None) or p["image_size"]  # a lab's model renders at its own size
+    size = pixel_image_size(encoder, p["image_size"])  # a lab's model renders at its own size
     h, w = (size, size) if isinstance(size, int) else tuple(size)
     log(f"[1/5] 3D-MEI of neuron {neuron} from a {init} ({p['steps']} steps x {len(p['seeds'])} seeds, "
         f"{h}x{w} px)")

@@ -271,6 +271,20 @@ def test_a_population_writes_one_run_per_neuron_and_a_table(tmp_path):
         assert r["seconds"] > 0
 
 
+def test_a_non_square_model_gets_its_pixel_mei_in_its_own_image_space(tmp_path):
+    # the pixel MEI was asked for a square of the render size: "preprocessed images must be 20 x 30, the
+    # model's size; got (30, 30)" after the first neuron's 3D-MEI, and nothing written
+    def model(x):
+        return torch.stack([x.mean((1, 2, 3)), x[..., :10].std((1, 2, 3))], 1)
+
+    enc = encoder_from_model(model, mean=0.5, std=0.2, image_size=(20, 30))
+    rows = run_population(enc, [0, 1], tmp_path / "pop", settings=MEISettings(**TINY), pixel_steps=3, progress=False)
+    for r in rows:
+        alone = pixel_mei(enc, r["neuron"], steps=3, seeds=TINY["seeds"])  # the model's own size by default
+        assert alone.image.shape[-2:] == (20, 30)
+        assert r["pixel_mei_response"] == pytest.approx(alone.activation, rel=1e-9)
+
+
 def test_a_rerun_skips_finished_neurons_and_other_settings_are_refused(tmp_path, monkeypatch):
     import meshmei.population.run as population_run
 

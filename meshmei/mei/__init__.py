@@ -4,7 +4,7 @@ from .baselines import grid_search, random_deformations, random_mesh_responses
 from .batch import mei_batches, optimize_mei_batch
 from .diverse import DiverseMEIs, diverse_meis
 from .optimize import optimize_mei
-from .pixel import PixelMEIResult, gaussian_blur, pixel_mei
+from .pixel import PixelMEIResult, gaussian_blur, pixel_image_size, pixel_mei
 from .runs import RUN_FORMAT, load_run, save_run
 from .settings import ALBEDO_MIN_STEPS, DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEIResult, MEISettings
 
@@ -26,6 +26,7 @@ __all__ = [
     "load_run",
     "RUN_FORMAT",
     "pixel_mei",
+    "pixel_image_size",
     "PixelMEIResult",
     "gaussian_blur",
 ]

@@ -27,7 +27,7 @@ from ..optim import Budget, Progress, Schedule, Trace, minimize
 from ..render.settings import MAX_IMAGE_SIZE
 from .optimize import check_neuron
 
-__all__ = ["PixelMEIResult", "pixel_mei", "gaussian_blur", "NormalizedAscent"]
+__all__ = ["PixelMEIResult", "pixel_mei", "pixel_image_size", "gaussian_blur", "NormalizedAscent"]
 
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -182,6 +182,13 @@ def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma
         if dev.type == "meta":
             raise EncoderError("device 'meta' holds no values; give a device that computes (cpu, cuda)")
     return neuron, H, W, int(steps), seeds
+
+
+def pixel_image_size(encoder: Encoder, render_size):
+    """The size of the pixel MEI that compares with a 3D-MEI rendered at ``render_size``: a lab's model's own
+    input size, ``(H, W)``, which its renders are cropped to (a non-square model's renders are made square at
+    the longer side first), else ``render_size``."""
+    return getattr(encoder, "image_size", None) or render_size
 
 
 def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 200, step_size: float = 0.2,

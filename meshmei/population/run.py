@@ -12,7 +12,7 @@ import torch
 from .._files import terminate_as_interrupt
 from ..encoders import Encoder, encoder_identity, frozen_encoder
 from ..errors import MEIError
-from ..mei import MEIResult, MEISettings, mei_batches, pixel_mei, save_run
+from ..mei import MEIResult, MEISettings, mei_batches, pixel_image_size, pixel_mei, save_run
 from ..mei.batch import check_batch_size
 from ..mei.optimize import check_neuron, initial, settings_for_encoder, start_name
 from ..optim import MAX_STEPS, Progress
@@ -86,7 +86,8 @@ def neuron_results(encoder: Encoder, neurons, init, settings: MEISettings, *, ba
     for n, res in mei_batches(encoder, neurons, init, settings, batch_size=batch_size, progress=progress):
         extra, t0 = dict(res.extra), time.perf_counter()
         if pixel_steps:
-            pm = pixel_mei(encoder, n, image_size=settings.image_size, steps=pixel_steps, seeds=settings.seeds)
+            pm = pixel_mei(encoder, n, image_size=pixel_image_size(encoder, settings.image_size), steps=pixel_steps,
+                           seeds=settings.seeds)  # a non-square model's own (H, W)
             extra["pixel_mei_activation"] = pm.activation
         # the neuron's share of its batches, and its own pixel MEI
         yield n, replace(res, extra=extra), res.wall_time + time.perf_counter() - t0
