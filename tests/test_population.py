@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -168,10 +169,18 @@ def test_damaged_folders_are_named_in_one_clear_error(tmp_path):
     with pytest.warns(UserWarning, match="population.json was unreadable .* rewritten with this run's settings"):
         rows = run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
     assert [r["neuron"] for r in rows] == [0, 1] and json.loads(meta.read_text())["config"]
+    described = json.loads(meta.read_text())
     meta.write_text('{"format": ')  # other settings than the neurons': refused as before
     with pytest.raises(MEIError, match="population.json is unreadable .*; choose another --out"):
         run_population(enc, [0, 1], out, settings=MEISettings(**{**SMALL, "steps": SMALL["steps"] + 1}),
                        pixel_steps=0, progress=False)
+    meta.unlink()  # deleted: as when unreadable, and refused for other settings
+    with pytest.raises(MEIError, match="exists and is not a population folder; choose another --out"):
+        run_population(enc, [0, 1], out, settings=MEISettings(**{**SMALL, "steps": SMALL["steps"] + 1}),
+                       pixel_steps=0, progress=False)
+    with pytest.warns(UserWarning, match="population.json was missing; written again with this run's settings"):
+        again = run_population(enc, [0, 1], out, settings=MEISettings(**SMALL), pixel_steps=0, progress=False)
+    assert again == rows and json.loads(meta.read_text()) == described
 
 
 def test_a_neuron_another_job_finished_meanwhile_is_kept_and_the_run_goes_on(tmp_path, monkeypatch):
@@ -360,6 +369,28 @@ def test_the_cli_passes_the_objective_options_into_every_run(tmp_path):
                  "--robust-light", "5", "--no-valid-steps", "--out", str(out), "--quiet"]) == 0
     s = json.loads((out / "neurons" / "neuron_00000" / "summary.json").read_text())["settings"]
     assert (s["robust_pose"], s["robust_light"], s["valid_steps"], s["albedo"]) == (10.0, 5.0, False, False)
+
+
+def test_the_cli_gives_meshmeis_warnings_one_line_each(tmp_path, capsys):
+    # the rewritten description's warning came as Python's two lines: "...store.py:75: UserWarning: ..." and
+    # the source line it was raised at
+    from meshmei.cli import main
+
+    out = tmp_path / "pop"
+    args = ["population", "--encoder", "gabor-simple", "--neurons", "0", "--steps", "2", "--seeds", "0",
+            "--image-size", "16", "--n-vertices", "40", "--pixel-steps", "0", "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    (out / "population.json").write_text('{"format": ')
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        before = warnings.showwarning
+        assert main(args) == 0
+        assert warnings.showwarning is before  # put back
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"meshmei population: warning: {out / 'population.json'} was unreadable (Expecting value: line 1 "
+                   "column 12 (char 11)); rewritten with this run's settings, which every finished neuron there "
+                   "was made with"]
 
 
 @pytest.mark.parametrize("device", ["tpu", "cuda:x", "cpu:1", "meta", 3.5])

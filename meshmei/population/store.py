@@ -73,8 +73,7 @@ def prepare_folder(out, config: dict) -> str:
             # they are resumed (before, "choose another --out" left them behind)
             warnings.warn(f"{meta} was unreadable ({err}); rewritten with this run's settings, which every finished "
                           "neuron there was made with", UserWarning, stacklevel=2)
-            _write_atomic(meta, json.dumps({"format": CONFIG_FORMAT, "config_hash": digest, "config": config},
-                                           indent=1, default=str))
+            _describe(meta, digest, config)
             return digest
         if not isinstance(old, dict) or not isinstance(old.get("config", {}), dict):
             what = (f"it holds a {type(old).__name__}" if not isinstance(old, dict)
@@ -90,14 +89,23 @@ def prepare_folder(out, config: dict) -> str:
                            "or the same settings to resume")
         return digest
     if out.exists() and (not out.is_dir() or any(not p.name.startswith(".") for p in out.iterdir())):
+        if not meta.exists() and _neurons_made_with(out, digest):  # deleted: as when unreadable (above)
+            warnings.warn(f"{meta} was missing; written again with this run's settings, which every finished "
+                          "neuron there was made with", UserWarning, stacklevel=2)
+            _describe(meta, digest, config)
+            return digest
         raise MEIError(f"{out} exists and is not a population folder; choose another --out")
     check_creatable(out, MEIError)
     out.mkdir(parents=True, exist_ok=True)
     # the description first, then the neurons folder: jobs of one SLURM array may start at once
-    _write_atomic(meta, json.dumps({"format": CONFIG_FORMAT, "config_hash": digest, "config": config}, indent=1,
-                                   default=str))
+    _describe(meta, digest, config)
     (out / "neurons").mkdir(exist_ok=True)
     return digest
+
+
+def _describe(meta: Path, digest: str, config: dict) -> None:
+    _write_atomic(meta, json.dumps({"format": CONFIG_FORMAT, "config_hash": digest, "config": config}, indent=1,
+                                   default=str))
 
 
 def _neurons_made_with(out: Path, digest: str) -> bool:
