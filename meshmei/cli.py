@@ -113,7 +113,9 @@ def _add_mei(sub) -> None:
     p.add_argument("--optimize-pose", action="store_true")
     _add_objective_options(p, d)
     p.add_argument("--diverse", type=int, default=1, metavar="K",
-                   help="K diverse 3D-MEIs of the neuron, optimised together and pushed apart (default 1: one)")
+                   help="K diverse 3D-MEIs of the neuron, optimised together and pushed apart (default 1: one); "
+                        "the members' seeds are s, s+1, ..., s+K-1 from the first of --seeds, s (the others are "
+                        "not used)")
     p.add_argument("--pixel-mei", action="store_true", help="also run the pixel-MEI baseline and compare")
     p.add_argument("--device", default="cpu",
                    help="cpu, cuda or cuda:N: where the model runs and the mesh is rendered and optimised (the "
