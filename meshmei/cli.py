@@ -443,9 +443,11 @@ def _add_tune(sub) -> None:
     p = sub.add_parser("tune", help="sweep the pose or the light of a saved MEI run and plot the tuning")
     p.add_argument("what", choices=["pose", "light"])
     p.add_argument("--mei", required=True, help="a run directory written by 'meshmei mei' (with --diverse K: "
-                                                "the folder of the K members, each swept)")
-    p.add_argument("--out", default=None, help="output directory (default: MEI_DIR/tuning_<what>; for diverse "
-                                               "members OUT/member_<i>)")
+                                                "the folder of the K members, each swept; a 'meshmei population' "
+                                                "folder: each finished neuron's run, on its own neuron)")
+    p.add_argument("--out", default=None, help="output directory (default: MEI_DIR/tuning_<what>, in each member's "
+                                               "or neuron's folder; with several runs OUT/member_<i> or "
+                                               "OUT/neuron_<n>)")
     p.add_argument("--neurons", type=int, nargs="+", default=None, help="default: the run's neuron")
     p.add_argument("--elevation", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:90:10)")
     p.add_argument("--azimuth", default=None, help="lo:hi:n degrees (pose default -90:90:37, light 0:350:36)")
@@ -455,12 +457,9 @@ def _add_tune(sub) -> None:
     p.set_defaults(func=_run_tune)
 
 
-def _run_tune(args) -> int:
-    # the command line gives ranges as text; everything else is run_tuning's
-    ranges = {k: None if getattr(args, k) is None else parse_range(getattr(args, k))
-              for k in ("elevation", "azimuth", "roll")}
-    root = Path(args.mei)
-    members = [root]
+def _runs_to_sweep(root: Path) -> list[Path]:
+    """The run folders ``meshmei tune --mei ROOT`` sweeps: ROOT; the members of ``meshmei mei --diverse K``;
+    or every finished neuron of ``meshmei population`` (its root was refused as "not a complete MEI run")."""
     if (root / "diversity.json").is_file():  # meshmei mei --diverse K: sweep the members it lists
         try:
             k = len(json.loads((root / "diversity.json").read_text())["responses"])
@@ -469,6 +468,21 @@ def _run_tune(args) -> int:
         members = [root / f"member_{i}" for i in range(k)]
         if not members or not all(m.is_dir() for m in members):
             raise MEIError(f"{root} should hold member_0 to member_{k - 1} ({k} diverse runs); it does not")
+        return members
+    if (root / "population.json").is_file():  # meshmei population: its finished neurons, each on its own neuron
+        members = sorted(p for p in (root / "neurons").glob("neuron_*") if p.is_dir())
+        if not members:
+            raise MEIError(f"{root} is a population folder without a finished neuron yet; run or resume it first")
+        return members
+    return [root]
+
+
+def _run_tune(args) -> int:
+    # the command line gives ranges as text; everything else is run_tuning's
+    ranges = {k: None if getattr(args, k) is None else parse_range(getattr(args, k))
+              for k in ("elevation", "azimuth", "roll")}
+    root = Path(args.mei)
+    members = _runs_to_sweep(root)
     outs = [args.out if len(members) == 1 or args.out is None else Path(args.out) / run_dir.name
             for run_dir in members]
     for run_dir, out in zip(members, outs):  # every member's output checked before the first sweep

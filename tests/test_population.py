@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -391,6 +392,34 @@ def test_the_cli_gives_meshmeis_warnings_one_line_each(tmp_path, capsys):
     assert err == [f"meshmei population: warning: {out / 'population.json'} was unreadable (Expecting value: line 1 "
                    "column 12 (char 11)); rewritten with this run's settings, which every finished neuron there "
                    "was made with"]
+
+
+def test_tune_on_a_population_sweeps_each_finished_neuron_on_its_own_neuron(tmp_path, capsys):
+    # the population's folder was refused: "not a complete MEI run: missing ['summary.json', ...]"
+    from meshmei.cli import main
+    from meshmei.tuning.files import load_sweep
+
+    out = tmp_path / "pop"
+    assert main(["population", "--encoder", "demo", "--neurons", "1,3", "--steps", "2", "--seeds", "0",
+                 "--image-size", "16", "--n-vertices", "40", "--pixel-steps", "0", "--out", str(out), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["tune", "pose", "--mei", str(out), "--elevation", "0:0:1", "--azimuth=-10:10:3"]) == 0
+    for n in (1, 3):
+        run = out / "neurons" / f"neuron_{n:05d}"
+        sweep = load_sweep(run / "tuning_pose")
+        assert tuple(sweep.neurons) == (n,)
+        assert sweep.of(n)[0, 1] == pytest.approx(load_run(run).activation, rel=1e-4)  # (0, 0): the run's view
+    assert capsys.readouterr().out.count("pose sweep, neuron") == 2
+    assert main(["tune", "light", "--mei", str(out), "--elevation", "0:90:2", "--azimuth", "0:90:2", "--out",
+                 str(tmp_path / "light")]) == 0
+    assert sorted(p.name for p in (tmp_path / "light").iterdir()) == ["neuron_00001", "neuron_00003"]
+    empty = tmp_path / "empty"
+    assert main(["population", "--encoder", "demo", "--neurons", "1", "--steps", "2", "--seeds", "0",
+                 "--image-size", "16", "--n-vertices", "40", "--pixel-steps", "0", "--out", str(empty), "--quiet"]) == 0
+    for d in (empty / "neurons").iterdir():
+        shutil.rmtree(d)
+    assert main(["tune", "pose", "--mei", str(empty)]) == 2
+    assert "a population folder without a finished neuron yet" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("device", ["tpu", "cuda:x", "cpu:1", "meta", 3.5])
