@@ -589,7 +589,7 @@ def _join_signed_values(argv: list) -> list:
 def _warnings_as_lines(command: str):
     """meshmei's own warnings as one line each, as its errors (a rewritten population.json's warning came as
     Python's two lines: the file and line it was raised at, and that line's source); others as Python shows them."""
-    package = str(Path(__file__).resolve().parent)
+    package = str(Path(__file__).resolve().parent) + os.sep
     shown = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):

@@ -80,8 +80,8 @@ class LargeStepsParameterisation(Parameterisation):
     @torch.no_grad()
     def _check_start(self, lam: float) -> None:
         """ValueError when ``u`` in the run's dtype does not give back ``V0``: ``I + lam L`` magnifies the
-        rounding of ``u`` by up to ``lam`` (float32: 2e-10 of the mesh's size at lam 19, 2e-4 at 1e9, 0.2 at
-        1e12; a start 1.1 off at 1e16, without a word)."""
+        rounding of ``u`` by up to ``lam`` (float32, a 10k-vertex sphere: 1e-10 of its size at lam 19, 2e-4 at
+        1e9, 0.2 at 1e12, 1e4 at 1e16, without a word; float64: 0.3 of its size at 1e16)."""
         extent = float((self.V0.amax(0) - self.V0.amin(0)).norm())
         off = float((self.vertices() - self.V0).abs().max())
         if not off <= START_TOLERANCE * extent:
