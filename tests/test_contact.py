@@ -201,6 +201,11 @@ def _crossing_edges(gap):
     return V, torch.tensor([[0, 1, 2], [3, 4, 5]])
 
 
+def _one_pair(d, d_hat, n_vertices):
+    """The module docstring's energy of one pair at distance ``d``: the barrier over the vertex count."""
+    return -(d - d_hat) ** 2 * math.log(d / d_hat) / n_vertices
+
+
 def test_edge_pairs_see_two_edges_crossing_that_vertex_face_pairs_miss():
     V, F = _crossing_edges(0.05)
     plain, both = ContactBarrier(F, 0.5), ContactBarrier(F, 0.5, edges=True)
@@ -208,7 +213,9 @@ def test_edge_pairs_see_two_edges_crossing_that_vertex_face_pairs_miss():
     X = V.clone().requires_grad_()
     e = both(X)
     e.backward()
-    assert float(e.detach()) > 0 and both.active == 1
+    assert both.active == 1
+    # one pair, the two edges gap apart: b(gap) over the 6 vertices (the band of edge pairs once drifted wider)
+    assert float(e.detach()) == pytest.approx(_one_pair(0.05, 0.5, 6), rel=1e-12)
     # descent lifts the upper edge (vertices 3, 4) and lowers the lower one (0, 1)
     assert bool((X.grad[[3, 4], 2] < 0).all()) and bool((X.grad[[0, 1], 2] > 0).all())
     Y, _ = _crossing_edges(0.005)
@@ -238,7 +245,8 @@ def test_edge_pairs_turned_on_later_give_the_energy_of_a_barrier_built_with_them
     late, both = ContactBarrier(F, 0.5), ContactBarrier(F, 0.5, edges=True)
     assert float(late(V)) == 0.0  # its vertex-face candidates are cached now
     late.use_edges()
-    assert float(late(V)) == float(both(V)) > 0 and late.active == both.active == 1
+    assert float(late(V)) == float(both(V)) == pytest.approx(_one_pair(0.05, 0.5, 6), rel=1e-12)
+    assert late.active == both.active == 1
     rebuilds = late.rebuilds
     late.use_edges()  # a second call changes nothing
     assert float(late(V)) == float(both(V)) and late.rebuilds == rebuilds

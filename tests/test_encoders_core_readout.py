@@ -54,7 +54,9 @@ def test_images_of_another_dtype_than_the_weights_are_fed_in_the_models_dtype():
     torch.testing.assert_close(out, model(x).double(), rtol=1e-5, atol=1e-6)  # float32 inside (preprocessed in float64)
     out.sum().backward()
     assert x64.grad.dtype == torch.float64 and bool(torch.isfinite(x64.grad).all()) and float(x64.grad.abs().sum()) > 0
-    res = optimize_mei(model, 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
-    assert res.V.dtype == torch.float64 and math.isfinite(res.activation)
-    res = optimize_mei(model.double(), 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
-    assert res.V.dtype == torch.float64 and math.isfinite(res.activation)
+    for m in (model, model.double()):
+        res = optimize_mei(m, 0, "sheet", steps=2, image_size=32, seeds=(0,), n_vertices=64, dtype="float64")
+        assert res.V.dtype == torch.float64 and math.isfinite(res.activation)
+        # the reported response is the model's for the returned render
+        torch.testing.assert_close(m(res.render())[0, 0].double(), torch.tensor(res.activation, dtype=torch.float64),
+                                   rtol=1e-5, atol=1e-6)

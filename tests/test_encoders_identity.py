@@ -182,6 +182,8 @@ def test_a_float64_run_feeds_a_float32_model_in_its_dtype_and_a_float64_model_is
     assert bool(torch.isfinite(x64.grad).all()) and float(x64.grad.abs().sum()) > 0
     res = optimize_mei(enc, 0, "sheet", steps=2, image_size=SIZE, seeds=(0,), n_vertices=64, dtype="float64")
     assert res.V.dtype == torch.float64 and math.isfinite(res.activation)
+    torch.testing.assert_close(enc(res.render())[0, 0].double(), torch.tensor(res.activation, dtype=torch.float64),
+                               rtol=1e-5, atol=1e-6)  # the reported response is the model's for the returned render
     enc64 = _enc(Net().double())  # refused at the probe before (float32 gray images)
     assert enc64(x).dtype == torch.float32
     torch.testing.assert_close(enc64(x), enc(x), rtol=1e-5, atol=1e-6)

@@ -19,7 +19,7 @@ from meshmei.encoders import (
 )
 from meshmei.errors import MEIError
 
-from conftest import demo_or_skip
+from conftest import shipped_demo
 
 
 @pytest.mark.parametrize("kind, cls", [("gabor-simple", GaborSimpleCell), ("gabor-complex", GaborComplexCell)])
@@ -50,7 +50,7 @@ def test_a_demo_model_with_other_weights_is_not_rebuilt_as_the_shipped_one(tmp_p
     kind "demo" alone and rebuilt as the shipped model: another encoder, silently (0.52 for 3.81)."""
     from meshmei.encoders import DEMO_MODEL_PATH, load_demo_model
 
-    demo_or_skip()
+    shipped_demo()
     spec = encoder_spec(load_demo_model())
     assert spec["kind"] == "demo" and encoder_spec(encoder_from_spec(spec)) == spec  # the shipped one rebuilds
     blob = torch.load(DEMO_MODEL_PATH, map_location="cpu", weights_only=True)
@@ -84,7 +84,7 @@ def test_unknown_encoder_name_raises_mei_error():
 # ---------------------------------------------------------------------------------------------- demo model
 
 def test_demo_model_ships_small_with_its_correlations():
-    path, model = demo_or_skip()
+    path, model = shipped_demo()
     info = json.loads(path.with_suffix(".json").read_text())
     assert path.stat().st_size < 400_000
     assert model.n_neurons == info["n_neurons"] == len(info["test_correlation_with_ground_truth"])
@@ -99,7 +99,7 @@ def make_encoder_demo_kind(model):
 
 
 def test_demo_model_is_rebuilt_by_name():
-    _, model = demo_or_skip()
+    _, model = shipped_demo()
     assert is_demo_model(model) and is_demo_model(make_encoder("demo"))
     back = encoder_from_spec(encoder_spec(model))
     assert is_demo_model(back)

@@ -11,7 +11,7 @@ from meshmei.errors import MEIError
 from meshmei.mei import MEISettings, mei_batches, optimize_mei, optimize_mei_batch
 from meshmei.quality import count_flipped_faces, count_self_intersections
 
-from conftest import demo_or_skip
+from conftest import shipped_demo
 
 
 def _two_cell_encoder():
@@ -92,7 +92,7 @@ def test_bad_batches_fail_before_any_step():
 
 def test_demo_model_batch_matches_alone():
     """The shipped demo model (a CNN core with a readout) in float32: 5 steps, two neurons, two seeds."""
-    _, model = demo_or_skip()
+    _, model = shipped_demo()
     from meshmei.encoders import make_encoder
 
     enc = make_encoder("demo")

@@ -30,6 +30,9 @@ def test_story_writes_every_artifact_and_they_reload(tmp_path, cell):
     assert pose.shape == (QUICK["pose"], QUICK["pose"]) and light.shape == QUICK["light"]
     # the simple cell's 3D-MEI: strongest at its own view; the pixel MEI beats it in its own image space
     assert s["pose_best"] == {"elevation": 0.0, "azimuth": 0.0}
+    # the summary's peaks are the saved sweeps' (a minimum in their place passed before)
+    assert (s["pose_best_response"], s["light_best_response"]) == (float(pose.of(0).max()), float(light.of(0).max()))
+    assert (s["pose_best"], s["light_best"]) == (pose.argmax(0), light.argmax(0))
     assert s["mei_activation"] > 0.6 and s["pixel_mei_activation"] > s["mei_activation"]
     assert json.loads((out / "story.json").read_text())["neuron"] == 0
     assert any("files:" in line for line in lines)
@@ -83,7 +86,10 @@ def test_demo_cli_quick_on_the_shipped_model(tmp_path, capsys):
         pytest.fail(f"the demo model must ship with the package: {DEMO_MODEL_PATH} is missing")
     assert main(["demo", "--quick", "--out", str(tmp_path / "demo")]) == 0
     s = json.loads((tmp_path / "demo" / "story.json").read_text())
-    assert s["mei_activation"] > 0 and math.isfinite(s["light_best_response"])
+    run = load_run(tmp_path / "demo" / "mei")
+    assert s["mei_activation"] == run.activation > 0 and s["neuron"] == run.neuron
+    light = load_sweep(tmp_path / "demo" / "mei" / "tuning_light")
+    assert s["light_best_response"] == float(light.of(run.neuron).max())
     assert "3D-MEI response" in capsys.readouterr().out
 
 
