@@ -22,6 +22,7 @@ from .errors import MEIError, ReconstructionError, TuningError
 from .mei import MEISettings, diverse_meis, optimize_mei, pixel_image_size, pixel_mei, save_run
 from .mei.diverse import MAX_MEMBERS
 from .mei.optimize import start_from_file
+from .mei.runs import RUN_FILES
 from .mei.settings import ALBEDO_MIN_STEPS, DEFAULT_STEPS
 from .plots import diverse_figure
 from .population import DEFAULT_BATCH_SIZE, DEFAULT_PIXEL_STEPS, check_device, parse_neurons, run_population
@@ -473,6 +474,11 @@ def _runs_to_sweep(root: Path) -> list[Path]:
         members = sorted(p for p in (root / "neurons").glob("neuron_*") if p.is_dir())
         if not members:
             raise MEIError(f"{root} is a population folder without a finished neuron yet; run or resume it first")
+        damaged = [m.name for m in members if not all((m / name).is_file() for name in RUN_FILES)]
+        if damaged:  # before the first sweep, not after some
+            raise MEIError(f"{len(damaged)} of the neuron folders in {root / 'neurons'} are not complete runs "
+                           f"({', '.join(damaged[:10])}{' ...' if len(damaged) > 10 else ''}); remove them and "
+                           "resume the population, then tune")
         return members
     return [root]
 

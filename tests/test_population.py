@@ -413,6 +413,10 @@ def test_tune_on_a_population_sweeps_each_finished_neuron_on_its_own_neuron(tmp_
     assert main(["tune", "light", "--mei", str(out), "--elevation", "0:90:2", "--azimuth", "0:90:2", "--out",
                  str(tmp_path / "light")]) == 0
     assert sorted(p.name for p in (tmp_path / "light").iterdir()) == ["neuron_00001", "neuron_00003"]
+    (out / "neurons" / "neuron_00003" / "state.pt").unlink()  # damaged: named before any sweep
+    assert main(["tune", "pose", "--mei", str(out), "--out", str(tmp_path / "again")]) == 2
+    err = capsys.readouterr().err
+    assert "1 of the neuron folders in" in err and "(neuron_00003)" in err and not (tmp_path / "again").exists()
     empty = tmp_path / "empty"
     assert main(["population", "--encoder", "demo", "--neurons", "1", "--steps", "2", "--seeds", "0",
                  "--image-size", "16", "--n-vertices", "40", "--pixel-steps", "0", "--out", str(empty), "--quiet"]) == 0
