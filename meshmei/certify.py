@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from . import native
+from ._checks import all_finite
 from .contact import pair_distance_bounds
 from .errors import MeshError
 from .metrics import face_components
@@ -269,7 +270,7 @@ def _proper_input(V: torch.Tensor, normals: torch.Tensor, n: int, m: int, exact:
                         f"{tuple(V.shape)}")
     if tuple(normals.shape) != (m, 3):
         raise MeshError(f"normals must have shape ({m}, 3), one per face, got {tuple(normals.shape)}")
-    return bool(torch.isfinite(V).all()) and bool(torch.isfinite(normals).all())
+    return all_finite(V) and all_finite(normals)  # one reduction each: this runs at every guarded step
 
 
 def _segments_closer_than(x: np.ndarray, y: np.ndarray, a0, a1, b0, b1, tol: float) -> bool:
