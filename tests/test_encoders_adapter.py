@@ -219,6 +219,8 @@ def test_outputs_are_picked_from_tuples_and_dicts():
     (lambda x: torch.ones(x.shape[0], 2, dtype=torch.long), "float responses"),
     (lambda x: x.flatten(1)[:, :2].to_sparse(), "dense tensor of responses, got layout torch.sparse_coo"),
     (lambda x: torch.ones(x.shape[0], 2, device="meta"), "on device meta, its images were on cpu"),
+    # every image of a batch answered with the first one's: a pose sweep gave one value for every condition
+    (lambda x: x.flatten(1)[:1, :3].expand(x.shape[0], 3), "depend on the other images in its batch"),
 ])
 def test_a_model_that_misbehaves_is_named_before_any_step(model, message):
     with pytest.raises(EncoderError, match=message):
@@ -582,3 +584,32 @@ def test_a_model_that_turns_nan_during_a_run_is_blamed_not_the_learning_rate():
     enc = encoder_from_model(unstable, mean=0.5, std=0.2, image_size=16)
     with pytest.raises(EncoderError, match=r"returned non-finite responses to finite images of shape \(1, 1, 16, 16\)"):
         optimize_mei(enc, 0, "sheet", **SMALL, image_size=16)
+
+
+def test_statistics_beyond_float32_are_named_and_large_pixel_values_keep_their_images_apart():
+    # the squared norm of images standardised by std 1e-20 overflowed float32: every image was rescaled by
+    # norm / inf = 0, the model saw zeros, and every image got the same response
+    def model(x):
+        return x.flatten(1)[:, :4] * torch.arange(1.0, 5.0)
+
+    enc = encoder_from_model(model, mean=0.5, std=1e-20, image_size=8)
+    x = torch.rand(2, 1, 8, 8, generator=torch.Generator().manual_seed(0))
+    z = enc.preprocess(x)
+    assert bool(torch.isfinite(z).all())
+    torch.testing.assert_close(z.flatten(1).norm(dim=1), torch.full((2,), enc.preprocess.norm))
+    torch.testing.assert_close(z, encoder_from_model(model, mean=0.5, std=1.0, image_size=8).preprocess(x))  # scale-free
+    with pytest.raises(EncoderError, match="a gray image is not finite after preprocessing .* do not fit in"):
+        encoder_from_model(model, mean=0.5, std=1e-300, image_size=8)
+
+
+def test_a_model_that_edits_its_input_in_place_leaves_the_callers_images_alone():
+    # one channel: the model got the caller's tensor, and the pixel MEI's leaf failed in torch's autograd
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.ReLU(inplace=True), torch.nn.Flatten(), torch.nn.Linear(256, 3))
+    enc = encoder_from_model(net, mean=0.5, std=0.2, image_size=16)
+    z = torch.randn(2, 1, 16, 16, generator=torch.Generator().manual_seed(1))
+    kept = z.clone()
+    enc(z, preprocessed=True)
+    assert torch.equal(z, kept)
+    pm = pixel_mei(enc, 1, steps=3, seeds=(0,))
+    torch.testing.assert_close(enc(pm.image, 1, preprocessed=True)[0, 0], torch.tensor(pm.activation))

@@ -386,12 +386,15 @@ class ModelEncoder(Encoder):
         model float32 images, and gets its responses back in float64 (with their gradient)."""
         dtype = self.model_dtype
         x = z if dtype is None or z.dtype == dtype else z.to(dtype)
-        # a copy, not an expanded view: a model that edits its input in place (x.sub_(mean)) can write to it
-        x = x.repeat(1, self.channels, 1, 1) if self.channels != 1 else x
+        x = x.expand(-1, self.channels, -1, -1) if self.channels != 1 else x
         outs = []
         for i, m in enumerate((*self.models, *self.callables)):
+            # each model its own copy: one that edits its input in place (x.sub_(mean), ReLU(inplace=True)) wrote
+            # into the caller's images (a pixel MEI's leaf: "a leaf Variable ... in-place operation") and into the
+            # next ensemble member's
+            own = x.clone(memory_format=torch.contiguous_format)
             try:
-                out = _pick(m(x, **self.forward_kwargs), self.output)
+                out = _pick(m(own, **self.forward_kwargs), self.output)
             except EncoderError:
                 raise
             except Exception as err:  # the model's own failure, named with what it was given
@@ -491,9 +494,14 @@ def _probe(encoder: ModelEncoder) -> int:
         pre = encoder.preprocess.to(encoder.device)
         with torch.no_grad():
             z = pre.rescale(pre.standardise(x))
+            if not all_finite(z):  # before the model is blamed for it
+                raise EncoderError(f"a gray image is not finite after preprocessing (mean {pre.mean.flatten().tolist()}, "
+                                   f"std {pre.std.flatten().tolist()}, norm {pre.norm}): the statistics do not fit "
+                                   f"in {z.dtype}; give them in the units of pixel_range")
             out = encoder.all_responses(z)
             encoder._n, encoder._probed = int(out.shape[1]), True
             one = encoder.all_responses(z[:1])  # the same count for a single image (a model ending in squeeze())
+            other = encoder.all_responses(z[1:])  # the second image alone: its row of the batch, or a batch mix-up
     except (torch.OutOfMemoryError, RuntimeError) as err:
         if not isinstance(err, torch.OutOfMemoryError) and "allocate" not in str(err):
             raise
@@ -504,6 +512,14 @@ def _probe(encoder: ModelEncoder) -> int:
         bad = int((~torch.isfinite(out)).sum())
         raise EncoderError(f"the model returned non-finite responses to a gray image ({bad} of {out.numel()} "
                            f"values NaN or Inf)")
+    for row, alone in ((0, one), (1, other)):
+        scale = float(out.abs().max()) + 1e-6
+        if not torch.allclose(out[row:row + 1].double(), alone.double(), rtol=1e-3, atol=1e-4 * scale):
+            # a model that answered every image of a batch with its first one's swept one value for every condition
+            raise EncoderError(f"the model's responses to an image depend on the other images in its batch: image "
+                               f"{row} of a batch of two got {out[row, :4].tolist()}..., alone "
+                               f"{alone[0, :4].tolist()}...; meshmei scores images in batches (each row must be "
+                               "that image's own response)")
     return encoder._n
 
 

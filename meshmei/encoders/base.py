@@ -85,8 +85,12 @@ class Preprocess(torch.nn.Module):
 
     def rescale(self, z: torch.Tensor) -> torch.Tensor:
         """Rescale standardised images ``(B, 1, H, W)`` to norm ``norm`` (the constant-image guard lives here)."""
-        n = torch.linalg.vector_norm(z.flatten(1), dim=1).clamp_min(self.eps)  # (B,)
-        return z * (self.norm / n).view(-1, 1, 1, 1)
+        flat = z.flatten(1)
+        n = torch.linalg.vector_norm(flat, dim=1)  # (B,)
+        if bool(torch.isinf(n).any()):  # squares beyond the dtype (z of 1e20 in float32): n was inf, every image 0
+            big = flat.detach().abs().amax(1, keepdim=True).clamp_min(1.0)  # exact rows keep their norm below
+            n = torch.where(torch.isinf(n), big[:, 0] * torch.linalg.vector_norm(flat / big, dim=1), n)
+        return z * (self.norm / n.clamp_min(self.eps)).view(-1, 1, 1, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Preprocessed images ``(B, 1, H, W)`` of raw images ``x`` ``(B, 1, H, W)``."""
