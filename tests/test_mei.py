@@ -688,6 +688,11 @@ def test_load_run_holds_the_rebuilt_deformer_to_the_truncation_bound(tmp_path):
     state["V"] = state["V"].clone()
     state["V"][0, 0] += 1.5 * bound  # within the old, doubled tolerance; beyond what truncation explains
     torch.save(state, run / "state.pt")
+    with pytest.raises(MEIError, match="state.pt is not the file"):  # the digest summary.json records
+        load_run(run)
+    summary = json.loads((run / "summary.json").read_text())
+    del summary["sha256"]  # as a run saved before the digests: the reproduction check still holds
+    (run / "summary.json").write_text(json.dumps(summary))
     with pytest.raises(MEIError, match="does not reproduce the saved vertices"):
         load_run(run)
 
@@ -796,3 +801,42 @@ def test_cli_refuses_counts_too_large_in_one_line(tmp_path, capsys, option, valu
     assert main(["mei", "--out", str(out), "--steps", "2", "--quiet", option, value]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err and not out.exists()
+
+
+def test_load_run_refuses_mixed_files_and_summary_fields_of_the_wrong_kind(tmp_path):
+    # found by fuzzing: another run's state.pt or summary.json copied in loaded as this run (its mesh under this
+    # neuron), and an activation of NaN or text, a neuron of -1 or 3.7, a history of text were read as they were
+    a = save_run(optimize_mei(GaborSimpleCell(), 0, "sheet", **TINY), tmp_path / "a", figures=False)
+    b = save_run(optimize_mei(GaborSimpleCell(), 0, "sheet", **{**TINY, "n_vertices": 120}), tmp_path / "b",
+                 figures=False)
+    c = save_run(optimize_mei(GaborSimpleCell(orientation=1.0), 0, "sheet", **TINY), tmp_path / "c", figures=False)
+    kept = {name: (a / name).read_bytes() for name in ("summary.json", "state.pt", "mesh.obj")}
+
+    def restore():
+        for name, data in kept.items():
+            (a / name).write_bytes(data)
+
+    (a / "state.pt").write_bytes((c / "state.pt").read_bytes())  # a run of the same size
+    with pytest.raises(MEIError, match="state.pt is not the file"):
+        load_run(a)
+    restore()
+    (a / "mesh.obj").write_bytes((c / "mesh.obj").read_bytes())
+    with pytest.raises(MEIError, match="mesh.obj is not the file"):
+        load_run(a)
+    restore()
+    (a / "summary.json").write_bytes((b / "summary.json").read_bytes())  # another size: caught by the counts
+    with pytest.raises(MEIError, match="summary.json's n_vertices is .* not of one run"):
+        load_run(a)
+    restore()
+    summary = json.loads(kept["summary.json"])
+    for key, value in (("activation", math.nan), ("activation", "0.5"), ("activation", True), ("neuron", -1),
+                       ("neuron", 3.7), ("seed", 0.5), ("history", "abc"), ("history", [math.nan]),
+                       ("wall_time_s", -5), ("init", 5)):
+        (a / "summary.json").write_text(json.dumps({**summary, key: value}))
+        with pytest.raises(MEIError, match=f"summary.json is damaged: {key} must be"):
+            load_run(a)
+    (a / "summary.json").write_bytes(b"\xff\xfe{")
+    with pytest.raises(MEIError, match="summary.json is unreadable"):
+        load_run(a)
+    restore()
+    assert torch.equal(load_run(a).V, torch.load(a / "state.pt", weights_only=True)["V"])

@@ -3,8 +3,10 @@ bit for bit."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import numbers
 import pickle
 from pathlib import Path
 
@@ -26,7 +28,10 @@ RUN_FILES = ("summary.json", "state.pt", "mesh.obj")
 _SUMMARY_KEYS = {"format", "complete", "neuron", "init", "activation", "fraction_of_bound", "seed", "seed_activations",
                  "encoder", "settings", "light", "rotation_axis_angle", "translation", "n_vertices", "n_faces",
                  "wall_time_s", "seconds_per_step", "quality", "history", "loss_history", "reg_history",
-                 "time_history"}
+                 "time_history", "sha256"}
+# the files whose digests summary.json records (since 2026-11-30): another run's state.pt or mesh.obj copied in
+# was read as this run's
+DIGESTED = ("state.pt", "mesh.obj")
 
 
 def _summary(result: MEIResult) -> dict:
@@ -84,9 +89,52 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
         if figures:
             mei_figures(result, tmp)
         with open(tmp / "summary.json", "w") as fh:
-            json.dump(_summary(result), fh, indent=1)
+            json.dump({**_summary(result), "sha256": {name: _digest(tmp / name) for name in DIGESTED}}, fh, indent=1)
 
     return atomic_directory(directory, write, overwrite=overwrite, error=MEIError)
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _check_summary(summary: dict, state: dict, directory: Path) -> None:
+    """Raise MEIError unless summary.json's own fields have their types and agree with state.pt and the files
+    (a NaN or text activation, a neuron of -1 or 3.7, a history of text were read as they were; another run's
+    state.pt or summary.json copied in was read as this run)."""
+    def damaged(why: str):
+        return MEIError(f"{directory / 'summary.json'} is damaged: {why}")
+
+    def real(x) -> bool:
+        return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+
+    def count(x) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+    for key, ok, want in (("neuron", count, "a non-negative integer"), ("seed", count, "a non-negative integer"),
+                          ("activation", real, "a finite number"), ("wall_time_s", lambda x: real(x) and x >= 0,
+                                                                    "a finite number >= 0"),
+                          ("seconds_per_step", lambda x: real(x) and x >= 0, "a finite number >= 0"),
+                          ("init", lambda x: isinstance(x, str), "a string"),
+                          ("history", lambda x: isinstance(x, list) and all(map(real, x)), "a list of finite numbers"),
+                          ("loss_history", lambda x: isinstance(x, list) and all(map(real, x)),
+                           "a list of finite numbers")):
+        if key in summary and not ok(summary[key]):
+            raise damaged(f"{key} must be {want}, got {summary[key]!r:.80}")
+    sizes = {"n_vertices": state["V"].shape[0], "n_faces": state["F"].shape[0]}
+    for key, size in sizes.items():
+        if key in summary and summary[key] != size:
+            raise MEIError(f"{directory}: summary.json's {key} is {summary[key]!r} and state.pt's mesh has {size}: "
+                           "the two files are not of one run")
+    digests = summary.get("sha256")
+    if digests is None:  # a run saved before 2026-11-30
+        return
+    if not isinstance(digests, dict):
+        raise damaged(f"sha256 must be a dict of file digests, got {type(digests).__name__}")
+    changed = [name for name in DIGESTED if name in digests and _digest(directory / name) != digests[name]]
+    if changed:
+        raise MEIError(f"{directory}: {' and '.join(changed)} {'is' if len(changed) == 1 else 'are'} not the file(s) "
+                       "save_run wrote with this summary.json (another run's, or edited); save the run again")
 
 
 def is_complete_summary(summary) -> bool:
@@ -169,7 +217,7 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     try:
         with open(directory / "summary.json") as fh:
             summary = json.load(fh)
-    except (OSError, json.JSONDecodeError) as err:
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
         raise MEIError(f"{directory / 'summary.json'} is unreadable: {err}") from None
     if not is_complete_summary(summary):
         raise MEIError(f"{directory} holds no complete run of format {RUN_FORMAT}")
@@ -180,6 +228,7 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         why = "it is not a file save_run wrote" if isinstance(err, pickle.UnpicklingError) else str(err).split("\n")[0]
         raise MEIError(f"{directory} is corrupt: state.pt: {type(err).__name__}: {why}") from None
     _check_state(state, directory / "state.pt")
+    _check_summary(summary, state, directory)
     try:
         settings = MEISettings.from_dict(summary["settings"])
         rbf = rebuild_deformer(state["V0"], state["deformer"], settings)
