@@ -173,6 +173,38 @@ def test_a_damaged_sweep_is_one_tuning_error(tmp_path, sheet_mei, simple_cell, d
         load_sweep(bad)
 
 
+@pytest.mark.parametrize("edit, match", [
+    ({"neurons": "0"}, "neurons must be a list"), ({"neurons": [0.7]}, "neurons must be a list"),
+    ({"neurons": [True]}, "neurons must be a list"), ({"neurons": [0, 0]}, "neurons must be a list"),
+    ({"kind": "bogus"}, "kind must be one of"), ({"kind": "light", "axes": ["elevation", "azimuth", "roll"]},
+                                                 "a light sweep has the axes"),
+    ("nan", "responses must be finite real numbers"), ("complex", "responses must be finite real numbers"),
+    ("0-d axis", "axis azimuth must be a non-empty list of finite angles"),
+])
+def test_an_edited_sweep_is_refused_not_read_as_another(tmp_path, sheet_mei, simple_cell, edit, match):
+    # found by fuzzing: NaN responses loaded (argmax named the NaN cell), "0" and [0.7] were read as neuron 0,
+    # a kind of "bogus" loaded and failed in matplotlib when saved again, complex responses lost their
+    # imaginary part with a warning, and a 0-d axis ended in "len() of unsized object"
+    import shutil
+
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10], roll=[0, 5])
+    bad = shutil.copytree(save_sweep(sw, tmp_path / "ok", figures=False), tmp_path / "bad")
+    if isinstance(edit, dict):
+        meta = json.loads((bad / "sweep.json").read_text())
+        (bad / "sweep.json").write_text(json.dumps({**meta, **edit}))
+    else:
+        arrays = dict(np.load(bad / "sweep.npz"))
+        if edit == "nan":
+            arrays["responses"][0, 0, 0, 0] = np.nan
+        elif edit == "complex":
+            arrays["responses"] = arrays["responses"] + 1j
+        else:
+            arrays["axis_azimuth"] = np.array(0.0)
+        np.savez(bad / "sweep.npz", **arrays)
+    with pytest.raises(TuningError, match=match):
+        load_sweep(bad)
+
+
 def test_overwrite_replaces_only_what_meshmei_wrote(tmp_path, sheet_mei, simple_cell):
     """overwrite=True (CLI --overwrite) removed whatever folder was there: --out ~/data by mistake lost the
     data. Now only an empty folder or one of meshmei's results is replaced."""

@@ -20,6 +20,8 @@ SWEEP_FORMAT = "meshmei-sweep-1"
 # --out RUN/member_1 --overwrite` replaced a member of a diverse set, which then no longer loaded); the other
 # commands replace any result meshmei wrote
 SWEEP_KINDS = ("sweep.json",)
+# each kind's axes, as pose_sweep and light_sweep make them
+SWEEP_AXES = {"pose": (("elevation", "azimuth"), ("elevation", "azimuth", "roll")), "light": (("elevation", "azimuth"),)}
 
 
 def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: bool = True, images=None) -> Path:
@@ -61,7 +63,10 @@ def load_sweep(directory) -> Sweep:
         if not isinstance(meta, dict) or meta.get("format") != SWEEP_FORMAT or meta.get("complete") is not True:
             raise TuningError(f"{directory} holds no complete sweep of format {SWEEP_FORMAT}")
         axes = tuple((str(n), np.asarray(data[f"axis_{n}"], dtype=np.float64)) for n in meta["axes"])
-        responses = np.asarray(data["responses"], dtype=np.float64)
+        raw = np.asarray(data["responses"])
+        if np.iscomplexobj(raw):  # np.asarray(float64) dropped the imaginary part with a warning
+            raise TuningError(f"{directory} is not a readable sweep: its responses must be finite real numbers")
+        responses = np.asarray(raw, dtype=np.float64)
         neurons = tuple(int(n) for n in meta["neurons"])
         kind, reference, extra = str(meta["kind"]), meta.get("reference", {}), meta.get("meta", {})
         if not isinstance(reference, dict) or not isinstance(extra, dict):
@@ -70,6 +75,32 @@ def load_sweep(directory) -> Sweep:
         raise
     except (OSError, KeyError, ValueError, TypeError, AttributeError, EOFError, zipfile.BadZipFile) as err:  # damaged, hand-edited
         raise TuningError(f"{directory} is not a readable sweep: {type(err).__name__}: {err}") from None
+    _check_loaded(directory, meta, kind, neurons, axes, responses)
+    return Sweep(kind, responses, axes, neurons, reference, extra)
+
+
+def _check_loaded(directory: Path, meta: dict, kind: str, neurons: tuple, axes: tuple, responses) -> None:
+    """TuningError unless what was read is a sweep save_sweep could have written: found by fuzzing, NaN
+    responses loaded (and argmax named the NaN cell), "neurons": "34" was read as (3, 4) and [3.7] as (3,), a
+    kind of "bogus" loaded and failed in matplotlib when saved again, complex responses lost their imaginary
+    part with a warning, and a 0-d axis ended in "len() of unsized object"."""
+    def bad(why: str):
+        return TuningError(f"{directory} is not a readable sweep: {why}")
+
+    listed = meta["neurons"]
+    if (not isinstance(listed, list) or not listed
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in listed)
+            or len(set(listed)) != len(listed)):
+        raise bad(f"neurons must be a list of distinct neuron indices, got {listed!r:.80}")
+    if kind not in SWEEP_AXES:
+        raise bad(f"kind must be one of {sorted(SWEEP_AXES)}, got {kind!r}")
+    names = tuple(n for n, _ in axes)
+    if names not in SWEEP_AXES[kind]:
+        raise bad(f"a {kind} sweep has the axes {' or '.join(map(str, SWEEP_AXES[kind]))}, got {names}")
+    for name, values in axes:
+        if values.ndim != 1 or not len(values) or not np.isfinite(values).all():
+            raise bad(f"axis {name} must be a non-empty list of finite angles, got {values!r:.80}")
+    if not np.isfinite(responses).all():
+        raise bad("its responses must be finite real numbers")
     if responses.shape != (len(neurons), *[len(v) for _, v in axes]):
         raise TuningError(f"{directory}: responses of shape {responses.shape} do not match the axes")
-    return Sweep(kind, responses, axes, neurons, reference, extra)
