@@ -13,6 +13,7 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -46,6 +47,15 @@ def test_neuron_lists_parse_ranges_and_keep_order():
     assert parse_neurons("0-3", 4) == [0, 1, 2, 3]
     with pytest.raises(MEIError, match="out of range for 4 neurons: got 999999999"):
         parse_neurons("0-999999999", 4)  # refused before the range is built (it would take GBs)
+    # found by fuzzing: without a count, 0-99999999999 ran out of memory and 5,000 digits were Python's error
+    with pytest.raises(MEIError, match="names more than 1,000,000 neurons"):
+        parse_neurons("0-99999999999")
+    with pytest.raises(MEIError, match="neurons must be ranges and lists"):
+        parse_neurons("1" * 5000)
+    for count in ("10", 0, True, 2.5):
+        with pytest.raises(MEIError, match="n_neurons must be a positive integer"):
+            parse_neurons("0-3", count)
+    assert parse_neurons("0-3", np.int64(4)) == [0, 1, 2, 3]
 
 
 @pytest.mark.parametrize("neurons, match", [(2, "neurons must be a sequence of neuron indices"),

@@ -89,6 +89,21 @@ def test_sweeps_refuse_bad_arguments_in_one_line(sheet_mei, simple_cell):
     assert tuple(np_neuron.neurons) == (0,)
 
 
+def test_a_range_is_ascii_numbers_and_never_gives_nan():
+    # found by fuzzing: -1e308:1e308:3 gave [nan, inf, 1e308], and other scripts' digits, '1_0' and None were
+    # read or ended in an AttributeError
+    from meshmei.tuning import parse_range
+
+    np.testing.assert_array_equal(parse_range(" -90 : 90 : 3 "), [-90.0, 0.0, 90.0])
+    np.testing.assert_array_equal(parse_range(".5:1e2:2"), [0.5, 100.0])
+    for bad in ("0:10:\u0663", "\uff10:10:2", "0:10:1_0", "+2", "1:2:3:4", "nan:1:3", None, 5):
+        with pytest.raises(TuningError, match="a range is 'lo:hi:n'"):
+            parse_range(bad)
+    for bad in ("-1e308:1e308:3", "1e400:0:2"):
+        with pytest.raises(TuningError, match="bounds must be finite degrees"):
+            parse_range(bad)
+
+
 def test_light_positions_on_the_hemisphere():
     P = light_positions([0, 45, 90], [0, 90, 180], 2.0, dtype=torch.float64)
     torch.testing.assert_close(P.norm(dim=-1), torch.full((3, 3), 2.0, dtype=torch.float64))

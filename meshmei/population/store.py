@@ -21,6 +21,7 @@ import csv
 import hashlib
 import json
 import math
+import numbers
 import os
 import uuid
 import warnings
@@ -252,23 +253,32 @@ def read_table(out) -> list[dict]:
     return rows
 
 
+MAX_NEURONS = 1_000_000  # indices one neuron list may name (without the encoder's count to bound them)
+
+
 def parse_neurons(text: str, n_neurons: int | None = None) -> list[int]:
     """``"0-99"``, ``"3,7,12"``, ``"0-9,20,30-32"``: neuron indices in the order given, without repeats.
-    With ``n_neurons``, an index beyond the encoder's count is refused before any range is expanded."""
+    With ``n_neurons``, an index beyond the encoder's count is refused before any range is expanded; without
+    it, more than :data:`MAX_NEURONS` indices are (0-99999999999 ran out of memory)."""
+    if n_neurons is not None and not (isinstance(n_neurons, numbers.Integral) and not isinstance(n_neurons, bool)
+                                      and n_neurons > 0):
+        raise MEIError(f"n_neurons must be a positive integer, got {n_neurons!r}")
     out: list[int] = []
     for part in str(text).replace(" ", "").split(","):
         if not part:
             continue
         lo, sep, hi = part.partition("-")
         # ASCII digits only: int() also reads '+1', '1_0' (as 10) and other scripts' digits
-        if not all(x.isascii() and x.isdigit() for x in ((lo, hi) if sep else (lo,))):
-            raise MEIError(f"neurons must be ranges and lists such as 0-99 or 3,7,12; got {text!r}")
+        if not all(x.isascii() and x.isdigit() and len(x) <= 18 for x in ((lo, hi) if sep else (lo,))):
+            raise MEIError(f"neurons must be ranges and lists such as 0-99 or 3,7,12; got {text!r:.80}")
         a = int(lo)
         b = int(hi) if sep else a
         if a < 0 or b < a:
             raise MEIError(f"neuron range {part!r} is empty or negative")
         if n_neurons is not None and b >= n_neurons:
             raise MEIError(f"neuron index out of range for {n_neurons} neurons: got {b} (in {part!r})")
+        if len(out) + (b - a + 1) > MAX_NEURONS:
+            raise MEIError(f"{text!r:.80} names more than {MAX_NEURONS:,} neurons")
         out.extend(range(a, b + 1))
     if not out:
         raise MEIError(f"no neurons in {text!r}")

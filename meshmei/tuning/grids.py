@@ -15,6 +15,7 @@ image up is +y. Angles are in degrees.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import torch
@@ -82,6 +83,8 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32,
 # the farthest light of a light sweep: from there the light's direction turns by under a microradian across an
 # object of unit size, so a farther one is the same light; its squared distance stays well within float32
 MAX_LIGHT_DISTANCE = 1e6
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
+_COUNT = re.compile(r"\d{1,18}", re.ASCII)
 
 # the most conditions (renders per neuron) of one grid: two full axes at a tenth of a degree
 MAX_GRID_CONDITIONS = 3601 * 3601
@@ -103,13 +106,12 @@ MAX_RANGE_ANGLES = 3601
 
 def parse_range(text: str) -> np.ndarray:
     """``"lo:hi:n"`` -> n angles from lo to hi inclusive (finite bounds, 1 to :data:`MAX_RANGE_ANGLES`)."""
-    try:
-        lo, hi, n = text.split(":")
-        n = int(n)
-        lo, hi = float(lo), float(hi)
-    except ValueError:
-        raise TuningError(f"a range is 'lo:hi:n' (degrees, count), got {text!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi)):
+    parts = text.split(":") if isinstance(text, str) else ()
+    # ASCII numbers only, as parse_neurons: float() and int() also read other scripts' digits and '1_0' (10)
+    if len(parts) != 3 or not all(_NUMBER.fullmatch(p.strip()) for p in parts[:2]) or not _COUNT.fullmatch(parts[2].strip()):
+        raise TuningError(f"a range is 'lo:hi:n' (degrees, count), got {text!r}")
+    lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+    if not (math.isfinite(lo) and math.isfinite(hi) and math.isfinite(hi - lo)):  # -1e308:1e308 gave NaN angles
         raise TuningError(f"a range's bounds must be finite degrees, got {text!r}")
     if not 1 <= n <= MAX_RANGE_ANGLES:
         raise TuningError(f"a range gives 1 to {MAX_RANGE_ANGLES} angles, got n={n} in {text!r}")
