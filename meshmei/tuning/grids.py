@@ -83,7 +83,7 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32,
 # the farthest light of a light sweep: from there the light's direction turns by under a microradian across an
 # object of unit size, so a farther one is the same light; its squared distance stays well within float32
 MAX_LIGHT_DISTANCE = 1e6
-_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
+_NUMBER = re.compile(r"[+-]?((\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|inf|infinity|nan)", re.ASCII | re.IGNORECASE)
 _COUNT = re.compile(r"\d{1,18}", re.ASCII)
 
 # the most conditions (renders per neuron) of one grid: two full axes at a tenth of a degree
