@@ -305,6 +305,36 @@ def test_a_non_square_model_gets_its_pixel_mei_in_its_own_image_space(tmp_path):
         assert r["pixel_mei_response"] == pytest.approx(alone.activation, rel=1e-9)
 
 
+def test_a_damaged_table_is_one_error_naming_its_line(tmp_path):
+    # found by fuzzing: a short row, a NUL byte or extra cells were TypeErrors; nan, inf, other scripts' digits,
+    # '1_0' and a BOM were read as they were; a missing file was Python's FileNotFoundError
+    out = tmp_path / "pop"
+    rows = run_population(cells(), [0, 1], out, settings=MEISettings(**TINY), pixel_steps=0, progress=False)
+    table = out / "population.csv"
+    text = table.read_text()
+    assert read_table(out) == rows
+    header, first, second = text.splitlines()[:3]
+    cells0 = first.split(",")
+    for bad, says in ((text.replace(first, ",".join(cells0[:5])), "line 2: 5 cells, not 12"),
+                      (text.replace(first, first + ",9"), "line 2: 13 cells, not 12"),
+                      (text.replace(first, ",".join(["nan", *cells0[1:]])), "line 2: neuron holds 'nan'"),
+                      (text.replace(first, ",".join([cells0[0], "inf", *cells0[2:]])), "line 2: mei_response holds 'inf'"),
+                      (text.replace(first, ",".join(["\u0663", *cells0[1:]])), "neuron holds"),
+                      (text.replace(first, ",".join([cells0[0], "1_0", *cells0[2:]])), "mei_response holds '1_0'"),
+                      (text.replace(header, "a,b"), "is not a population table")):
+        table.write_text(bad, encoding="utf-8")
+        with pytest.raises(MEIError, match=says):
+            read_table(out)
+    table.write_text("\ufeff" + text, encoding="utf-8")  # a spreadsheet's save: read as it was
+    assert read_table(out) == rows
+    table.write_bytes(b"\xff\xfe" + text.encode())
+    with pytest.raises(MEIError, match="is unreadable"):
+        read_table(out)
+    table.unlink()
+    with pytest.raises(MEIError, match="no population table at"):
+        read_table(out)
+
+
 def test_a_rerun_skips_finished_neurons_and_other_settings_are_refused(tmp_path, monkeypatch):
     import meshmei.population.run as population_run
 

@@ -23,6 +23,7 @@ import json
 import math
 import numbers
 import os
+import re
 import uuid
 import warnings
 from pathlib import Path
@@ -233,24 +234,46 @@ def write_table(out, summaries: dict[int, dict]) -> Path:
     return path
 
 
+_INTEGER_COLUMNS = ("neuron", "seed", "self_intersections", "flipped_faces")
+_BOOLEAN_COLUMNS = ("watertight", "manifold")
+_DECIMAL = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
+
+
 def read_table(out) -> list[dict]:
-    """``population.csv`` as a list of dicts (numbers parsed; empty cells None)."""
-    rows = []
-    with open(Path(out) / "population.csv", newline="") as fh:
-        for row in csv.DictReader(fh):
-            parsed = {}
-            for k, v in row.items():
-                if v == "":
-                    parsed[k] = None
-                elif v in ("True", "False"):
-                    parsed[k] = v == "True"
-                else:
-                    try:
-                        parsed[k] = int(v) if k in ("neuron", "seed", "self_intersections", "flipped_faces") else float(v)
-                    except ValueError:
-                        parsed[k] = v
-            rows.append(parsed)
-    return rows
+    """``population.csv`` of the population folder ``out`` as a list of dicts, one per neuron: the columns of
+    :data:`COLUMNS`, integers, finite numbers and booleans parsed, empty cells None. A table of other columns
+    or cells is one MEIError naming its line (short rows, NaN and other scripts' digits were read as
+    they were, or ended in a TypeError); a byte-order mark is skipped."""
+    path = Path(out) / "population.csv"
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM (a spreadsheet's save) is skipped
+            lines = list(csv.reader(fh))
+    except FileNotFoundError:
+        raise MEIError(f"no population table at {path}") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise MEIError(f"{path} is unreadable: {err}") from None
+    if not lines or tuple(lines[0]) != COLUMNS:
+        raise MEIError(f"{path} is not a population table: its header is {lines[0] if lines else 'missing'}, "
+                       f"not {list(COLUMNS)}")
+    return [_table_row(cells, path, i) for i, cells in enumerate(lines[1:], start=2)]
+
+
+def _table_row(cells: list, path: Path, line: int) -> dict:
+    if len(cells) != len(COLUMNS):
+        raise MEIError(f"{path}, line {line}: {len(cells)} cells, not {len(COLUMNS)}")
+    row = {}
+    for key, v in zip(COLUMNS, cells):
+        if v == "":
+            row[key] = None
+        elif key in _BOOLEAN_COLUMNS and v in ("True", "False"):
+            row[key] = v == "True"
+        elif key in _INTEGER_COLUMNS and v.isascii() and v.isdigit():
+            row[key] = int(v)
+        elif key not in _INTEGER_COLUMNS + _BOOLEAN_COLUMNS and _DECIMAL.fullmatch(v) and math.isfinite(float(v)):
+            row[key] = float(v)
+        else:
+            raise MEIError(f"{path}, line {line}: {key} holds {v!r:.40}")
+    return row
 
 
 MAX_NEURONS = 1_000_000  # indices one neuron list may name (without the encoder's count to bound them)
