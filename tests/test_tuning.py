@@ -104,6 +104,32 @@ def test_a_range_is_ascii_numbers_and_never_gives_nan():
             parse_range(bad)
 
 
+def test_bare_meshes_and_neurons_of_any_sequence_type_are_taken_or_named(sheet_mei, simple_cell):
+    # found by fuzzing: a NumPy V and a camera of text were AttributeErrors, a scene key's typo render()'s
+    # TypeError, a rotation of (2, 3, 3) torch's size mismatch; a generator of neurons was "empty", a 0-d
+    # tensor failed in iteration, np.float32(3) was not a distance and True was one
+    V, F = sheet_mei.V, sheet_mei.F
+    grid = dict(elevation=[0], azimuth=[0, 10])
+    alone = pose_sweep((V, F), simple_cell, **grid)
+    np.testing.assert_array_equal(pose_sweep((V.numpy(), F.numpy()), simple_cell, **grid).responses, alone.responses)
+    for scene, says in (({"lite": 1}, r"scene takes camera, .*; got \['lite'\]"),
+                        ({"rotation": torch.eye(3).expand(2, 3, 3)}, r"rotation must be a \(3, 3\) tensor"),
+                        ({"camera": "x"}, "camera must be a Camera, got str")):
+        with pytest.raises(TuningError, match=says):
+            pose_sweep((V, F, scene), simple_cell, **grid)
+    for neurons in ((n for n in [0]), torch.tensor(0), torch.tensor([0]), np.array([0])):
+        assert tuple(pose_sweep(sheet_mei, simple_cell, neurons=neurons, **grid).neurons) == (0,)
+    with pytest.raises(TuningError, match="got a dict"):
+        pose_sweep(sheet_mei, simple_cell, neurons={0: 1}, **grid)
+    with pytest.raises(TuningError, match="elevation must be angles in degrees, got None"):
+        pose_sweep(sheet_mei, simple_cell, elevation=None, azimuth=[0])
+    light = [light_sweep(sheet_mei, simple_cell, elevation=[30], azimuth=[0], distance=d).responses
+             for d in (3.0, np.float32(3), np.int64(3), torch.tensor(3.0))]
+    assert all(np.array_equal(r, light[0]) for r in light)
+    with pytest.raises(TuningError, match="light distance must be a positive number, got True"):
+        light_sweep(sheet_mei, simple_cell, elevation=[30], azimuth=[0], distance=True)
+
+
 def test_light_positions_on_the_hemisphere():
     P = light_positions([0, 45, 90], [0, 90, 180], 2.0, dtype=torch.float64)
     torch.testing.assert_close(P.norm(dim=-1), torch.full((3, 3), 2.0, dtype=torch.float64))

@@ -15,6 +15,7 @@ image up is +y. Angles are in degrees.
 from __future__ import annotations
 
 import math
+import numbers
 import re
 
 import numpy as np
@@ -29,6 +30,8 @@ __all__ = ["check_angles", "pose_rotations", "light_positions", "parse_range"]
 def check_angles(name, values, lo=None, hi=None) -> np.ndarray:
     """Angles in degrees as a flat float64 array ``(g,)``; raise TuningError if empty, not finite or outside
     ``[lo, hi]``."""
+    if values is None or isinstance(values, (bool, np.bool_)):  # None was "holds NaN or Inf: [nan]"
+        raise TuningError(f"{name} must be angles in degrees, got {values!r}")
     try:
         a = np.asarray(values, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):  # '0:10:2' is a range's text: parse_range reads it
@@ -70,8 +73,13 @@ def light_positions(elevation, azimuth, distance: float, *, dtype=torch.float32,
     """Light positions ``(E, A, 3)`` on the camera-facing hemisphere (see the module docstring)."""
     el = np.radians(check_angles("elevation", elevation, 0.0, 90.0))
     az = np.radians(check_angles("azimuth", azimuth))
-    if not (isinstance(distance, (int, float)) and math.isfinite(distance) and distance > 0):
+    if isinstance(distance, torch.Tensor) and distance.numel() == 1:
+        distance = distance.item()
+    # NumPy's numbers too (np.float32(3) was refused), not a bool (True was swept at 1.0)
+    if isinstance(distance, bool) or not (isinstance(distance, numbers.Real) and math.isfinite(distance)
+                                          and distance > 0):
         raise TuningError(f"light distance must be a positive number, got {distance!r}")
+    distance = float(distance)
     if distance > MAX_LIGHT_DISTANCE:  # 1e308 overflowed the light's position ("light holds NaN or Inf")
         raise TuningError(f"light distance must be at most {MAX_LIGHT_DISTANCE:g}, got {distance!r}")
     check_grid_size(len(el), len(az))

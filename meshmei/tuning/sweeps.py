@@ -13,8 +13,9 @@ import torch
 
 from .._checks import is_integral
 from ..encoders import Encoder, frozen_encoder
-from ..errors import TuningError
-from ..render import DEFAULT_DISTANCE, render
+from ..errors import MeshError, TuningError
+from ..mesh import check_mesh
+from ..render import DEFAULT_DISTANCE, Camera, render
 from .grids import check_angles, light_positions, pose_rotations
 
 __all__ = ["Sweep", "pose_sweep", "light_sweep", "response_groups", "camera_distance"]
@@ -78,11 +79,37 @@ def _scene(result):
         V, F, scene = result if len(result) == 3 else (*result, {})
         if not isinstance(scene, dict):  # None failed in dict()
             raise TuningError(f"a bare mesh's scene must be a dict of render() arguments, got {type(scene).__name__}")
-        return V, F, dict(scene)
+        try:  # a NumPy V ended in an AttributeError, a key's typo in render()'s TypeError
+            V, F = check_mesh(V, F)
+        except MeshError as err:
+            raise TuningError(f"a bare mesh: {err}") from None
+        return V, F, _bare_scene(scene)
     if not all(hasattr(result, k) for k in ("V", "F", "scene")):  # None failed with an AttributeError
         raise TuningError(f"result must be an MEIResult, or a (V, F) or (V, F, scene) tuple, got "
                           f"{type(result).__name__}")
     return result.V, result.F, result.scene()
+
+
+SCENE_KEYS = ("camera", "light", "rotation", "translation", "settings", "albedo", "uv")  # render()'s scene
+
+
+def _bare_scene(scene: dict) -> dict:
+    """A bare mesh's scene, checked: render()'s keyword arguments only, arrays as tensors, a rotation (3, 3)
+    and a translation (3,) (a rotation of (2, 3, 3) ended in torch's size mismatch, a camera of text in an
+    AttributeError)."""
+    unknown = sorted(set(scene) - set(SCENE_KEYS))
+    if unknown:
+        raise TuningError(f"a bare mesh's scene takes {', '.join(SCENE_KEYS)}; got {unknown}")
+    scene = {k: torch.from_numpy(np.asarray(v, dtype=np.float64)) if isinstance(v, (np.ndarray, list)) else v
+             for k, v in scene.items()}
+    for key, shape in (("rotation", (3, 3)), ("translation", (3,))):
+        value = scene.get(key)
+        if value is not None and not (isinstance(value, torch.Tensor) and tuple(value.shape) == shape):
+            got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise TuningError(f"a bare mesh's scene {key} must be a {shape} tensor, got {got}")
+    if scene.get("camera") is not None and not isinstance(scene["camera"], Camera):
+        raise TuningError(f"a bare mesh's scene camera must be a Camera, got {type(scene['camera']).__name__}")
+    return scene
 
 
 def camera_distance(scene: dict) -> float:
@@ -114,8 +141,14 @@ def _check_call(encoder, batch_size) -> None:
 def _neurons(encoder, neurons, result):
     if neurons is None:
         neurons = [result.neuron] if hasattr(result, "neuron") else list(range(encoder.n_neurons))
+    if isinstance(neurons, torch.Tensor):  # a 0-d tensor failed in iteration, a 1-d one was refused
+        neurons = neurons.tolist()
     if is_integral(neurons):
         neurons = [int(neurons)]
+    if isinstance(neurons, (dict, set, frozenset)):  # a dict's keys, a set in no order
+        raise TuningError(f"neurons must be None, a neuron index or a sequence of them, got a {type(neurons).__name__}")
+    if not isinstance(neurons, (str, bytes)) and hasattr(neurons, "__iter__"):
+        neurons = list(neurons)  # a generator was consumed by the check below, then called empty
     # '12' was read digit by digit as neurons (1, 2), [0.7, 1.9] as (0, 1)
     if (isinstance(neurons, (str, bytes)) or not hasattr(neurons, "__iter__")
             or not all(is_integral(n) for n in neurons)):
