@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import textwrap
+from pathlib import Path
 
 import pytest
 import torch
@@ -613,3 +614,29 @@ def test_a_model_that_edits_its_input_in_place_leaves_the_callers_images_alone()
     assert torch.equal(z, kept)
     pm = pixel_mei(enc, 1, steps=3, seeds=(0,))
     torch.testing.assert_close(enc(pm.image, 1, preprocessed=True)[0, 0], torch.tensor(pm.activation))
+
+
+def test_option_types_a_caller_might_pass_are_taken_or_named(tmp_path):
+    # found by fuzzing: clip="no" clipped, output=True picked a tuple's element 1, np.int64(16) was refused as a
+    # size and a dict's keys were taken as one, and load_model(Path) was an AttributeError
+    import numpy as np
+
+    from meshmei.encoders import load_model
+
+    def model(x):
+        return x.flatten(1)[:, :3]
+
+    a = encoder_from_model(model, mean=0.5, std=0.2, image_size=np.int64(16))
+    assert a.image_size == (16, 16)
+    for options, says in ((dict(clip="no"), "clip must be True or False"),
+                          (dict(output=True), "output must be None, an index, a key or a callable"),
+                          (dict(image_size={16: 0, 20: 1}), "image_size must be an int or"),
+                          (dict(image_size={16, 20}), "image_size must be an int or")):
+        with pytest.raises(EncoderError, match=says):
+            encoder_from_model(model, mean=0.5, std=0.2, **options)
+    factory = tmp_path / "m.py"
+    factory.write_text("def build():\n    return {'model': lambda x: x.flatten(1)[:, :3], 'mean': 0.5, 'std': 0.2, "
+                       "'image_size': 16}\n")
+    assert load_model(f"{factory}:build").image_size == load_model(Path(f"{factory}:build")).image_size == (16, 16)
+    with pytest.raises(EncoderError, match="a model spec is"):
+        load_model(None)

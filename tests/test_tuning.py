@@ -214,6 +214,11 @@ def test_a_damaged_sweep_is_one_tuning_error(tmp_path, sheet_mei, simple_cell, d
         load_sweep(bad)
 
 
+def test_load_sweep_names_a_directory_that_is_not_a_path():
+    with pytest.raises(TuningError, match="a sweep directory is a path, got NoneType"):
+        load_sweep(None)
+
+
 @pytest.mark.parametrize("edit, match", [
     ({"neurons": "0"}, "neurons must be a list"), ({"neurons": [0.7]}, "neurons must be a list"),
     ({"neurons": [True]}, "neurons must be a list"), ({"neurons": [0, 0]}, "neurons must be a list"),

@@ -28,6 +28,8 @@ import importlib.util
 import inspect
 import json
 import math
+import numbers
+import os
 import sys
 import types
 from pathlib import Path
@@ -565,8 +567,11 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
     for m in models:
         if not callable(m):
             raise EncoderError(f"model must be a torch.nn.Module or a callable, got {type(m).__name__}")
-    size = (image_size, image_size) if isinstance(image_size, int) and not isinstance(image_size, bool) else image_size
-    if isinstance(size, (str, bytes)):  # iterated, a string would be read character by character
+    if isinstance(image_size, numbers.Integral) and not isinstance(image_size, (bool, np.bool_)):
+        size = (int(image_size), int(image_size))  # NumPy's ints too (np.int64(16) was refused)
+    else:
+        size = image_size
+    if isinstance(size, (str, bytes, dict, set, frozenset)):  # iterated: characters, keys, an order of its own
         raise EncoderError(f"image_size must be an int or (H, W), got {image_size!r}")
     try:
         size = tuple(_positive_int("image_size", s) for s in size)
@@ -579,6 +584,10 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
         check_positive("norm", norm, error=EncoderError)
     if forward_kwargs is not None and not isinstance(forward_kwargs, dict):
         raise EncoderError(f"forward_kwargs must be a dict, got {type(forward_kwargs).__name__}")
+    if not isinstance(clip, (bool, np.bool_)):  # clip="no" clipped
+        raise EncoderError(f"clip must be True or False, got {clip!r}")
+    if isinstance(output, (bool, np.bool_)):  # output=True picked a tuple's element 1
+        raise EncoderError(f"output must be None, an index, a key or a callable, got {output!r}")
     pre = PixelPreprocess(mean, std, norm, pixel_range, clip)
     enc = ModelEncoder(models, pre, n_neurons=1, channels=channels, image_size=size,
                        forward_kwargs=forward_kwargs or {}, output=output, source=source)
@@ -592,7 +601,12 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
 
 
 def model_source(spec: str) -> tuple:
-    """``(path, attribute)`` of a ``--model`` spec: ``file.py:factory`` or a TorchScript file."""
+    """``(path, attribute)`` of a ``--model`` spec: ``file.py:factory`` or a TorchScript file (a str, or a
+    path-like one: a Path was an AttributeError)."""
+    if isinstance(spec, os.PathLike):
+        spec = os.fspath(spec)
+    if not isinstance(spec, str):
+        raise EncoderError(f"a model spec is 'path/to/model.py:factory' or a TorchScript file, got {spec!r}")
     path, sep, attr = spec.rpartition(":")
     if sep and path.endswith(".py"):
         return Path(path), attr

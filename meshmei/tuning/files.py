@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import zipfile
 from pathlib import Path
 
@@ -53,6 +54,8 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
 
 def load_sweep(directory) -> Sweep:
     """Read a directory written by :func:`save_sweep`; raises TuningError if it is missing or incomplete."""
+    if not isinstance(directory, (str, os.PathLike)):  # None was Path()'s TypeError
+        raise TuningError(f"a sweep directory is a path, got {type(directory).__name__}")
     directory = Path(directory)
     if not directory.is_dir():
         raise TuningError(f"no sweep directory at {directory}")
