@@ -640,3 +640,5 @@ def test_option_types_a_caller_might_pass_are_taken_or_named(tmp_path):
     assert load_model(f"{factory}:build").image_size == load_model(Path(f"{factory}:build")).image_size == (16, 16)
     with pytest.raises(EncoderError, match="a model spec is"):
         load_model(None)
+    with pytest.raises(EncoderError, match=r"image_size must be the model's input size \(16, 16\)"):
+        pixel_mei(a, 0, image_size=(15, 9), steps=2, seeds=(0,))  # failed at its first step, naming no option
