@@ -214,6 +214,20 @@ def test_a_damaged_sweep_is_one_tuning_error(tmp_path, sheet_mei, simple_cell, d
         load_sweep(bad)
 
 
+def test_save_sweep_refuses_a_sweep_load_sweep_would_refuse_and_writes_numpy_numbers(tmp_path, sheet_mei, simple_cell):
+    # found by fuzzing: a shape mismatch was written (then refused by load_sweep, or failed in matplotlib), and
+    # an np.float32 in meta was the JSON encoder's TypeError
+    from meshmei.tuning import Sweep
+
+    sw = pose_sweep(sheet_mei, simple_cell, elevation=[0], azimuth=[0, 10])
+    sw.meta["scale"] = np.float32(1.5)
+    assert load_sweep(save_sweep(sw, tmp_path / "ok", figures=False)).meta["scale"] == 1.5
+    bad = Sweep(sw.kind, sw.responses[:, :, :1], sw.axes, sw.neurons, sw.reference, sw.meta)
+    with pytest.raises(TuningError, match=r"has responses of shape \(1, 1, 2\), got \(1, 1, 1\)"):
+        save_sweep(bad, tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+
+
 def test_load_sweep_names_a_directory_that_is_not_a_path():
     with pytest.raises(TuningError, match="a sweep directory is a path, got NoneType"):
         load_sweep(None)

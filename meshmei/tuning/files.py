@@ -31,6 +31,12 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
     ``images`` (optional): each neuron's example renders for its light plot, ``{neuron: {label: render}}``
     (:func:`~meshmei.tuning.views.example_renders` per neuron).
     """
+    if not isinstance(sweep, Sweep):
+        raise TuningError(f"sweep must be a Sweep (pose_sweep, light_sweep, load_sweep), got {type(sweep).__name__}")
+    shape = (len(sweep.neurons), *[len(v) for _, v in sweep.axes])
+    if sweep.kind not in SWEEP_AXES or np.shape(sweep.responses) != shape:  # written, then refused by load_sweep
+        raise TuningError(f"a {sweep.kind!r} sweep of {len(sweep.neurons)} neuron(s) over the axes "
+                          f"{[n for n, _ in sweep.axes]} has responses of shape {shape}, got {np.shape(sweep.responses)}")
 
     def write(tmp: Path):
         np.savez(tmp / "sweep.npz", responses=sweep.responses, **{f"axis_{n}": v for n, v in sweep.axes})
@@ -47,9 +53,16 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
             meta["groups"] = {str(n): {k: v for k, v in response_groups(sweep, n).items() if k.endswith("example")}
                               for n in sweep.neurons}
         with open(tmp / "sweep.json", "w") as fh:
-            json.dump(meta, fh, indent=1)
+            json.dump(meta, fh, indent=1, default=_plain)
 
     return atomic_directory(directory, write, overwrite=overwrite, error=TuningError, kinds=SWEEP_KINDS)
+
+
+def _plain(value):
+    """JSON for NumPy's numbers and arrays in a sweep's meta (np.float32 was the JSON encoder's TypeError)."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f"a sweep's meta holds a {type(value).__name__}, which JSON cannot write")
 
 
 def load_sweep(directory) -> Sweep:
