@@ -642,3 +642,15 @@ def test_option_types_a_caller_might_pass_are_taken_or_named(tmp_path):
         load_model(None)
     with pytest.raises(EncoderError, match=r"image_size must be the model's input size \(16, 16\)"):
         pixel_mei(a, 0, image_size=(15, 9), steps=2, seeds=(0,))  # failed at its first step, naming no option
+
+
+def test_an_ensemble_of_members_in_different_dtypes_is_named():
+    # its members were all fed the first one's dtype: torch's "expected ... but found Double"
+    def member(dtype):
+        torch.manual_seed(0)
+        return torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(256, 3)).to(dtype)
+
+    with pytest.raises(EncoderError, match=r"members hold weights of different dtypes \(float32, float64\)"):
+        encoder_from_model([member(torch.float32), member(torch.float64)], mean=0.5, std=0.2, image_size=16)
+    both = encoder_from_model([member(torch.float64), member(torch.float64)], mean=0.5, std=0.2, image_size=16)
+    assert both.n_neurons == 3

@@ -567,6 +567,12 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
     for m in models:
         if not callable(m):
             raise EncoderError(f"model must be a torch.nn.Module or a callable, got {type(m).__name__}")
+    member_dtypes = {str(t.dtype).removeprefix("torch.") for m in models if isinstance(m, torch.nn.Module)
+                     for t in [next((p for p in (*m.parameters(), *m.buffers()) if p.is_floating_point()), None)]
+                     if t is not None}
+    if len(member_dtypes) > 1:  # all are fed the first one's dtype: torch's "expected ... but found ..." before
+        raise EncoderError(f"the ensemble's members hold weights of different dtypes ({', '.join(sorted(member_dtypes))}); "
+                           "convert them to one (model.float() or model.double())")
     if isinstance(image_size, numbers.Integral) and not isinstance(image_size, (bool, np.bool_)):
         size = (int(image_size), int(image_size))  # NumPy's ints too (np.int64(16) was refused)
     else:
