@@ -840,3 +840,20 @@ def test_load_run_refuses_mixed_files_and_summary_fields_of_the_wrong_kind(tmp_p
         load_run(a)
     restore()
     assert torch.equal(load_run(a).V, torch.load(a / "state.pt", weights_only=True)["V"])
+
+
+def test_load_run_refuses_a_light_or_albedo_of_another_shape(tmp_path):
+    # found by fuzzing: both loaded and failed only when the run was rendered, with a message about rotation
+    run = save_run(optimize_mei(GaborSimpleCell(), 0, "sphere", **{**TINY, "albedo": True, "optimize_light": True}),
+                   tmp_path / "run", figures=False)
+    kept = (run / "state.pt").read_bytes()
+    for key, value, says in (("light", torch.ones(5), r"light must have shape \(3,\), got \(5,\)"),
+                             ("albedo", torch.ones(1), r"albedo must be one value per vertex")):
+        state = torch.load(run / "state.pt", weights_only=True)
+        state[key] = value
+        torch.save(state, run / "state.pt")
+        with pytest.raises(MEIError, match=says):
+            load_run(run)
+        (run / "state.pt").write_bytes(kept)
+    again = load_run(run)
+    assert torch.equal(again.albedo, torch.load(run / "state.pt", weights_only=True)["albedo"])

@@ -176,9 +176,16 @@ def _check_state(state, path: Path) -> None:
             raise damaged(f"{name} must be a non-empty float tensor, got {type(t).__name__}")
         if not bool(torch.isfinite(t).all()):
             raise damaged(f"{name} holds NaN or Inf")
-    for name, shape in (("rotation", (3,)), ("translation", (3,))):
-        if tuple(state[name].shape) != shape:
+    for name, shape in (("rotation", (3,)), ("translation", (3,)), ("light", (3,))):
+        if state.get(name) is not None and tuple(state[name].shape) != shape:
             raise damaged(f"{name} must have shape {shape}, got {tuple(state[name].shape)}")
+    albedo, uv, n = state.get("albedo"), state.get("albedo_uv"), V.shape[0]
+    if albedo is not None:  # a light of (5,) or an albedo of [1.0] loaded and failed when the run was rendered
+        texture = albedo.ndim == 2 and isinstance(uv, torch.Tensor) and tuple(uv.shape) == (n, 2)
+        if not (texture or tuple(albedo.shape) == (n,)):
+            raise damaged(f"albedo must be one value per vertex ({n},) or a texture with albedo_uv ({n}, 2), got "
+                          f"{tuple(albedo.shape)}" + (f" with albedo_uv {tuple(uv.shape)}" if isinstance(uv, torch.Tensor)
+                                                       else ""))
 
 
 def _check_response(module: Encoder, image: torch.Tensor, neuron: int, activation: float, directory: Path,
