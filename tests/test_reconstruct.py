@@ -1531,3 +1531,25 @@ def test_stage_and_step_counts_too_large_are_refused_in_one_line(tmp_path, capsy
         assert main([*args, "--steps", "2", option, value]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and message in err and not out.exists()
+
+
+def test_number_settings_of_other_kinds_are_named_and_numpy_numbers_reach_the_run_as_pythons(sphere, bunny):
+    # found by fuzzing: lr='0.01' (also in a stage's overrides) was a bare TypeError from a comparison; an
+    # np.float32 lr reached the run's JSON as a NumPy number, and a NumPy seed failed in torch's Generator
+    import numpy as np
+
+    from meshmei.errors import ReconstructionError
+
+    for kw, says in ((dict(lr="0.01"), "lr must be a number, got '0.01'"),
+                     (dict(w_laplacian=[1.0]), r"w_laplacian must be a number, got \[1.0\]"),
+                     (dict(lr_decay=1 + 0j), "lr_decay must be a number"),
+                     (dict(stages=(60, 300), stage_overrides=({"lr": "0.01"}, None)),
+                      "stage 0: lr must be a number, got '0.01'")):
+        with pytest.raises(ReconstructionError, match=says):
+            reconstruct(sphere, bunny, "rbf", steps=4, **SMALL, **kw)
+    odd = reconstruct(sphere, bunny, "rbf", steps=4, **SMALL, lr=np.float32(0.006), seed=np.int64(3),
+                      w_laplacian=torch.tensor(0.5))
+    plain = reconstruct(sphere, bunny, "rbf", steps=4, **SMALL, lr=float(np.float32(0.006)), seed=3, w_laplacian=0.5)
+    assert type(odd.settings.lr) is float and type(odd.settings.seed) is int and type(odd.settings.w_laplacian) is float
+    assert torch.equal(odd.V, plain.V)
+    json.loads(json.dumps(odd.to_json()))  # plain JSON

@@ -262,6 +262,7 @@ class ReconstructionSettings:
         s = replace(self, **{k: v for k, v in DEFAULTS[self.method].items() if getattr(self, k) is None})
         if s.steps is None and s.time_budget is None:
             s = replace(s, steps=DEFAULT_STEPS)
+        s = _plain_numbers(s)
         _check_values(s)
         s = _resolve_stages(s)
         if _is_scalar(s.centers):  # 10.0 passed the check above, then the deformer refused it
@@ -322,6 +323,33 @@ def _sequence(x):
     if isinstance(x, (str, bytes)) or not hasattr(x, "__iter__"):
         return None
     return tuple(x)
+
+
+# the settings that are numbers, and those that are whole numbers: checked for their kind first (a text '1'
+# was a bare TypeError from a comparison below), then given to the run as Python's float and int (NumPy's
+# float32 reached the run's JSON, and a NumPy seed torch's Generator)
+_REALS = ("lr", "lr_scale", "lr_decay", "w_laplacian", "w_edge", "w_arap", "lam", "sigma_factor", "r_cut", "coarse_lr",
+          "min_quality", "w_contact", "contact_distance", "w_facing", "normal_match", "time_budget")
+_WHOLES = ("steps", "n_samples", "target_pool", "eval_samples", "max_steps", "seed", "coarse_ratio", "eval_every",
+           "reg_ref_vertices")
+
+
+def _plain_numbers(s: ReconstructionSettings) -> ReconstructionSettings:
+    """``s`` with its numbers as Python's (a one-element tensor taken as its value); ReconstructionError names a
+    number setting holding anything else (text, a list, a complex number)."""
+    out = {}
+    for name in _REALS + _WHOLES:
+        v = getattr(s, name)
+        if isinstance(v, torch.Tensor) and v.numel() == 1 and not v.is_complex():
+            v = v.item()
+        if v is None or isinstance(v, (bool, np.bool_)):  # None: unset; a bool: refused by the checks as before
+            continue
+        if name in _WHOLES and not isinstance(v, numbers.Real):  # the count's own check names it
+            continue
+        if not isinstance(v, numbers.Real):
+            raise ReconstructionError(f"{name} must be a number, got {v!r:.60}")
+        out[name] = int(v) if name in _WHOLES and isinstance(v, numbers.Integral) else float(v) if name in _REALS else v
+    return replace(s, **out)
 
 
 def _check_values(s: ReconstructionSettings) -> None:
