@@ -1553,3 +1553,19 @@ def test_number_settings_of_other_kinds_are_named_and_numpy_numbers_reach_the_ru
     assert type(odd.settings.lr) is float and type(odd.settings.seed) is int and type(odd.settings.w_laplacian) is float
     assert torch.equal(odd.V, plain.V)
     json.loads(json.dumps(odd.to_json()))  # plain JSON
+
+
+def test_a_record_may_not_replace_the_results_own_fields_and_normal_match_is_bounded(sphere, bunny, tmp_path):
+    # found by fuzzing: save_reconstruction(res, d, final={...}) wrote that as the result's final metrics, and
+    # normal_match=1e160 was an IndexError inside the fit
+    from meshmei.errors import ReconstructionError
+    from meshmei.reconstruct import save_reconstruction
+
+    res = reconstruct(sphere, bunny, "rbf", steps=2, **SMALL)
+    with pytest.raises(ReconstructionError, match=r"the record's \['final', 'settings'\] would replace"):
+        save_reconstruction(res, tmp_path / "r", final={"chamfer_l2": 0.0}, settings="x")
+    assert not (tmp_path / "r").exists()
+    saved = json.loads((save_reconstruction(res, tmp_path / "r", target="bunny") / "history.json").read_text())
+    assert saved["target"] == "bunny" and saved["final"]["chamfer_l2"] == res.final.chamfer_l2
+    with pytest.raises(ReconstructionError, match="normal_match must be at most"):
+        reconstruct(sphere, bunny, "rbf", steps=2, normal_match=1e160, **SMALL)

@@ -27,7 +27,12 @@ def save_reconstruction(result: ReconstructionResult, directory, *, overwrite: b
         ``directory`` exists and ``overwrite`` is False.
     """
     record = {k: os.fspath(v) if isinstance(v, os.PathLike) else v for k, v in record.items()}  # target=Path(...)
-    history = json.dumps({**result.to_json(), **record}, indent=1)  # fails, if it must, before anything is written
+    own = result.to_json()
+    clash = sorted(set(record) & set(own))
+    if clash:  # final={...} replaced the result's own final metrics in history.json
+        raise ReconstructionError(f"the record's {clash} would replace the result's own fields in history.json; "
+                                  "rename them")
+    history = json.dumps({**own, **record}, indent=1)  # fails, if it must, before anything is written
 
     def write(tmp: Path) -> None:
         save_mesh(tmp / "mesh.obj", result.V, result.F)

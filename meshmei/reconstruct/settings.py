@@ -334,6 +334,9 @@ _WHOLES = ("steps", "n_samples", "target_pool", "eval_samples", "max_steps", "se
            "reg_ref_vertices")
 
 
+MAX_NORMAL_MATCH = 1e6  # normals' weight against positions in the paired search (default 0.3 where used)
+
+
 def _plain_numbers(s: ReconstructionSettings) -> ReconstructionSettings:
     """``s`` with its numbers as Python's (a one-element tensor taken as its value); ReconstructionError names a
     number setting holding anything else (text, a list, a complex number)."""
@@ -398,6 +401,8 @@ def _check_values(s: ReconstructionSettings) -> None:
                  "normal_match"):
         if not (getattr(s, name) >= 0 and math.isfinite(getattr(s, name))):
             raise ReconstructionError(f"{name} must be non-negative and finite, got {getattr(s, name)!r}")
+    if s.normal_match > MAX_NORMAL_MATCH:  # 1e160 made every 6-d distance inf: an IndexError inside the fit
+        raise ReconstructionError(f"normal_match must be at most {MAX_NORMAL_MATCH:g}, got {s.normal_match!r}")
     ref = s.reg_ref_vertices
     if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, np.integer)) or ref < 1):
         raise ReconstructionError(f"reg_ref_vertices must be a positive integer or None, got {s.reg_ref_vertices!r}")
