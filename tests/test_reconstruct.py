@@ -1569,3 +1569,14 @@ def test_a_record_may_not_replace_the_results_own_fields_and_normal_match_is_bou
     assert saved["target"] == "bunny" and saved["final"]["chamfer_l2"] == res.final.chamfer_l2
     with pytest.raises(ReconstructionError, match="normal_match must be at most"):
         reconstruct(sphere, bunny, "rbf", steps=2, normal_match=1e160, **SMALL)
+
+
+def test_a_stage_whose_steps_all_come_to_zero_says_so(sphere, bunny):
+    # found by fuzzing: w_edge=1e30 overflowed Adam's squared gradient, every step was 0, and the result said
+    # nothing: four steps at the stage's lr, the mesh its start
+    from meshmei.reconstruct.settings import ReconstructionWarning
+
+    with pytest.warns(ReconstructionWarning, match="none of its 4 steps moved the mesh"):
+        res = reconstruct(sphere, bunny, "rbf", steps=4, w_edge=1e30, **SMALL)
+    assert torch.equal(res.V, sphere[0]) and len(res.info["warnings"]) == 1
+    assert not reconstruct(sphere, bunny, "rbf", steps=4, **SMALL).info["warnings"]

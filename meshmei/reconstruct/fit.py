@@ -588,6 +588,8 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         stop_step = None if sk.max_steps is None else trace.step + sk.max_steps
         # a guarded step's check of the candidate and the next objective share one map of the parameters
         vertices = Lookahead(param.vertices, [p for g in param.groups for p in g["params"]])
+        with torch.no_grad():
+            V_first = param.vertices().detach()  # the parameterisation's own start (large steps' is V0 rounded)
         outcome = minimize(_objective(param, vertices, F, sk, weights, chamfer, k, latest, contact),
                            make_optimizer(sk.optimizer, param.groups), budget, schedule=schedule, trace=trace,
                            stop_at=share_end, stop_step=stop_step, progress=bar,
@@ -612,6 +614,14 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                            for _ in range(k + 1, end + 1)]
         if guard is not None and stage["steps"] and not stage["accepted_steps"]:
             info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
+        elif len(trace.history) > n_before and torch.equal(V, V_first):  # w_edge=1e30: Adam's squared gradient overflowed, every
+            # step was 0, and the history showed steps taken at the stage's lr
+            info["warnings"].append(
+                f"stage {k} ({stage['n_vertices']} vertices): none of its {len(trace.history) - n_before} steps "
+                "moved the mesh "
+                f"(each step was zero: a weight so large that the optimiser's squared gradient overflows? "
+                f"w_laplacian {weights[0]:g}, w_edge {weights[1]:g}, w_arap {weights[2]:g}, w_contact {sk.w_contact:g}, "
+                f"w_facing {sk.w_facing:g}); the stage returned its start unchanged")
         if outcome.budget_spent:
             break
     return V, F
