@@ -318,7 +318,8 @@ def test_a_damaged_table_is_one_error_naming_its_line(tmp_path):
     for bad, says in ((text.replace(first, ",".join(cells0[:5])), "line 2: 5 cells, not 12"),
                       (text.replace(first, first + ",9"), "line 2: 13 cells, not 12"),
                       (text.replace(first, ",".join(["nan", *cells0[1:]])), "line 2: neuron holds 'nan'"),
-                      (text.replace(first, ",".join([cells0[0], "inf", *cells0[2:]])), "line 2: mei_response holds 'inf'"),
+                      (text.replace(first, ",".join([cells0[0], "inf", *cells0[2:]])),
+                       "line 2: mei_response holds 'inf'"),
                       (text.replace(first, ",".join(["\u0663", *cells0[1:]])), "neuron holds"),
                       (text.replace(first, ",".join([cells0[0], "1_0", *cells0[2:]])), "mei_response holds '1_0'"),
                       (text.replace(header, "a,b"), "is not a population table")):

@@ -497,9 +497,9 @@ def _probe(encoder: ModelEncoder) -> int:
         with torch.no_grad():
             z = pre.rescale(pre.standardise(x))
             if not all_finite(z):  # before the model is blamed for it
-                raise EncoderError(f"a gray image is not finite after preprocessing (mean {pre.mean.flatten().tolist()}, "
-                                   f"std {pre.std.flatten().tolist()}, norm {pre.norm}): the statistics do not fit "
-                                   f"in {z.dtype}; give them in the units of pixel_range")
+                raise EncoderError(f"a gray image is not finite after preprocessing (mean "
+                                   f"{pre.mean.flatten().tolist()}, std {pre.std.flatten().tolist()}, norm {pre.norm}): "
+                                   f"the statistics do not fit in {z.dtype}; give them in the units of pixel_range")
             out = encoder.all_responses(z)
             encoder._n, encoder._probed = int(out.shape[1]), True
             one = encoder.all_responses(z[:1])  # the same count for a single image (a model ending in squeeze())
@@ -571,8 +571,9 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
                      for t in [next((p for p in (*m.parameters(), *m.buffers()) if p.is_floating_point()), None)]
                      if t is not None}
     if len(member_dtypes) > 1:  # all are fed the first one's dtype: torch's "expected ... but found ..." before
-        raise EncoderError(f"the ensemble's members hold weights of different dtypes ({', '.join(sorted(member_dtypes))}); "
-                           "convert them to one (model.float() or model.double())")
+        raise EncoderError(f"the ensemble's members hold weights of different dtypes "
+                           f"({', '.join(sorted(member_dtypes))}); convert them to one (model.float() or "
+                           "model.double())")
     if isinstance(image_size, numbers.Integral) and not isinstance(image_size, (bool, np.bool_)):
         size = (int(image_size), int(image_size))  # NumPy's ints too (np.int64(16) was refused)
     else:

@@ -159,7 +159,8 @@ def _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma
     H, W = _check_size(image_size)
     own = getattr(encoder, "image_size", None)
     if own is not None and tuple(own) != (H, W):  # it failed at the first step, as "preprocessed images must be ..."
-        raise EncoderError(f"image_size must be the model's input size {tuple(own)} (or None for it), got {image_size!r}")
+        raise EncoderError(f"image_size must be the model's input size {tuple(own)} (or None for it), got "
+                           f"{image_size!r}")
     if not is_integral(steps) or steps < 1:
         raise EncoderError(f"steps must be a positive integer, got {steps!r}")
     for name, v in (("step_size", step_size), ("init_std", init_std)):

@@ -183,9 +183,9 @@ def _check_state(state, path: Path) -> None:
     if albedo is not None:  # a light of (5,) or an albedo of [1.0] loaded and failed when the run was rendered
         texture = albedo.ndim == 2 and isinstance(uv, torch.Tensor) and tuple(uv.shape) == (n, 2)
         if not (texture or tuple(albedo.shape) == (n,)):
+            with_uv = f" with albedo_uv {tuple(uv.shape)}" if isinstance(uv, torch.Tensor) else ""
             raise damaged(f"albedo must be one value per vertex ({n},) or a texture with albedo_uv ({n}, 2), got "
-                          f"{tuple(albedo.shape)}" + (f" with albedo_uv {tuple(uv.shape)}" if isinstance(uv, torch.Tensor)
-                                                       else ""))
+                          f"{tuple(albedo.shape)}{with_uv}")
 
 
 def _check_response(module: Encoder, image: torch.Tensor, neuron: int, activation: float, directory: Path,

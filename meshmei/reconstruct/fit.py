@@ -614,8 +614,9 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                            for _ in range(k + 1, end + 1)]
         if guard is not None and stage["steps"] and not stage["accepted_steps"]:
             info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
-        elif len(trace.history) > n_before and torch.equal(V, V_first):  # w_edge=1e30: Adam's squared gradient overflowed, every
-            # step was 0, and the history showed steps taken at the stage's lr
+        elif len(trace.history) > n_before and torch.equal(V, V_first):
+            # w_edge=1e30: Adam's squared gradient overflowed, every step was 0, and the history showed steps
+            # taken at the stage's lr
             info["warnings"].append(
                 f"stage {k} ({stage['n_vertices']} vertices): none of its {len(trace.history) - n_before} steps "
                 "moved the mesh "

@@ -36,7 +36,8 @@ def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: boo
     shape = (len(sweep.neurons), *[len(v) for _, v in sweep.axes])
     if sweep.kind not in SWEEP_AXES or np.shape(sweep.responses) != shape:  # written, then refused by load_sweep
         raise TuningError(f"a {sweep.kind!r} sweep of {len(sweep.neurons)} neuron(s) over the axes "
-                          f"{[n for n, _ in sweep.axes]} has responses of shape {shape}, got {np.shape(sweep.responses)}")
+                          f"{[n for n, _ in sweep.axes]} has responses of shape {shape}, got "
+                          f"{np.shape(sweep.responses)}")
 
     def write(tmp: Path):
         np.savez(tmp / "sweep.npz", responses=sweep.responses, **{f"axis_{n}": v for n, v in sweep.axes})

@@ -116,7 +116,8 @@ def parse_range(text: str) -> np.ndarray:
     """``"lo:hi:n"`` -> n angles from lo to hi inclusive (finite bounds, 1 to :data:`MAX_RANGE_ANGLES`)."""
     parts = text.split(":") if isinstance(text, str) else ()
     # ASCII numbers only, as parse_neurons: float() and int() also read other scripts' digits and '1_0' (10)
-    if len(parts) != 3 or not all(_NUMBER.fullmatch(p.strip()) for p in parts[:2]) or not _COUNT.fullmatch(parts[2].strip()):
+    if (len(parts) != 3 or not all(_NUMBER.fullmatch(p.strip()) for p in parts[:2])
+            or not _COUNT.fullmatch(parts[2].strip())):
         raise TuningError(f"a range is 'lo:hi:n' (degrees, count), got {text!r}")
     lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
     if not (math.isfinite(lo) and math.isfinite(hi) and math.isfinite(hi - lo)):  # -1e308:1e308 gave NaN angles
