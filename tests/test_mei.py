@@ -840,6 +840,9 @@ def test_load_run_refuses_mixed_files_and_summary_fields_of_the_wrong_kind(tmp_p
         load_run(a)
     restore()
     assert torch.equal(load_run(a).V, torch.load(a / "state.pt", weights_only=True)["V"])
+    negative = save_run(optimize_mei(GaborSimpleCell(), 0, "sheet", **{**TINY, "seeds": (-3,)}), tmp_path / "n",
+                        figures=False)
+    assert load_run(negative).seed == -3  # a seed may be negative
 
 
 def test_load_run_refuses_a_light_or_albedo_of_another_shape(tmp_path):

@@ -108,10 +108,11 @@ def _check_summary(summary: dict, state: dict, directory: Path) -> None:
     def real(x) -> bool:
         return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
 
-    def count(x) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+    def integer(x) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
 
-    for key, ok, want in (("neuron", count, "a non-negative integer"), ("seed", count, "a non-negative integer"),
+    for key, ok, want in (("neuron", lambda x: integer(x) and x >= 0, "a non-negative integer"),
+                          ("seed", integer, "an integer"),  # a seed may be negative
                           ("activation", real, "a finite number"), ("wall_time_s", lambda x: real(x) and x >= 0,
                                                                     "a finite number >= 0"),
                           ("seconds_per_step", lambda x: real(x) and x >= 0, "a finite number >= 0"),
