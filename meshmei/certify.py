@@ -53,6 +53,7 @@ from . import native
 from ._checks import all_finite
 from .contact import pair_distance_bounds
 from .errors import MeshError
+from .mesh import array_as_tensor
 from .metrics import face_components
 from .quality import edge_use
 from .topology import mesh_topology
@@ -249,14 +250,13 @@ def _double(x) -> torch.Tensor:
     """Vertices or normals, a tensor or a NumPy array (an AttributeError before), as float64 on the CPU."""
     if not isinstance(x, (torch.Tensor, np.ndarray)):
         raise MeshError(f"vertices and normals must be tensors or NumPy arrays, got {type(x).__name__}")
-    # from_numpy, not as_tensor: under a default-device context as_tensor would make a tensor there
-    return (torch.from_numpy(x) if isinstance(x, np.ndarray) else x).detach().cpu().double()
+    return array_as_tensor(x, "V").detach().cpu().double()
 
 
 def _faces(F) -> torch.Tensor:
     if not isinstance(F, (torch.Tensor, np.ndarray)):
         raise MeshError(f"faces must be a tensor or a NumPy array, got {type(F).__name__}")
-    return (torch.from_numpy(F) if isinstance(F, np.ndarray) else F).cpu().long()
+    return array_as_tensor(F, "F").cpu().long()
 
 
 def _proper_input(V: torch.Tensor, normals: torch.Tensor, n: int, m: int, exact: bool = False) -> bool:

@@ -16,12 +16,14 @@ from ._checks import all_finite, float_dtype
 from .errors import MeshError
 from .topology import same_faces
 
-__all__ = ["check_mesh", "check_rest_pose", "as_faces", "numpy_mesh", "remove_unreferenced", "cast_vertices", "load_mesh", "save_mesh", "MESH_FORMATS"]
+__all__ = ["check_mesh", "check_rest_pose", "array_as_tensor", "as_faces", "numpy_mesh", "remove_unreferenced", "cast_vertices", "load_mesh", "save_mesh", "MESH_FORMATS"]
 
 MESH_FORMATS = (".obj", ".ply", ".off", ".stl")
 
 
-def _as_tensor(x, name):
+def array_as_tensor(x, name):
+    """``x`` as a tensor: a tensor as it is, a NumPy array without a copy (one with negative strides copied),
+    a nested list as a CPU tensor; MeshError naming ``name`` otherwise."""
     if isinstance(x, torch.Tensor):
         return x
     if isinstance(x, np.ndarray):
@@ -87,8 +89,8 @@ def check_mesh(V, F, *, batched: bool | None = False):
     >>> F.dtype
     torch.int64
     """
-    V = _as_tensor(V, "V")
-    source, F = F, _as_tensor(F, "F")
+    V = array_as_tensor(V, "V")
+    source, F = F, array_as_tensor(F, "F")
     if batched is None:
         batched = V.ndim == 3
     if not V.is_floating_point():
@@ -128,7 +130,7 @@ def check_mesh(V, F, *, batched: bool | None = False):
 def check_rest_pose(V0, V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """The rest pose ``V0`` of a checked mesh ``(V, F)``, checked as :func:`check_mesh` checks ``V`` (same
     number of vertices; batched like ``V`` or shared by its batch), as a tensor; errors name ``V0``."""
-    V0 = _as_tensor(V0, "V0")
+    V0 = array_as_tensor(V0, "V0")
     if V0.shape[-2:] != V.shape[-2:] or (V0.ndim == 3 and V.ndim == 3 and V0.shape[0] != V.shape[0]):
         raise MeshError(f"rest pose V0 of shape {tuple(V0.shape)} does not match V of shape {tuple(V.shape)}")
     if V0.ndim == 3 and V.ndim == 2:
@@ -144,7 +146,7 @@ def as_faces(F) -> torch.Tensor:
     """A face array on its own (no vertices to check it against) as an int64 tensor: a tensor, array or
     nested list of any integer dtype, shape ``(m, 3)`` with ``m > 0`` and no negative index; MeshError
     otherwise (a float or bool array was truncated to indices before)."""
-    F = _as_tensor(F, "F")
+    F = array_as_tensor(F, "F")
     if F.dtype == torch.bool or F.is_floating_point() or F.is_complex():
         raise MeshError(f"F must have an integer dtype, got {F.dtype} with shape {tuple(F.shape)}")
     if F.dtype in _WIDE_UNSIGNED:

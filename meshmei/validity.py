@@ -30,7 +30,7 @@ from ._checks import all_finite, check_positive
 from .certify import GraphCertificate, SeparationCertificate, StarCertificate
 from .contact import log_barrier
 from .errors import MeshError
-from .mesh import check_mesh
+from .mesh import array_as_tensor, check_mesh
 from .operators import corners, cross_from_corners, resolve_eps, safe_norm, sq_edge_sum_from_corners, sum_xyz
 from .quality import count_self_intersections, self_intersecting_pairs
 
@@ -204,11 +204,9 @@ class ValidityRules:
 
 def _as_tensor(V) -> torch.Tensor:
     """Candidate vertices as a tensor: a NumPy array is taken as it is (it ended in an AttributeError)."""
-    if isinstance(V, np.ndarray):
-        return torch.from_numpy(V)
-    if not isinstance(V, torch.Tensor):
+    if not isinstance(V, (torch.Tensor, np.ndarray)):
         raise MeshError(f"candidate vertices must be a tensor or a NumPy array, got {type(V).__name__}")
-    return V
+    return array_as_tensor(V, "V")
 
 
 class StepGuard:

@@ -534,6 +534,8 @@ def test_certificates_and_the_guard_take_numpy_arrays_and_name_what_they_cannot_
             cert.holds(V.tolist(), N, compiled=compiled)
         guard = StepGuard(V, F)
         assert guard.accept(V.numpy()) and guard.why_not(V.numpy()) is None
+        flipped = V.numpy()[::-1].copy()[::-1]  # a view with negative strides, which torch.from_numpy refuses
+        assert cert.holds(flipped, N.numpy(), compiled=compiled) and guard.accept(flipped)
         with pytest.raises(MeshError, match="candidate vertices must be a tensor or a NumPy array, got list"):
             guard.accept(V.tolist())
     V, F = grid()
