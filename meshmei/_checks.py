@@ -23,6 +23,22 @@ def all_finite(x: torch.Tensor) -> bool:
     return math.isfinite(float(x.detach().abs().amax()))
 
 
+def is_finite_real(x) -> bool:
+    """A real number (NumPy's too) that is finite as a float, not a bool: NaN, Inf and an int beyond a float's
+    range (on which ``math.isfinite`` raises OverflowError) are not."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, numbers.Real):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
+
+
+def is_int(x) -> bool:
+    """A Python int, not a bool (what JSON reads a count or an index as)."""
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
 def is_integral(x) -> bool:
     """An integer of any size (NumPy's too), or a finite float of integer value (``3.0``), not a bool. (An int
     beyond a float's range made ``math.isfinite`` raise OverflowError in the checks that used it.)"""

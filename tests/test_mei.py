@@ -831,7 +831,7 @@ def test_load_run_refuses_mixed_files_and_summary_fields_of_the_wrong_kind(tmp_p
     summary = json.loads(kept["summary.json"])
     for key, value in (("activation", math.nan), ("activation", "0.5"), ("activation", True), ("neuron", -1),
                        ("neuron", 3.7), ("seed", 0.5), ("history", "abc"), ("history", [math.nan]),
-                       ("wall_time_s", -5), ("init", 5)):
+                       ("wall_time_s", -5), ("init", 5), ("activation", 10 ** 400)):  # an OverflowError
         (a / "summary.json").write_text(json.dumps({**summary, key: value}))
         with pytest.raises(MEIError, match=f"summary.json is damaged: {key} must be"):
             load_run(a)

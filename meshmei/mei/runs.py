@@ -4,14 +4,15 @@ bit for bit."""
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
-import numbers
 import pickle
 from pathlib import Path
 
 import torch
 
+from .._checks import is_finite_real, is_int
 from .._files import atomic_directory
 from ..encoders import Encoder, encoder_from_spec, eval_mode
 from ..errors import MEIError, MeshError
@@ -94,32 +95,29 @@ def save_run(result: MEIResult, directory, *, overwrite: bool = False, figures: 
     return atomic_directory(directory, write, overwrite=overwrite, error=MEIError)
 
 
-def _digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+def _digest(path: Path, data: bytes | None = None) -> str:
+    """SHA-256 of the file at ``path``, or of ``data``, its bytes when already read."""
+    return hashlib.sha256(path.read_bytes() if data is None else data).hexdigest()
 
 
-def _check_summary(summary: dict, state: dict, directory: Path) -> None:
+def _check_summary(summary: dict, state: dict, directory: Path, state_bytes: bytes) -> None:
     """Raise MEIError unless summary.json's own fields have their types and agree with state.pt and the files
     (a NaN or text activation, a neuron of -1 or 3.7, a history of text were read as they were; another run's
     state.pt or summary.json copied in was read as this run)."""
     def damaged(why: str):
         return MEIError(f"{directory / 'summary.json'} is damaged: {why}")
 
-    def real(x) -> bool:
-        return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+    def reals(x) -> bool:
+        return isinstance(x, list) and all(map(is_finite_real, x))
 
-    def integer(x) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool)
-
-    for key, ok, want in (("neuron", lambda x: integer(x) and x >= 0, "a non-negative integer"),
-                          ("seed", integer, "an integer"),  # a seed may be negative
-                          ("activation", real, "a finite number"), ("wall_time_s", lambda x: real(x) and x >= 0,
-                                                                    "a finite number >= 0"),
-                          ("seconds_per_step", lambda x: real(x) and x >= 0, "a finite number >= 0"),
+    for key, ok, want in (("neuron", lambda x: is_int(x) and x >= 0, "a non-negative integer"),
+                          ("seed", is_int, "an integer"),  # a seed may be negative
+                          ("activation", is_finite_real, "a finite number"),
+                          ("wall_time_s", lambda x: is_finite_real(x) and x >= 0, "a finite number >= 0"),
+                          ("seconds_per_step", lambda x: is_finite_real(x) and x >= 0, "a finite number >= 0"),
                           ("init", lambda x: isinstance(x, str), "a string"),
-                          ("history", lambda x: isinstance(x, list) and all(map(real, x)), "a list of finite numbers"),
-                          ("loss_history", lambda x: isinstance(x, list) and all(map(real, x)),
-                           "a list of finite numbers")):
+                          ("history", reals, "a list of finite numbers"),
+                          ("loss_history", reals, "a list of finite numbers")):
         if key in summary and not ok(summary[key]):
             raise damaged(f"{key} must be {want}, got {summary[key]!r:.80}")
     sizes = {"n_vertices": state["V"].shape[0], "n_faces": state["F"].shape[0]}
@@ -132,7 +130,9 @@ def _check_summary(summary: dict, state: dict, directory: Path) -> None:
         return
     if not isinstance(digests, dict):
         raise damaged(f"sha256 must be a dict of file digests, got {type(digests).__name__}")
-    changed = [name for name in DIGESTED if name in digests and _digest(directory / name) != digests[name]]
+    read = {"state.pt": state_bytes}  # read once, for torch.load and for its digest
+    changed = [name for name in DIGESTED
+               if name in digests and _digest(directory / name, read.get(name)) != digests[name]]
     if changed:
         raise MEIError(f"{directory}: {' and '.join(changed)} {'is' if len(changed) == 1 else 'are'} not the file(s) "
                        "save_run wrote with this summary.json (another run's, or edited); save the run again")
@@ -230,13 +230,14 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
     if not is_complete_summary(summary):
         raise MEIError(f"{directory} holds no complete run of format {RUN_FORMAT}")
     try:
-        state = torch.load(directory / "state.pt", map_location="cpu", weights_only=True)
+        state_bytes = (directory / "state.pt").read_bytes()
+        state = torch.load(io.BytesIO(state_bytes), map_location="cpu", weights_only=True)
     except Exception as err:  # torch.load's errors on a damaged or foreign file
         # not torch's advice to load it with weights_only=False, which would run whatever the file holds
         why = "it is not a file save_run wrote" if isinstance(err, pickle.UnpicklingError) else str(err).split("\n")[0]
         raise MEIError(f"{directory} is corrupt: state.pt: {type(err).__name__}: {why}") from None
     _check_state(state, directory / "state.pt")
-    _check_summary(summary, state, directory)
+    _check_summary(summary, state, directory, state_bytes)
     try:
         settings = MEISettings.from_dict(summary["settings"])
         rbf = rebuild_deformer(state["V0"], state["deformer"], settings)

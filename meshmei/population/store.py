@@ -28,6 +28,7 @@ import uuid
 import warnings
 from pathlib import Path
 
+from .._checks import is_finite_real, is_int
 from .._files import check_creatable
 from ..errors import MEIError
 from ..mei.runs import RUN_FILES, is_complete_summary
@@ -124,19 +125,11 @@ def _neurons_made_with(out: Path, digest: str) -> bool:
     return found
 
 
-def _number(x) -> bool:
-    """A finite real (NaN and Inf in a damaged summary had made the table's responses nan)."""
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _count(x) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
-
-
 # the quality fields table_row reads, each with the test its value must pass when present (a damaged "x"
 # failed in the CLI's min())
-_QUALITY_FIELDS = {"self_intersections": _count, "flipped_faces": _count, "nonmanifold_edges": _count,
-                   "min_quality": _number, "watertight": lambda x: isinstance(x, bool)}
+# (a finite real: NaN and Inf in a damaged summary had made the table's responses nan)
+_QUALITY_FIELDS = {"self_intersections": is_int, "flipped_faces": is_int, "nonmanifold_edges": is_int,
+                   "min_quality": is_finite_real, "watertight": lambda x: isinstance(x, bool)}
 
 
 def _good_quality(q) -> bool:
@@ -149,9 +142,9 @@ def _well_formed(summary, name: str) -> bool:
     if not is_complete_summary(summary):
         return False
     n, pix = summary.get("neuron"), summary.get("pixel_mei_activation")
-    return (isinstance(n, int) and not isinstance(n, bool) and name == f"neuron_{n:05d}"
-            and _number(summary.get("activation")) and _good_quality(summary.get("quality", {}))
-            and (pix is None or _number(pix)))
+    return (is_int(n) and name == f"neuron_{n:05d}"
+            and is_finite_real(summary.get("activation")) and _good_quality(summary.get("quality", {}))
+            and (pix is None or is_finite_real(pix)))
 
 
 class IncompleteFolder(MEIError):
