@@ -412,10 +412,8 @@ class ModelEncoder(Encoder):
     def model_dtype(self) -> torch.dtype | None:
         """The dtype of the models' first floating parameter or buffer (None for a model without any): what
         the models are fed."""
-        for t in (*self.models.parameters(), *self.held.parameters(), *self.models.buffers(), *self.held.buffers()):
-            if t.is_floating_point():
-                return t.dtype
-        return None
+        return _first_float_dtype((*self.models.parameters(), *self.held.parameters(), *self.models.buffers(),
+                                   *self.held.buffers()))
 
     def _member(self, i: int) -> str:
         n = len(self.models) + len(self.callables)
@@ -486,6 +484,11 @@ def _positive_int(name, value):
     return int(value)
 
 
+def _first_float_dtype(tensors) -> torch.dtype | None:
+    """The dtype of the first floating tensor of ``tensors`` (None without one)."""
+    return next((t.dtype for t in tensors if t.is_floating_point()), None)
+
+
 def _probe(encoder: ModelEncoder) -> int:
     """Run the model on gray images at its size, a batch of 2 and a batch of 1 (a 3D-MEI step renders one
     image): the neuron count, or EncoderError naming what arrived."""
@@ -498,8 +501,9 @@ def _probe(encoder: ModelEncoder) -> int:
             z = pre.rescale(pre.standardise(x))
             if not all_finite(z):  # before the model is blamed for it
                 raise EncoderError(f"a gray image is not finite after preprocessing (mean "
-                                   f"{pre.mean.flatten().tolist()}, std {pre.std.flatten().tolist()}, norm {pre.norm}): "
-                                   f"the statistics do not fit in {z.dtype}; give them in the units of pixel_range")
+                                   f"{pre.mean.flatten().tolist()}, std {pre.std.flatten().tolist()}, norm "
+                                   f"{pre.norm}): the statistics do not fit in {z.dtype}; give them in the units of "
+                                   "pixel_range")
             out = encoder.all_responses(z)
             encoder._n, encoder._probed = int(out.shape[1]), True
             one = encoder.all_responses(z[:1])  # the same count for a single image (a model ending in squeeze())
@@ -514,8 +518,8 @@ def _probe(encoder: ModelEncoder) -> int:
         bad = int((~torch.isfinite(out)).sum())
         raise EncoderError(f"the model returned non-finite responses to a gray image ({bad} of {out.numel()} "
                            f"values NaN or Inf)")
+    scale = float(out.abs().max()) + 1e-6
     for row, alone in ((0, one), (1, other)):
-        scale = float(out.abs().max()) + 1e-6
         if not torch.allclose(out[row:row + 1].double(), alone.double(), rtol=1e-3, atol=1e-4 * scale):
             # a model that answered every image of a batch with its first one's swept one value for every condition
             raise EncoderError(f"the model's responses to an image depend on the other images in its batch: image "
@@ -567,9 +571,8 @@ def encoder_from_model(model, *, mean: float, std: float, norm: float | None = D
     for m in models:
         if not callable(m):
             raise EncoderError(f"model must be a torch.nn.Module or a callable, got {type(m).__name__}")
-    member_dtypes = {str(t.dtype).removeprefix("torch.") for m in models if isinstance(m, torch.nn.Module)
-                     for t in [next((p for p in (*m.parameters(), *m.buffers()) if p.is_floating_point()), None)]
-                     if t is not None}
+    held = (_first_float_dtype((*m.parameters(), *m.buffers())) for m in models if isinstance(m, torch.nn.Module))
+    member_dtypes = {str(d).removeprefix("torch.") for d in held if d is not None}
     if len(member_dtypes) > 1:  # all are fed the first one's dtype: torch's "expected ... but found ..." before
         raise EncoderError(f"the ensemble's members hold weights of different dtypes "
                            f"({', '.join(sorted(member_dtypes))}); convert them to one (model.float() or "

@@ -238,7 +238,7 @@ def pixel_mei(encoder: Encoder, neuron: int, *, image_size=None, steps: int = 20
         A bad argument (the message names it), or a seed whose final response is not finite.
     """
     if image_size is None:
-        image_size = getattr(encoder, "image_size", 64)
+        image_size = pixel_image_size(encoder, 64)
     neuron, H, W, steps, seeds = _check_args(encoder, neuron, image_size, steps, seeds, step_size, blur_sigma,
                                              init_std, dtype, device)
     device = encoder.device if device is None else torch.device(device)

@@ -107,7 +107,8 @@ def _save_neuron(out: Path, digest: str, res: MEIResult, seconds: float, figures
 
 
 def run_population(encoder: Encoder, neurons, out, *, init: str = "sheet", settings: MEISettings | None = None,
-                   batch_size: int = DEFAULT_BATCH_SIZE, pixel_steps: int = DEFAULT_PIXEL_STEPS, cluster: str | None = None, device=None,
+                   batch_size: int = DEFAULT_BATCH_SIZE, pixel_steps: int = DEFAULT_PIXEL_STEPS,
+                   cluster: str | None = None, device=None,
                    figures: bool = False, progress: bool = True, **overrides) -> list[dict]:
     """3D-MEIs (and pixel MEIs) of ``neurons``, one run folder each under ``out``, and a table of them.
 

@@ -621,8 +621,8 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 f"stage {k} ({stage['n_vertices']} vertices): none of its {len(trace.history) - n_before} steps "
                 "moved the mesh "
                 f"(each step was zero: a weight so large that the optimiser's squared gradient overflows? "
-                f"w_laplacian {weights[0]:g}, w_edge {weights[1]:g}, w_arap {weights[2]:g}, w_contact {sk.w_contact:g}, "
-                f"w_facing {sk.w_facing:g}); the stage returned its start unchanged")
+                f"w_laplacian {weights[0]:g}, w_edge {weights[1]:g}, w_arap {weights[2]:g}, "
+                f"w_contact {sk.w_contact:g}, w_facing {sk.w_facing:g}); the stage returned its start unchanged")
         if outcome.budget_spent:
             break
     return V, F

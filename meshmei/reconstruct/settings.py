@@ -351,7 +351,10 @@ def _plain_numbers(s: ReconstructionSettings) -> ReconstructionSettings:
             continue
         if not isinstance(v, numbers.Real):
             raise ReconstructionError(f"{name} must be a number, got {v!r:.60}")
-        out[name] = int(v) if name in _WHOLES and isinstance(v, numbers.Integral) else float(v) if name in _REALS else v
+        if name in _REALS:
+            out[name] = float(v)
+        elif isinstance(v, numbers.Integral):  # a whole number given as 10.0 is left to its count's check
+            out[name] = int(v)
     return replace(s, **out)
 
 

@@ -22,7 +22,8 @@ SWEEP_FORMAT = "meshmei-sweep-1"
 # commands replace any result meshmei wrote
 SWEEP_KINDS = ("sweep.json",)
 # each kind's axes, as pose_sweep and light_sweep make them
-SWEEP_AXES = {"pose": (("elevation", "azimuth"), ("elevation", "azimuth", "roll")), "light": (("elevation", "azimuth"),)}
+SWEEP_AXES = {"pose": (("elevation", "azimuth"), ("elevation", "azimuth", "roll")),
+              "light": (("elevation", "azimuth"),)}
 
 
 def save_sweep(sweep: Sweep, directory, *, overwrite: bool = False, figures: bool = True, images=None) -> Path:
