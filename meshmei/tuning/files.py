@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import plots  # the module: each figure is looked up when drawn (a test swaps one out)
+from .._checks import is_int
 from .._files import atomic_directory
 from ..errors import TuningError
 from .sweeps import Sweep, response_groups
@@ -107,7 +108,7 @@ def _check_loaded(directory: Path, meta: dict, kind: str, neurons: tuple, axes: 
 
     listed = meta["neurons"]
     if (not isinstance(listed, list) or not listed
-            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in listed)
+            or not all(is_int(n) and n >= 0 for n in listed)
             or len(set(listed)) != len(listed)):
         raise bad(f"neurons must be a list of distinct neuron indices, got {listed!r:.80}")
     if kind not in SWEEP_AXES:
