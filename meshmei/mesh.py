@@ -23,8 +23,12 @@ MESH_FORMATS = (".obj", ".ply", ".off", ".stl")
 
 def array_as_tensor(x, name):
     """``x`` as a tensor: a tensor as it is, a NumPy array without a copy (one with negative strides copied),
-    a nested list as a CPU tensor; MeshError naming ``name`` otherwise."""
+    a nested list as a CPU tensor; MeshError naming ``name`` otherwise, and for a tensor on torch's "meta"
+    device, which holds shapes and no values (every check below read one, and failed inside torch)."""
     if isinstance(x, torch.Tensor):
+        if x.is_meta:
+            raise MeshError(f"{name} is a meta tensor (shape {tuple(x.shape)}, {x.dtype}): torch's 'meta' device "
+                            "holds no values; give the mesh on the CPU or a GPU")
         return x
     if isinstance(x, np.ndarray):
         # a view with negative strides (F[:, ::-1], the usual way to turn faces over) needs a copy
@@ -80,7 +84,8 @@ def check_mesh(V, F, *, batched: bool | None = False):
     ------
     MeshError
         Wrong shapes or dtypes, non-triangle faces, empty meshes, indices negative or out of range,
-        NaN or Inf coordinates. The message names the problem and what arrived.
+        NaN or Inf coordinates, a tensor on torch's "meta" device (no values). The message names the problem
+        and what arrived.
 
     Examples
     --------

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -368,3 +370,24 @@ def test_save_mesh_refuses_coordinates_the_formats_float32_cannot_hold(tmp_path,
         assert not list(tmp_path.iterdir())
     save_mesh(tmp_path / "m.obj", V * 1e-50, F)
     assert torch.equal(load_mesh(tmp_path / "m.obj", dtype=torch.float64)[0], V * 1e-50)
+
+
+@pytest.mark.parametrize("where", ["V", "F", "both"])
+def test_a_meta_tensor_is_a_mesh_error_naming_it(where):
+    """Found by fuzzing: a mesh on torch's "meta" device (shapes, no values) ended in torch's 'Tensor.item()
+    cannot be called on meta tensors' from the face checks, or aten::equal's NotImplementedError."""
+    from meshmei.mesh import as_faces, check_rest_pose
+
+    V, F = icosphere(1)
+    Vm = V.to("meta") if where != "F" else V
+    Fm = F.to("meta") if where != "V" else F
+    name, shape, dtype = ("F", tuple(F.shape), "int64") if where == "F" else ("V", tuple(V.shape), "float64")
+    with pytest.raises(MeshError, match=rf"^{name} is a meta tensor \(shape {re.escape(str(shape))}, torch\.{dtype}\): "
+                                        "torch's 'meta' device holds no values; give the mesh on the CPU or a GPU$"):
+        check_mesh(Vm, Fm)
+    if where == "F":
+        with pytest.raises(MeshError, match=r"^F is a meta tensor"):
+            as_faces(Fm)
+    if where == "V":
+        with pytest.raises(MeshError, match=r"^V0 is a meta tensor"):
+            check_rest_pose(Vm, V, F)

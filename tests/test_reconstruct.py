@@ -1580,3 +1580,19 @@ def test_a_stage_whose_steps_all_come_to_zero_says_so(sphere, bunny):
         res = reconstruct(sphere, bunny, "rbf", steps=4, w_edge=1e30, **SMALL)
     assert torch.equal(res.V, sphere[0]) and len(res.info["warnings"]) == 1
     assert not reconstruct(sphere, bunny, "rbf", steps=4, **SMALL).info["warnings"]
+
+
+def test_a_meta_source_or_target_is_refused_before_any_work(sphere):
+    """Found by fuzzing: a source or target on torch's "meta" device (V, F or both) ended in torch's
+    'Tensor.item() cannot be called on meta tensors' from inside the face checks."""
+    V, F = sphere
+    for pair in [(V.to("meta"), F.to("meta")), (V.to("meta"), F), (V, F.to("meta"))]:
+        name = "F" if pair[0] is V else "V"
+        with pytest.raises(MeshError, match=rf"^{name} is a meta tensor .*torch's 'meta' device holds no values"):
+            reconstruct(pair, "bunny", steps=4, **SMALL)
+        with pytest.raises(MeshError, match=rf"^{name} is a meta tensor"):
+            reconstruct(sphere, pair, steps=4, **SMALL)
+        with pytest.raises(MeshError, match=rf"^{name} is a meta tensor"):
+            target_surface(pair)
+        with pytest.raises(MeshError, match=rf"^{name} is a meta tensor"):
+            source_mesh(pair)
