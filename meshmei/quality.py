@@ -71,16 +71,26 @@ def triangle_quality(V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     return 2.0 * math.sqrt(3.0) * dbl / l2.clamp_min(torch.finfo(dbl.dtype).tiny)
 
 
-def in_range(V):
-    """``V`` (a float64 tensor or array) times a power of two (exact) that brings its largest coordinate near 1
-    when it lies beyond 1e50 or below 1e-50: squared edge lengths and areas overflow or underflow from about
-    1e154 and 1e-154, and libigl's intersection test miscounts from about 1e80 and 1e-170 (1,131 pairs on a
-    clean 400-vertex sphere at 1e80, 21 at 1e-170); else ``V``. Triangle quality, degeneracy, face
-    directions and intersections do not depend on the scale."""
+def range_exponent(V) -> int:
+    """The power ``e`` such that :func:`in_range` gives ``V * 2**e``: 0 when ``V``'s largest coordinate lies
+    within 1e-50 and 1e50 (or ``V`` is empty, zero or not finite), else the one that brings it near 1. A
+    length measured on ``in_range(V)`` is ``math.ldexp(length, -e)`` in ``V``'s units."""
     m = float(abs(V).max()) if len(V) else 0.0
     if m == 0.0 or not math.isfinite(m) or 1e-50 < m < 1e50:
+        return 0
+    return -math.frexp(m)[1]
+
+
+def in_range(V):
+    """``V`` (a float64 tensor or array) times a power of two (exact) that brings its largest coordinate near 1
+    when it lies beyond 1e50 or below 1e-50 (:func:`range_exponent`): squared edge lengths and areas overflow or
+    underflow from about 1e154 and 1e-154, and libigl's intersection test miscounts from about 1e80 and 1e-170
+    (1,131 pairs on a clean 400-vertex sphere at 1e80, 21 at 1e-170); else ``V``. Triangle quality,
+    degeneracy, face directions and intersections do not depend on the scale."""
+    e = range_exponent(V)
+    if e == 0:
         return V
-    e = -math.frexp(m)[1]  # below 2**-1022 (subnormal) 2**e alone overflows a float: two exact factors
+    # below 2**-1022 (subnormal) 2**e alone overflows a float: two exact factors
     return (V * 2.0 ** (e // 2)) * 2.0 ** (e - e // 2)
 
 

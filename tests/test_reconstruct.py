@@ -1596,3 +1596,19 @@ def test_a_meta_source_or_target_is_refused_before_any_work(sphere):
             target_surface(pair)
         with pytest.raises(MeshError, match=rf"^{name} is a meta tensor"):
             source_mesh(pair)
+
+
+def test_a_target_beyond_1e154_has_a_finite_frame_that_maps_the_result_back(sphere):
+    """Found by fuzzing: a float64 target 1e300 across had info['target_frame']['scale'] inf ((hi - lo).norm()
+    overflowed), so history.json held 'Infinity' and p * scale + centre mapped the result to inf."""
+    V, F = sphere
+    big = V.double() * 1e300
+    Vt, _, frame = target_surface((big, F), return_frame=True)
+    _, _, unit = target_surface((V.double(), F), return_frame=True)
+    assert frame["scale"] == pytest.approx(1e300 * unit["scale"], rel=1e-14)
+    assert frame["centre"] == pytest.approx([1e300 * c for c in unit["centre"]], rel=1e-14, abs=1e286)
+    back = Vt.double() * frame["scale"] + torch.tensor(frame["centre"], dtype=torch.float64)
+    torch.testing.assert_close(back, big, rtol=0, atol=1e-7 * frame["scale"])  # the target is float32
+    res = reconstruct(sphere, (big, F), steps=2, **SMALL)
+    assert res.info["target_frame"] == frame
+    assert json.loads(json.dumps(res.to_json(), allow_nan=False))["info"]["target_frame"] == frame

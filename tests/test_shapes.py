@@ -454,6 +454,31 @@ def test_normalize_unit_diagonal_rejects_a_mesh_of_zero_extent():
         normalize_unit_diagonal(V)
 
 
+@pytest.mark.parametrize("factor", [1.0, 1e-300, 1e300])
+def test_normalize_unit_diagonal_gives_its_frame_in_the_meshs_own_units_at_any_scale(factor):
+    """The frame was measured on the mesh as given: at 1e154 and beyond its squared diagonal overflowed, and
+    the scale was inf (a target's ``p * scale + centre`` then mapped the result to inf)."""
+    V = torch.tensor([[1.0, 2.0, 3.0], [5.0, 2.0, 3.0], [1.0, 5.0, 3.0], [2.0, 3.0, 3.0]], dtype=torch.float64)
+    W, frame = normalize_unit_diagonal(V * factor, return_frame=True)
+    assert torch.equal(W, normalize_unit_diagonal(V * factor))
+    if factor == 1.0:  # as the box is measured in V's units: exactly
+        assert frame == {"centre": [3.0, 3.5, 3.0], "scale": 5.0}
+    assert frame["scale"] == pytest.approx(5.0 * factor, rel=1e-15)
+    assert frame["centre"] == pytest.approx([3.0 * factor, 3.5 * factor, 3.0 * factor], rel=1e-15)
+    back = W * frame["scale"] + torch.tensor(frame["centre"], dtype=torch.float64)
+    torch.testing.assert_close(back, V * factor, rtol=1e-15, atol=0.0)
+    with pytest.raises(MeshError, match="^return_frame must be True or False, got 'no'$"):
+        normalize_unit_diagonal(V, return_frame="no")
+
+
+def test_normalize_unit_diagonal_refuses_a_frame_whose_diagonal_float64_cannot_hold():
+    V = torch.tensor([[-1e308, -1e308, -1e308], [1e308, 1e308, 1e308], [1e308, -1e308, 0.0]], dtype=torch.float64)
+    assert torch.isfinite(normalize_unit_diagonal(V)).all()  # the unit-diagonal mesh itself is fine
+    with pytest.raises(MeshError, match=r"^the mesh's bounding-box diagonal, .* is beyond float64's range "
+                                        r"\(1\.8e\+308\); rescale it$"):
+        normalize_unit_diagonal(V, return_frame=True)
+
+
 @pytest.mark.parametrize("module", ["primitives", "targets", "remeshing"])
 def test_module_docstring_examples(module):
     import importlib

@@ -46,11 +46,11 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True, return_
             V, F = _load(spec, "target", torch.float64)
         else:
             V, F = _pair(spec, "target")
-        if normalize:
-            W = V.double()
-            V = normalize_unit_diagonal(W)
-            lo, hi = W.min(0).values, W.max(0).values
-            frame = {"centre": (0.5 * (lo + hi)).tolist(), "scale": float((hi - lo).norm())}
+        if normalize:  # the frame measured as the normalisation measures: (hi - lo).norm() of a target 1e154
+            try:       # across overflowed, and the result's scale was inf
+                V, frame = normalize_unit_diagonal(V.double(), return_frame=True)
+            except MeshError as err:
+                raise MeshError(f"{role}: {err}") from None
         V = cast_vertices(V, dtype, role)
     _check_area(V, F, role)
     return (V, F, frame) if return_frame else (V, F)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from .._checks import check_positive, float_dtype
 from ..errors import MeshError
-from ..quality import in_range
+from ..quality import in_range, range_exponent
 from .remeshing import isotropic_parameters, mesh_arrays
 
 __all__ = ["target_mesh", "bunny_path", "normalize_unit_diagonal", "TARGET_NAMES", "TEAPOT_FILE", "THIN_TARGETS"]
@@ -65,7 +66,7 @@ def bunny_path():
     return path
 
 
-def normalize_unit_diagonal(V):
+def normalize_unit_diagonal(V, *, return_frame: bool = False):
     """Centre ``V`` on its bounding-box centre and scale it to unit bounding-box diagonal.
 
     Every row of ``V`` sets the box: drop the vertices no face uses first
@@ -74,17 +75,22 @@ def normalize_unit_diagonal(V):
     Parameters
     ----------
     V : (n, 3) float tensor
+    return_frame : bool
+        Also return where the result lies in ``V``'s coordinates: ``{"centre": [x, y, z], "scale": d}``, the
+        box's centre and diagonal, so that a point ``p`` of the result is ``p * d + centre`` there.
 
     Returns
     -------
     (n, 3) float tensor
         A new tensor in the dtype and on the device of ``V``, computed in float64 (a float32 mesh
-        1e-30 or 1e30 across has a diagonal whose squared length under- or overflows float32).
+        1e-30 or 1e30 across has a diagonal whose squared length under- or overflows float32); with
+        ``return_frame``, ``(tensor, frame)``.
 
     Raises
     ------
     MeshError
-        All vertices coincide (zero extent), so there is no scale to divide by.
+        All vertices coincide (zero extent), so there is no scale to divide by; with ``return_frame``, a
+        diagonal beyond float64's range (the frame's scale would be inf).
 
     Examples
     --------
@@ -95,14 +101,29 @@ def normalize_unit_diagonal(V):
     if not isinstance(V, torch.Tensor) or not V.is_floating_point() or V.ndim != 2 or V.shape[1] != 3 or not len(V):
         got = f"{V.dtype} of shape {tuple(V.shape)}" if isinstance(V, torch.Tensor) else type(V).__name__
         raise MeshError(f"V must be a non-empty (n, 3) float tensor, got {got}")
+    if not isinstance(return_frame, (bool, np.bool_)):
+        raise MeshError(f"return_frame must be True or False, got {return_frame!r}")
     if not bool(torch.isfinite(V).all()):  # Inf gave NaN vertices, NaN a 'coincide' error
         raise MeshError("V holds NaN or Inf coordinates; cannot normalise it")
-    W = in_range(V.double())  # V itself when it is float64; beyond 1e50 scaled by a power of two, exactly (at
+    Vd = V.double()
+    W = in_range(Vd)  # V itself when it is float64; beyond 1e50 scaled by a power of two, exactly (at
     lo, hi = W.min(0).values, W.max(0).values  # 1e155 the squared diagonal overflowed: inf, and a zero mesh)
     diag = float((hi - lo).norm())
     if not diag > 0:
         raise MeshError(f"mesh has zero extent (all {V.shape[0]} vertices coincide); cannot normalise it")
-    return ((W - 0.5 * (lo + hi)) / diag).to(V.dtype)
+    out = ((W - 0.5 * (lo + hi)) / diag).to(V.dtype)
+    if not return_frame:
+        return out
+    # the frame in V's own units: the diagonal and centre measured on W, scaled back by the same power of two
+    # (exact); measured on V, the diagonal of a mesh 1e154 across overflowed to inf
+    e = range_exponent(Vd)
+    try:
+        scale = math.ldexp(diag, -e)
+    except OverflowError:
+        raise MeshError(f"the mesh's bounding-box diagonal, {diag:.6g} * 2**{-e}, is beyond float64's range "
+                        f"({torch.finfo(torch.float64).max:.3g}); rescale it") from None
+    centre = [math.ldexp(c, -e) for c in (0.5 * (lo + hi)).tolist()]
+    return out, {"centre": centre, "scale": scale}
 
 
 def _bunny():
