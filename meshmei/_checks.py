@@ -10,7 +10,8 @@ import numbers
 import numpy as np
 import torch
 
-__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "positive_int", "all_finite", "is_integral"]
+__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "positive_int", "all_finite", "is_integral",
+           "non_finite_entry"]
 
 
 def all_finite(x: torch.Tensor) -> bool:
@@ -21,6 +22,26 @@ def all_finite(x: torch.Tensor) -> bool:
     if not (x.is_floating_point() or x.is_complex()) or x.numel() == 0:
         return True
     return math.isfinite(float(x.detach().abs().amax()))
+
+
+def non_finite_entry(value, where: str = "") -> tuple[str, float] | None:
+    """The first float in ``value`` (dicts, lists and tuples of them, as JSON holds) that is NaN or Inf, as
+    ``(path, number)`` with the path written as Python reads it (``info['stages'][0]['sigma_median']``);
+    None when there is none. Python's ``json`` writes such a number as ``NaN`` or ``Infinity``, which JSON does
+    not have (strict readers refuse the file)."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else (where or "the value", value)
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = non_finite_entry(item, f"{where}[{key!r}]" if where else str(key))
+        if found is not None:
+            return found
+    return None
 
 
 def is_finite_real(x) -> bool:

@@ -1612,3 +1612,35 @@ def test_a_target_beyond_1e154_has_a_finite_frame_that_maps_the_result_back(sphe
     res = reconstruct(sphere, (big, F), steps=2, **SMALL)
     assert res.info["target_frame"] == frame
     assert json.loads(json.dumps(res.to_json(), allow_nan=False))["info"]["target_frame"] == frame
+
+
+def test_a_non_finite_number_is_never_written_as_json_but_refused_naming_its_key(sphere, tmp_path):
+    """Found by fuzzing: history.json held 'Infinity' (a target frame's scale, a kernel scale), which standard
+    JSON does not have; to_json gave a dict that json.dumps(allow_nan=False) refused."""
+    from dataclasses import replace
+
+    from meshmei.errors import ReconstructionError
+    from meshmei.reconstruct import save_reconstruction
+
+    res = reconstruct(sphere, "bunny", "rbf", steps=2, **SMALL)
+    stages = [dict(res.info["stages"][0], sigma_median=float("inf"))]
+    bad = replace(res, info={**res.info, "stages": stages})
+    with pytest.raises(ReconstructionError, match=r"^the result's info\['stages'\]\[0\]\['sigma_median'\] is inf: "
+                                                  r"JSON has no NaN or Infinity"):
+        bad.to_json()
+    with pytest.raises(ReconstructionError, match=r"^the result's info\['stages'\]\[0\]\['sigma_median'\] is inf"):
+        save_reconstruction(bad, tmp_path / "bad")
+    nan_step = replace(res, history=[dict(res.history[0], chamfer=float("nan"))] + res.history[1:])
+    with pytest.raises(ReconstructionError, match=r"^the result's history\[0\]\['chamfer'\] is nan"):
+        save_reconstruction(nan_step, tmp_path / "bad")
+    with pytest.raises(ReconstructionError, match=r"^the record's score\[1\] is -inf: JSON has no NaN or Infinity"):
+        save_reconstruction(res, tmp_path / "bad", score=[1.0, -float("inf")])
+    assert list(tmp_path.iterdir()) == []  # refused before anything was written
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"history.json holds {c}"))
+
+    out = save_reconstruction(res, tmp_path / "r", score=[1.0, None])
+    written = strict((out / "history.json").read_text())
+    assert written.pop("score") == [1.0, None]
+    assert written == json.loads(json.dumps(res.to_json(), allow_nan=False))

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 
-from .._checks import is_integral
+from .._checks import is_integral, non_finite_entry
 from ..contact import MAX_CONTACT_DISTANCE
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
@@ -562,8 +562,15 @@ class ReconstructionResult:
 
     def to_json(self) -> dict:
         """A JSON-serialisable dict of everything except the mesh (tensors and arrays, such as ``centers``
-        given as vertex indices, as lists)."""
-        return {
+        given as vertex indices, as lists), whose numbers are all finite: standard JSON has no NaN or Infinity
+        (Python's ``json`` writes them, strict readers refuse the file).
+
+        Raises
+        ------
+        ReconstructionError
+            A number of the result is NaN or Inf; the message names its key.
+        """
+        out = {
             "settings": _plain(asdict(self.settings)),
             "final": self.final.as_dict(),
             "wall_time": self.wall_time,
@@ -574,6 +581,11 @@ class ReconstructionResult:
             "history": self.history,
             "metrics": self.metrics,
         }
+        bad = non_finite_entry(out)
+        if bad is not None:  # info['target_frame']['scale'] inf was written to history.json as Infinity
+            raise ReconstructionError(f"the result's {bad[0]} is {bad[1]}: JSON has no NaN or Infinity, so the "
+                                      "result cannot be written as standard JSON")
+        return out
 
 
 def _plain(value):
