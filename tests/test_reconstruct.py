@@ -1644,3 +1644,36 @@ def test_a_non_finite_number_is_never_written_as_json_but_refused_naming_its_key
     written = strict((out / "history.json").read_text())
     assert written.pop("score") == [1.0, None]
     assert written == json.loads(json.dumps(res.to_json(), allow_nan=False))
+
+
+def test_an_lr_scale_that_overflows_the_kernel_scales_is_refused(sphere, tmp_path, monkeypatch):
+    """Found by fuzzing: lr_scale=1e10 moved every log-scale by about 1e10 at the first step (Adam and the uniform
+    step move a parameter by up to its lr), exp overflowed, every kernel weighed 1 at every vertex (all n^2
+    pairs listed) and the run went on as one translation: sigma_median inf, 'Infinity' in history.json."""
+    from meshmei.errors import ReconstructionError
+    from meshmei.reconstruct import fit
+    from meshmei.reconstruct.settings import MAX_LR_SCALE
+
+    assert MAX_LR_SCALE == 10.0
+    for value in (1e10, 100.0, 10.5):  # refused before the target (a missing file) is read
+        with pytest.raises(ReconstructionError, match=rf"^lr_scale must be at most 10 \(a step may widen an RBF kernel "
+                                                      rf"e\^lr_scale times; .*\), got {value!r}$"):
+            reconstruct(sphere, tmp_path / "missing.obj", steps=4, lr_scale=value, **SMALL)
+    with pytest.raises(ReconstructionError, match=r"^stage 0: lr_scale must be at most 10 .*got 100\.0$"):
+        ReconstructionSettings(stages=(100, 300), stage_overrides=({"lr_scale": 100.0}, None)).resolved()
+    assert ReconstructionSettings(lr_scale=10).resolved().lr_scale == 10.0
+
+    # below the ceiling a scale may still leave float32's range over many steps: the run ends, saying so
+    build = fit._parameterisation
+
+    def overflowing(sk, V0, F):
+        param = build(sk, V0, F)
+        with torch.no_grad():
+            param.rbf.log_sigma[7] = 100.0  # exp(100) is inf in float32: the kernel weighs 1 everywhere
+        return param
+
+    monkeypatch.setattr(fit, "_parameterisation", overflowing)
+    with pytest.raises(FloatingPointError, match=r"^stage 0: lr_scale=0\.01 took an RBF kernel's scale out of "
+                                                 r"torch\.float32's range by step 0 \(a log-scale of 100; .*lower "
+                                                 r"lr_scale$"):
+        reconstruct(sphere, "bunny", "rbf", steps=3, lr_scale=0.01, **SMALL)

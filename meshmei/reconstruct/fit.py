@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from .._checks import all_finite
 from ..contact import IN_CONTACT, ContactBarrier
 from ..deform import PARAMETERISATIONS, NarrowKernelError
 from ..errors import MeshError, ReconstructionError
@@ -191,10 +192,26 @@ def _parameterisation(sk: ReconstructionSettings, V0, F):
     return kind(V0, lr=sk.lr)
 
 
+def _check_scales(param, sk: ReconstructionSettings, k: int, step: int) -> None:
+    """FloatingPointError when learnt RBF scales (``lr_scale > 0``) have left the dtype's range: a scale of
+    inf weighs 1 at every vertex, so its kernel only translates the mesh, and the run went on without a word
+    (every pair listed, ``sigma_median`` inf in its record)."""
+    if not (sk.method == "rbf" and sk.lr_scale > 0):
+        return
+    log_sigma = param.rbf.log_sigma.detach()
+    sigma = torch.exp(log_sigma)
+    if not (float(sigma.min()) > 0 and all_finite(sigma)):
+        far = float(log_sigma.abs().max())
+        raise FloatingPointError(f"stage {k}: lr_scale={sk.lr_scale:g} took an RBF kernel's scale out of "
+                                 f"{log_sigma.dtype}'s range by step {step} (a log-scale of {far:.3g}; an infinite "
+                                 "scale weighs 1 at every vertex and only translates the mesh); lower lr_scale")
+
+
 def _objective(param, vertices, F, sk, weights, chamfer, k, latest, contact):
     active = {name: w for name, w in zip(("laplacian", "edge", "arap"), weights) if w > 0}
 
     def objective(point):
+        _check_scales(param, sk, k, point.step)
         Vc = vertices()
         latest[0] = Vc
         if contact is not None:  # its candidate search runs beside the Chamfer term's KD-tree queries
@@ -260,7 +277,8 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         Also a start at a scale where the deformation gives NaN (an rbf start 1e-20 across), before its
         stage's first step.
     FloatingPointError
-        The loss or the mesh became NaN or Inf during the run (a learning rate far too large).
+        The loss or the mesh became NaN or Inf during the run (a learning rate far too large), or learnt RBF
+        scales left the dtype's range (``lr_scale`` too large).
 
     Warns
     -----
@@ -595,6 +613,7 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                            stop_at=share_end, stop_step=stop_step, progress=bar,
                            callbacks=[after_step], accept=None if guard is None else guard.acceptor(vertices.candidate),
                            max_halvings=0 if guard is None else guard.rules.max_halvings, states=param.states())
+        _check_scales(param, sk, k, trace.step)  # the last step's, which no objective saw
         with torch.no_grad():
             V_start, V = V, param.vertices().detach()
         # ended by its max_steps before its share (a limit that the share reaches too cut nothing)
