@@ -1677,3 +1677,37 @@ def test_an_lr_scale_that_overflows_the_kernel_scales_is_refused(sphere, tmp_pat
                                                  r"torch\.float32's range by step 0 \(a log-scale of 100; .*lower "
                                                  r"lr_scale$"):
         reconstruct(sphere, "bunny", "rbf", steps=3, lr_scale=0.01, **SMALL)
+
+
+def test_source_mesh_places_the_torus_for_a_target_given_by_name_or_file(tmp_path):
+    """Found by fuzzing: source_mesh('torus', target='bunny') unpacked the name as a mesh: find_opening's
+    TypeError 'takes 2 positional arguments but 5 were given'. A name or a file is resolved as reconstruct
+    resolves it (target_surface), so the torus is placed as reconstruct places it."""
+    from meshmei.mesh import save_mesh
+
+    teapot = target_surface("teapot")
+    threaded = source_mesh("torus", n_vertices=300, target=teapot)
+    assert not torch.equal(threaded[0], initial_mesh("torus", n_vertices=300)[0])  # placed through the handle
+    save_mesh(tmp_path / "teapot.obj", 5 * teapot[0].double() + 2, teapot[1])  # normalised back when resolved
+    for target in ("teapot", tmp_path / "teapot.obj"):
+        for name in ("torus", "torus-through-opening"):
+            V, F = source_mesh(name, n_vertices=300, target=target)
+            torch.testing.assert_close(V, threaded[0], rtol=0, atol=1e-5)  # the file's round trip: float32 digits
+            assert torch.equal(F, threaded[1])
+    V, F = source_mesh("torus", n_vertices=300, target="bunny")  # no through-hole: centred
+    assert torch.equal(V, initial_mesh("torus", n_vertices=300)[0])
+    with pytest.raises(ValueError, match=r"^target must be a name, a mesh file path or a \(V, F\) pair, got int$"):
+        source_mesh("torus", n_vertices=300, target=42)
+    with pytest.raises(FileNotFoundError, match="neither a built-in target"):
+        source_mesh("torus", n_vertices=300, target="teapto")
+
+
+def test_target_surface_takes_normalize_and_return_frame_as_bools_only(sphere):
+    """normalize='no' was taken as true (a string is truthy): the target was normalised."""
+    from meshmei.errors import ReconstructionError
+
+    for name, value in (("normalize", "no"), ("normalize", 0), ("return_frame", "yes"), ("return_frame", None)):
+        with pytest.raises(ReconstructionError, match=rf"^{name} must be True or False, got {re.escape(repr(value))}$"):
+            target_surface(sphere, **{name: value})
+    V, _ = target_surface((sphere[0] * 3.0, sphere[1]), normalize=False)
+    assert torch.equal(V, sphere[0] * 3.0)

@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 import os
 
+import numpy as np
 import torch
 
-from ..errors import MeshError
+from ..errors import MeshError, ReconstructionError
 from ..mesh import cast_vertices, load_mesh, remove_unreferenced
 from ..operators import doublearea
 from ..shapes import DEFAULT_N_VERTICES, TARGET_NAMES, initial_mesh, normalize_unit_diagonal, target_mesh
@@ -37,6 +38,9 @@ def target_surface(spec, *, dtype=torch.float32, normalize: bool = True, return_
         A file that holds no mesh, an empty mesh, NaN coordinates, coordinates beyond ``dtype``'s range
         (after normalisation), or a mesh of zero area.
     """
+    for name, flag in (("normalize", normalize), ("return_frame", return_frame)):
+        if not isinstance(flag, (bool, np.bool_)):  # 'no' is a true string: the target was normalised
+            raise ReconstructionError(f"{name} must be True or False, got {flag!r}")
     role = f"target {spec}" if isinstance(spec, (str, os.PathLike)) else "target"
     frame = None
     if isinstance(spec, str) and spec in TARGET_NAMES:
@@ -65,7 +69,9 @@ def source_mesh(spec, *, n_vertices: int = DEFAULT_N_VERTICES, dtype=torch.float
     unused vertex would take part in the deformation (an RBF kernel of its own, which sets the kernel
     scale) without being part of the surface.
 
-    ``"torus"`` is placed for the ``target`` ``(V, F)`` when one is given: with its hole through the
+    ``"torus"`` is placed for the ``target`` when one is given (a ``(V, F)`` pair, used as it is, or a name or
+    mesh file path, resolved by :func:`target_surface` as :func:`~meshmei.reconstruct.reconstruct` resolves
+    it: normalised to unit diagonal): with its hole through the
     target's most open through-hole (:func:`meshmei.reconstruct.openings.torus_through_opening`) when
     :func:`~meshmei.reconstruct.openings.find_opening` sees one, as the teapot's handle, and centred otherwise (no
     target, or one without a hole, as the bunny). The torus is the start for genus-1 targets because its
@@ -87,6 +93,7 @@ def resolve_source(spec, n_vertices, dtype, target):
             raise ValueError("source 'torus-through-opening' needs the target whose opening it threads")
         opening = None
         if spec in ("torus", "torus-through-opening") and target is not None:
+            target = _target_pair(target)
             opening = find_opening(*target)
             if opening is None and spec == "torus-through-opening":
                 raise MeshError("the target has no through-hole that find_opening can see; start from "
@@ -107,6 +114,20 @@ def resolve_source(spec, n_vertices, dtype, target):
         V, F = _pair(spec, "source")
     _check_area(V, F, f"source {spec}" if isinstance(spec, (str, os.PathLike)) else "source")
     return V, F, placement
+
+
+def _target_pair(target):
+    """The target a named torus is placed for, as ``(V, F)``: a name or a file resolved as :func:`reconstruct`
+    resolves it (a name was unpacked as a pair: find_opening's TypeError, 'takes 2 positional arguments but 5
+    were given'), a pair as it is."""
+    if isinstance(target, (str, os.PathLike)):
+        return target_surface(target)
+    try:
+        V, F = target
+    except (TypeError, ValueError):
+        raise ValueError(f"target must be a name, a mesh file path or a (V, F) pair, got {type(target).__name__}"
+                         ) from None
+    return V, F
 
 
 def _load(path, role, dtype):
