@@ -1711,3 +1711,26 @@ def test_target_surface_takes_normalize_and_return_frame_as_bools_only(sphere):
             target_surface(sphere, **{name: value})
     V, _ = target_surface((sphere[0] * 3.0, sphere[1]), normalize=False)
     assert torch.equal(V, sphere[0] * 3.0)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 100.7, 100.0, "100", True, 0, -2500, None])
+def test_schedules_take_a_vertex_count_that_is_a_positive_integer(bad):
+    """Found by fuzzing: default_stages(nan) and default_schedule('rbf', nan) gave Python's 'cannot convert float
+    NaN to integer', inf an OverflowError; 100.7 was truncated to 100 and '100' taken as 100."""
+    import numpy as np
+
+    from meshmei.errors import ReconstructionError
+    from meshmei.reconstruct import default_schedule, schedule_from_text
+
+    said = rf"^n_vertices must be a positive integer, got {re.escape(repr(bad))}$"
+    with pytest.raises(ReconstructionError, match=said):
+        default_stages(bad)
+    with pytest.raises(ReconstructionError, match=said):
+        default_schedule("rbf", bad)
+    for spec in ("auto", "none", "600,2500"):
+        with pytest.raises(ReconstructionError, match=said):
+            schedule_from_text(spec, "rbf", bad)
+    # NumPy's integers are counts too
+    assert default_stages(np.int64(2500)) == default_stages(2500) == ((625, 2500, 2500), (0.25, 0.45, 0.3))
+    assert default_schedule("vertex", np.int32(2500)) == (*default_stages(2500), None)
+    assert default_schedule("rbf", 31) == (None, None, None)

@@ -45,6 +45,15 @@ RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps
 RBF_FOUR_LEVEL_OVERRIDES = RBF_THREE_LEVEL_OVERRIDES + ({"w_laplacian": 2.5},)
 
 
+def _vertex_count(n_vertices) -> int:
+    """``n_vertices`` as an int: a positive integer (NumPy's too, not a bool), else ReconstructionError naming it
+    (NaN was Python's 'cannot convert float NaN to integer', inf an OverflowError, 100.7 ran as 100 and
+    '100' as 100, without a word)."""
+    if isinstance(n_vertices, (bool, np.bool_)) or not isinstance(n_vertices, (int, np.integer)) or n_vertices < 1:
+        raise ReconstructionError(f"n_vertices must be a positive integer, got {n_vertices!r}")
+    return int(n_vertices)
+
+
 def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     """The coarse-to-fine schedule used by the benchmark and the CLI. Returns ``(stages, stage_fractions)``.
 
@@ -58,10 +67,10 @@ def default_stages(n_vertices: int, levels: int = 2) -> tuple:
     and large steps on the bunny, and hurt large steps through the teapot's handle (docs/reconstruction.md,
     *Coarse-to-fine*), so two is the default here; :func:`default_schedule` picks three for rbf from 2,000
     vertices and four from 8,000. No stage has fewer than
-    :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32) vertices, so ``n_vertices`` must have at least
-    that many.
+    :data:`~meshmei.reconstruct.settings.MIN_STAGE_VERTICES` (32) vertices, so ``n_vertices`` must be an integer
+    of at least that many.
     """
-    n = int(n_vertices)
+    n = _vertex_count(n_vertices)
     if n < MIN_STAGE_VERTICES:
         raise ReconstructionError(f"a coarse-to-fine schedule needs at least {MIN_STAGE_VERTICES} vertices, got "
                                   f"{n_vertices!r}; run one stage at the mesh's own size (stages=None)")
@@ -107,13 +116,14 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
     steps and vertex always get two: three hurt large steps through the teapot's handle.
 
     A start of fewer than ``MIN_STAGE_VERTICES`` (32) vertices has no coarser level to start from: it
-    runs in one stage at its own size, ``(None, None, None)``, whatever ``levels`` says.
+    runs in one stage at its own size, ``(None, None, None)``, whatever ``levels`` says. ``n_vertices`` must be a
+    positive integer (NumPy's too; not a bool, a float or a string).
     """
     if method not in METHODS:
         raise ReconstructionError(f"method must be one of {METHODS}, got {method!r}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
         raise ReconstructionError(f"n_samples must be an integer of at least 2, got {n_samples!r}")
-    n = int(n_vertices)
+    n = _vertex_count(n_vertices)
     if n < MIN_STAGE_VERTICES:
         return None, None, None
     if levels is None:
@@ -132,7 +142,8 @@ def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: in
     """``(stages, stage_fractions, stage_overrides)`` from the CLI's ``--stages`` text: ``"auto"``
     (:func:`default_schedule`'s pick), ``"auto2"`` / ``"auto3"`` / ``"auto4"`` (that many levels), ``"none"``
     (one stage), or comma-separated vertex counts with equal shares (``"600,2500,2500"``), each at least
-    ``MIN_STAGE_VERTICES`` (32). ``n_vertices`` is the start's count."""
+    ``MIN_STAGE_VERTICES`` (32). ``n_vertices`` is the start's count, a positive integer."""
+    _vertex_count(n_vertices)
     levels = {"auto": None, "auto2": 2, "auto3": 3, "auto4": 4}
     if spec in levels:
         return default_schedule(method, n_vertices, levels[spec], n_samples=n_samples)
