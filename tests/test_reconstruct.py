@@ -1734,3 +1734,28 @@ def test_schedules_take_a_vertex_count_that_is_a_positive_integer(bad):
     assert default_stages(np.int64(2500)) == default_stages(2500) == ((625, 2500, 2500), (0.25, 0.45, 0.3))
     assert default_schedule("vertex", np.int32(2500)) == (*default_stages(2500), None)
     assert default_schedule("rbf", 31) == (None, None, None)
+
+
+def test_a_stage_too_small_for_its_coarse_ratio_warns_that_it_has_no_coarse_kernels(sphere, bunny):
+    """Found by fuzzing: coarse_ratio=10**6 on a small mesh gave round(n / 10**6) = 0 coarse kernels, and the run
+    went on without them, without a word."""
+    from meshmei.reconstruct import ReconstructionWarning
+
+    n = sphere[0].shape[0]
+    with pytest.warns(ReconstructionWarning) as caught:
+        res = reconstruct(sphere, bunny, "rbf", steps=3, coarse_ratio=10 ** 6, **SMALL)
+    said = [str(w.message) for w in caught if issubclass(w.category, ReconstructionWarning)]
+    assert said == res.info["warnings"] == [
+        f"stage 0 ({n} vertices): coarse_ratio=1000000 gives 0 coarse kernels, fewer than 4 (which would only "
+        "translate the shape): the stage runs without coarse kernels"]
+    assert res.info["stages"][0]["n_coarse_kernels"] == 0
+    assert torch.equal(res.V, reconstruct(sphere, bunny, "rbf", steps=3, **SMALL).V)  # the run it was
+    # with stages, only the stage too small for the ratio: about 100 / 50 rounds to 2, 300 / 50 to 6
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        res = reconstruct(sphere, bunny, "rbf", steps=4, stages=(100, 300), coarse_ratio=50, **SMALL)
+    first, second = res.info["stages"]
+    assert res.info["warnings"] == [f"stage 0 ({first['n_vertices']} vertices): coarse_ratio=50 gives "
+                                    f"{round(first['n_vertices'] / 50)} coarse kernels, fewer than 4 (which would "
+                                    "only translate the shape): the stage runs without coarse kernels"]
+    assert first["n_coarse_kernels"] == 0 and second["n_coarse_kernels"] == round(second["n_vertices"] / 50) >= 4

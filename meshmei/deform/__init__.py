@@ -2,6 +2,7 @@
 
 from .largesteps import AdamUniform, DifferentialSolver, system_matrix
 from .params import (
+    MIN_COARSE_KERNELS,
     PARAMETERISATIONS,
     LargeStepsParameterisation,
     Parameterisation,
@@ -23,4 +24,5 @@ __all__ = [
     "VertexParameterisation",
     "LargeStepsParameterisation",
     "PARAMETERISATIONS",
+    "MIN_COARSE_KERNELS",
 ]

@@ -14,7 +14,7 @@ from .largesteps import DifferentialSolver, system_matrix
 from .rbf import RBFDeformer
 
 __all__ = ["Parameterisation", "RBFParameterisation", "VertexParameterisation", "LargeStepsParameterisation",
-           "PARAMETERISATIONS"]
+           "PARAMETERISATIONS", "MIN_COARSE_KERNELS"]
 
 
 class Parameterisation:
@@ -90,6 +90,11 @@ class LargeStepsParameterisation(Parameterisation):
                              "use a smaller lam or float64")
 
 
+# The fewest coarse kernels RBFParameterisation adds (coarse_ratio): fewer would only translate the shape, and a
+# ratio that gives fewer (n / coarse_ratio rounds below this) adds none
+MIN_COARSE_KERNELS = 4
+
+
 class RBFParameterisation(Parameterisation):
     """The paper's Gaussian RBF deformation (:class:`~meshmei.deform.rbf.RBFDeformer`), with an optional
     second, coarse set of kernels whose offsets are a group of their own.
@@ -104,7 +109,8 @@ class RBFParameterisation(Parameterisation):
     centers, sigma_factor, r_cut
         See :class:`~meshmei.deform.rbf.RBFDeformer`.
     coarse_ratio : int
-        Above 0, add ``round(n / coarse_ratio)`` coarse kernels (when that is at least 4) with learning rate
+        Above 0, add ``round(n / coarse_ratio)`` coarse kernels (when that is at least
+        :data:`MIN_COARSE_KERNELS`, 4; else none, and ``info()`` says ``n_coarse_kernels`` 0) with learning rate
         ``lr * coarse_lr``.
     coarse_lr : float
     """
@@ -126,7 +132,9 @@ class RBFParameterisation(Parameterisation):
         self._info = {"n_kernels": self.rbf.n_kernels, "n_pairs_initial": self.rbf.n_pairs}
         self.coarse = None
         k = round(V0.shape[0] / coarse_ratio) if coarse_ratio else 0
-        if k >= 4:  # fewer coarse kernels than that would only translate the shape
+        if coarse_ratio and k < MIN_COARSE_KERNELS:  # said in the record (reconstruct warns)
+            self._info.update(n_coarse_kernels=0)
+        if k >= MIN_COARSE_KERNELS:
             self.coarse = RBFDeformer(self.V0, k, r_cut=r_cut, learn_scales=False)
             self.groups.append({"params": [self.coarse.offsets], "lr": lr * coarse_lr})
             self._info.update(n_coarse_kernels=k, n_coarse_pairs=self.coarse.n_pairs,

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from .._checks import all_finite
 from ..contact import IN_CONTACT, ContactBarrier
-from ..deform import PARAMETERISATIONS, NarrowKernelError
+from ..deform import MIN_COARSE_KERNELS, PARAMETERISATIONS, NarrowKernelError
 from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
 from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
@@ -284,7 +284,9 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     -----
     ReconstructionWarning
         A stage whose every step the step guard refused (it returns its start; also in
-        ``result.info["warnings"]``).
+        ``result.info["warnings"]``), and the other stage warnings there: a remesh refused, pairs of the start in
+        contact, an rbf stage too small for its ``coarse_ratio`` (no coarse kernels), a time budget spent
+        before the first step.
 
     Examples
     --------
@@ -569,6 +571,11 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
             # and a stage has at most one kernel per vertex (the count it got is in the stage's n_kernels)
             sk = replace(sk, centers=V.shape[0])
         param = _check_start(lambda: _parameterisation(sk, V.detach(), F), V, k, sk.method)
+        if sk.method == "rbf" and sk.coarse_ratio and param.coarse is None:  # it had none, without a word
+            info["warnings"].append(
+                f"stage {k} ({V.shape[0]} vertices): coarse_ratio={sk.coarse_ratio} gives "
+                f"{round(V.shape[0] / sk.coarse_ratio)} coarse kernels, fewer than {MIN_COARSE_KERNELS} (which "
+                "would only translate the shape): the stage runs without coarse kernels")
         contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
                    if s.w_contact > 0 else None)
         left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit

@@ -132,7 +132,9 @@ class ReconstructionSettings:
         kernels fit detail. Faster early on a compact target (the bunny), but the kernels are Euclidean:
         they tie together surface that is near in space and far along the surface, such as the two sides
         of a torus threaded through a teapot's handle, so they are off by default
-        (docs/reconstruction.md, *Coarse kernels*).
+        (docs/reconstruction.md, *Coarse kernels*). A stage where ``n / coarse_ratio`` rounds to fewer than 4
+        (``deform.params.MIN_COARSE_KERNELS``) runs without coarse kernels, with a :class:`ReconstructionWarning`
+        (its record says ``n_coarse_kernels`` 0): 10**6 on a 194-vertex mesh gave none, without a word.
     coarse_lr : float
         Learning rate of the coarse offsets as a multiple of ``lr`` (default 3).
     stages : tuple of int, or None
