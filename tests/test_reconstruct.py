@@ -1759,3 +1759,20 @@ def test_a_stage_too_small_for_its_coarse_ratio_warns_that_it_has_no_coarse_kern
                                     f"{round(first['n_vertices'] / 50)} coarse kernels, fewer than 4 (which would "
                                     "only translate the shape): the stage runs without coarse kernels"]
     assert first["n_coarse_kernels"] == 0 and second["n_coarse_kernels"] == round(second["n_vertices"] / 50) >= 4
+
+
+def test_a_budget_spent_before_the_first_step_says_whether_the_start_was_remeshed(sphere, bunny):
+    """Found by fuzzing: with stages=None the warning said 'the result is the start after its remeshing', which
+    never happened (its condition, a stage record, always held)."""
+    from meshmei.reconstruct import ReconstructionWarning
+
+    with pytest.warns(ReconstructionWarning) as caught:
+        res = reconstruct(sphere, bunny, "vertex", time_budget=1e-9, **SMALL)
+    assert not res.history and torch.equal(res.V, sphere[0]) and torch.equal(res.F, sphere[1])
+    assert [str(w.message) for w in caught] == res.info["warnings"] == [
+        "the time budget (1e-09 s) ran out before the first step: the result is the start as given, not a fit"]
+    with pytest.warns(ReconstructionWarning) as caught:
+        res = reconstruct(sphere, bunny, "vertex", time_budget=1e-9, stages=(100, 300), **SMALL)
+    assert not res.history and res.V.shape[0] == res.info["stages"][0]["n_vertices"] != sphere[0].shape[0]
+    assert res.info["warnings"][-1] == (f"the time budget (1e-09 s) ran out before the first step: the result is "
+                                        f"the start remeshed to {res.V.shape[0]} vertices, not a fit")

@@ -325,6 +325,7 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     if frame is not None:  # a file's or pair's target is fitted in the unit frame: where that lies in its own
         info["target_frame"] = frame
     t_start = time.perf_counter()
+    F_source = F
     try:
         V, F = _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info)
     finally:
@@ -332,8 +333,11 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     final = evaluation.final(V, F)
     info["total_seconds"] = time.perf_counter() - t_start
     if not trace.history and s.time_budget is not None:  # said, not silently the start
+        # remeshed or not by its faces (info['stages'] has a record whether or not the stage remeshed, and a run
+        # without stages was said to be remeshed)
+        remeshed = f" remeshed to {V.shape[0]} vertices" if not torch.equal(F, F_source) else " as given"
         info["warnings"].append(f"the time budget ({s.time_budget:g} s) ran out before the first step: the result "
-                                f"is the start{' after its remeshing' if info['stages'] else ''}, not a fit")
+                                f"is the start{remeshed}, not a fit")
     for message in info["warnings"]:
         warnings.warn(message, ReconstructionWarning, stacklevel=2)
     return ReconstructionResult(V=V, F=F, history=trace.history, metrics=evaluation.records, settings=s,
