@@ -10,8 +10,8 @@ import numbers
 import numpy as np
 import torch
 
-__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "positive_int", "all_finite", "is_integral",
-           "non_finite_entry"]
+__all__ = ["check_positive", "check_non_negative", "check_distinct_seeds", "check_seed", "seed_twin", "SEED_RANGE",
+           "positive_int", "all_finite", "is_integral", "non_finite_entry"]
 
 
 def all_finite(x: torch.Tensor) -> bool:
@@ -86,19 +86,46 @@ def check_non_negative(name, value, *, unit: str = "", error: type[ValueError] =
         raise error(f"{name} must be a finite non-negative number{unit}, got {value!r}")
 
 
+# The seeds meshmei takes, lowest and highest: those that give distinct runs. torch's CPU generator
+# (torch.Generator.manual_seed, a Mersenne Twister) keeps a seed's low 32 bits, so every other integer torch
+# takes repeats one of these runs: reconstruct(seed=0), 2**32, 2**63 and -2**63 were one run, bit for bit, and
+# -1 was the run of 2**32 - 1 (a GPU's generator keeps all 64 bits; in this range both give distinct runs).
+# Seeds in the range run as they did.
+SEED_RANGE = (0, 2 ** 32 - 1)
+
+
+def seed_twin(seed: int) -> int:
+    """The seed in :data:`SEED_RANGE` whose run an integer seed gives on torch's CPU generator: its low 32 bits."""
+    return int(seed) % (SEED_RANGE[1] + 1)
+
+
+def _out_of_range(name: str, got) -> str:
+    lo, hi = SEED_RANGE
+    twins = [s for s in (got if isinstance(got, list) else [got]) if -(2 ** 63) <= s < 2 ** 64]
+    same = (f"; {', '.join(f'{s} gives the run of {seed_twin(s)}' for s in twins[:3])}" if twins else "")
+    return (f"{name} must lie in [{lo}, {hi}], the seeds of distinct runs (torch's CPU generator keeps a seed's "
+            f"low 32 bits{same}), got {got!r}")
+
+
+def check_seed(name: str, seed, *, error: type[ValueError] = ValueError) -> int:
+    """``seed`` as an int, or ``error`` naming ``name``: an integer (NumPy's too, not a bool) in
+    :data:`SEED_RANGE`; a seed beyond it that torch takes is named with the seed whose run it would give."""
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise error(f"{name} must be an integer in [{SEED_RANGE[0]}, {SEED_RANGE[1]}], got {seed!r}")
+    if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
+        raise error(_out_of_range(name, int(seed)))
+    return int(seed)
+
+
 def check_distinct_seeds(seeds, *, error: type[ValueError] = ValueError) -> None:
-    """Raise ``error`` unless the integers ``seeds`` are seeds torch takes (``torch.Generator.manual_seed``:
-    ``[-2**63, 2**64 - 1]``; beyond, its own overflow error at the first seed) and give distinct runs: no
-    seed repeated, and no two that torch takes as one (it takes seeds modulo ``2**64``: -1 is ``2**64 - 1``)."""
-    bad = [s for s in seeds if not -(2 ** 63) <= s < 2 ** 64]
+    """Raise ``error`` unless the integers ``seeds`` lie in :data:`SEED_RANGE` (where every seed gives a run of
+    its own: beyond it torch repeats these runs) and none is repeated (a seed's run would only be repeated)."""
+    bad = [s for s in seeds if not SEED_RANGE[0] <= s <= SEED_RANGE[1]]
     if bad:
-        raise error(f"seeds must lie in [-2**63, 2**64 - 1] (torch's seed range), got {bad}")
+        raise error(_out_of_range("seeds", bad))
     if len(set(seeds)) != len(seeds):
         twice = sorted({s for s in seeds if seeds.count(s) > 1})
         raise error(f"seeds must be distinct; {twice} repeated (a seed's run would only be repeated)")
-    same = sorted({s for s in seeds if sum((t - s) % 2 ** 64 == 0 for t in seeds) > 1})
-    if same:
-        raise error(f"seeds {same} are the same seed to torch (it takes seeds modulo 2**64); give distinct ones")
 
 
 def positive_int(text: str) -> int:

@@ -531,6 +531,17 @@ def test_cli_starts_from_a_mesh_file_placed_as_the_built_in_starts(tmp_path, cap
     assert "a mesh file; " in capsys.readouterr().err
 
 
+def test_the_random_baselines_seed_is_one_of_the_seeds_of_distinct_draws():
+    """random_mesh_responses took any int: 2**32 drew the deformations of seed 0, -1 those of 2**32 - 1."""
+    from meshmei.mei import random_mesh_responses
+
+    for seed, says in ((2 ** 32, "4294967296 gives the run of 0"), (-1, "-1 gives the run of 4294967295")):
+        with pytest.raises(MEIError, match=rf"^seed must lie in \[0, 4294967295\], .*{says}\), got {seed}$"):
+            random_mesh_responses(GaborSimpleCell(), 0, "sphere", 2, seed=seed)
+    with pytest.raises(MEIError, match=r"^seed must be an integer in \[0, 4294967295\], got 1\.5$"):
+        random_mesh_responses(GaborSimpleCell(), 0, "sphere", 2, seed=1.5)
+
+
 # ---------------------------------------------------------------------------------------------- demo model
 
 def test_demo_neuron_3d_mei_beats_random_meshes_and_pixel_mei_is_higher_still():
@@ -607,8 +618,11 @@ def test_a_seed_with_a_non_finite_end_never_wins():
     (dict(seeds=None), "seeds must be a non-empty sequence of integers, got None"),  # a TypeError
     (dict(seeds=[math.inf]), r"seeds must be a non-empty sequence of integers, got \[inf\]"),  # an OverflowError
     # torch's 'Overflow when unpacking long long' at the first seed; two runs of one seed
-    (dict(seeds=(2 ** 64,)), r"seeds must lie in \[-2\*\*63, 2\*\*64 - 1\]"),
-    (dict(seeds=(-1, 2 ** 64 - 1)), r"seeds \[-1, 18446744073709551615\] are the same seed to torch"),
+    (dict(seeds=(2 ** 64,)), r"seeds must lie in \[0, 4294967295\], the seeds of distinct runs"),
+    # torch's CPU generator keeps a seed's low 32 bits: -1 was the run of 2**32 - 1, 2**32 the run of 0
+    (dict(seeds=(-1, 0)), r"seeds must lie in \[0, 4294967295\], .*low 32 bits; -1 gives the run of 4294967295\), "
+                          r"got \[-1\]$"),
+    (dict(seeds=(0, 2 ** 32)), r"4294967296 gives the run of 0\), got \[4294967296\]$"),
     # 810,000 renders a step: torch's allocation error after the run started
     (dict(robust_pose=20, robust_light=20, robust_points=30), "robust_points=30 gives 810,000 views per step"),
     (dict(robust_pose=1e6), "robust_pose must be at most 180 degrees"),
@@ -840,9 +854,15 @@ def test_load_run_refuses_mixed_files_and_summary_fields_of_the_wrong_kind(tmp_p
         load_run(a)
     restore()
     assert torch.equal(load_run(a).V, torch.load(a / "state.pt", weights_only=True)["V"])
-    negative = save_run(optimize_mei(GaborSimpleCell(), 0, "sheet", **{**TINY, "seeds": (-3,)}), tmp_path / "n",
-                        figures=False)
-    assert load_run(negative).seed == -3  # a seed may be negative
+    # a run saved with seed -3 (taken until SEED_RANGE) was the run of 2**32 - 3: it loads as that seed
+    twin = save_run(optimize_mei(GaborSimpleCell(), 0, "sheet", **{**TINY, "seeds": (2 ** 32 - 3,)}), tmp_path / "n",
+                    figures=False)
+    summary = json.loads((twin / "summary.json").read_text())
+    act = summary["seed_activations"].pop(str(2 ** 32 - 3))
+    summary.update(seed=-3, seed_activations={"-3": act}, settings={**summary["settings"], "seeds": [-3]})
+    (twin / "summary.json").write_text(json.dumps(summary))
+    old = load_run(twin)
+    assert (old.seed, old.seed_activations, old.settings.seeds) == (2 ** 32 - 3, {2 ** 32 - 3: act}, (2 ** 32 - 3,))
 
 
 def test_load_run_refuses_a_light_or_albedo_of_another_shape(tmp_path):

@@ -167,3 +167,15 @@ def test_the_cli_adds_the_pixel_mei_to_a_diverse_set(tmp_path, capsys):
     for i in range(2):
         assert json.loads((out / f"member_{i}" / "summary.json").read_text())["pixel_mei_activation"] == pm
     assert f"pixel MEI {pm:.4f}" in capsys.readouterr().out
+
+
+def test_members_seeds_past_the_seed_range_are_refused_before_any_work(monkeypatch):
+    """The members run seeds s, s+1, ...: from 2**32 - 1, the second member's 2**32 is seed 0 to torch's CPU
+    generator (it keeps a seed's low 32 bits), a run that seeds (0,) gives too."""
+    from meshmei.mei import diverse
+
+    monkeypatch.setattr(diverse, "initial", lambda *a: pytest.fail("the start was built"))
+    with pytest.raises(MEIError, match=r"^the members' seeds 4294967295\.\.4294967296 \(the first of seeds, then one "
+                                       r"more each\) must lie in \[0, 4294967295\], the seeds of distinct runs; start "
+                                       r"from a seed of at most 4294967294$"):
+        diverse_meis(GaborSimpleCell(), 0, k=2, seeds=(2 ** 32 - 1,), **SMALL)

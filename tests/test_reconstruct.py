@@ -655,12 +655,25 @@ def test_settings_refuse_non_finite_values_and_bad_seeds(field, value):
         ReconstructionSettings(**kw).resolved()
 
 
-def test_seeds_at_the_ends_of_torchs_range_are_accepted():
-    from meshmei.reconstruct.settings import SEED_MAX, SEED_MIN
+def test_seeds_are_those_of_distinct_runs():
+    """torch's CPU generator keeps a seed's low 32 bits: seeds 0, 2**32, 2**63 and -2**63 gave one run, bit for bit,
+    although the documented range was -2**63 .. 2**64 - 2. The range is now the seeds of distinct runs."""
+    import numpy as np
 
-    for seed in (SEED_MIN, 0, SEED_MAX):
+    from meshmei._checks import SEED_RANGE
+    from meshmei.errors import ReconstructionError
+
+    assert SEED_RANGE == (0, 2 ** 32 - 1)
+    for seed in (0, 1, 2 ** 32 - 1, np.uint32(2 ** 32 - 1)):
         assert ReconstructionSettings(seed=seed).resolved().seed == seed
-        torch.Generator().manual_seed(seed + 1)  # the metrics' target seed fits as well
+        torch.Generator().manual_seed(int(seed) + 1)  # the metrics' target seed fits as well
+    draw = [torch.rand(4, generator=torch.Generator().manual_seed(s)) for s in (0, 2 ** 32, 2 ** 63, -(2 ** 63))]
+    assert all(torch.equal(d, draw[0]) for d in draw)  # why: one run, four seeds
+    for seed, twin in ((2 ** 32, 0), (2 ** 63, 0), (-(2 ** 63), 0), (-1, 2 ** 32 - 1), (2 ** 32 + 5, 5)):
+        with pytest.raises(ReconstructionError, match=rf"^seed must lie in \[0, 4294967295\], the seeds of distinct "
+                                                      rf"runs \(torch's CPU generator keeps a seed's low 32 bits; "
+                                                      rf"{seed} gives the run of {twin}\), got {seed}$"):
+            ReconstructionSettings(seed=seed).resolved()
 
 
 @pytest.mark.parametrize("stages", [None, "auto"])

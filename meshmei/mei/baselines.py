@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import torch
 
+from .._checks import check_seed
 from ..encoders import Encoder, eval_mode
 from ..errors import MEIError
 from ..quality import health_report
@@ -93,9 +94,10 @@ def random_mesh_responses(encoder: Encoder, neuron: int, init="sphere", n: int =
     neuron = check_neuron(encoder, neuron)
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:  # 0 failed in torch.cat, 2.5 in range
         raise MEIError(f"n must be a positive integer (deformations to draw), got {n!r}")
+    seed = check_seed("seed", seed, error=MEIError)  # SEED_RANGE: beyond it torch repeats these draws
     settings = settings_for_encoder(MEISettings.with_overrides(settings, {}), encoder)  # the MEI's image size
     V0, F, _ = initial(init, settings, encoder.device)
-    g = torch.Generator().manual_seed(int(seed))
+    g = torch.Generator().manual_seed(seed)
     out = []
     with eval_mode(encoder):
         for start in range(0, n, batch):

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .._checks import is_integral
+from .._checks import SEED_RANGE, is_integral
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
 from ..optim import Budget, Schedule, Trace, make_optimizer, minimize
@@ -113,10 +113,14 @@ def diverse_meis(encoder: Encoder, neuron: int, k: int = 4, init="sheet", settin
     if settings.robust_pose > 0 or settings.robust_light > 0:  # the batch renders one view per member
         raise MEIError("diverse 3D-MEIs take no robust objective (robust_pose, robust_light); make them "
                        "without it, or make robust 3D-MEIs one seed at a time")
+    seeds = [settings.seeds[0] + i for i in range(k)]
+    if seeds[-1] > SEED_RANGE[1]:  # 2**32 - 1 and 2**32 were one member twice (torch keeps a seed's low 32 bits)
+        raise MEIError(f"the members' seeds {seeds[0]}..{seeds[-1]} (the first of seeds, then one more each) must lie "
+                       f"in [{SEED_RANGE[0]}, {SEED_RANGE[1]}], the seeds of distinct runs; start from a seed of at "
+                       f"most {SEED_RANGE[1] - k + 1}")
     V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
     n_weights = settings.n_vertices if init_name != "custom" else V0.shape[0]
-    seeds = [settings.seeds[0] + i for i in range(k)]
     t0 = time.perf_counter()
     with frozen_encoder(encoder):
         scene = BatchScene(V0, settings, seeds, sheet_uv(V0) if init_name == "sheet" else None, F, n_weights)

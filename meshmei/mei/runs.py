@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from .._checks import is_finite_real, is_int
+from .._checks import is_finite_real, is_int, seed_twin
 from .._files import atomic_directory
 from ..encoders import Encoder, encoder_from_spec, eval_mode
 from ..errors import MEIError, MeshError
@@ -111,7 +111,7 @@ def _check_summary(summary: dict, state: dict, directory: Path, state_bytes: byt
         return isinstance(x, list) and all(map(is_finite_real, x))
 
     for key, ok, want in (("neuron", lambda x: is_int(x) and x >= 0, "a non-negative integer"),
-                          ("seed", is_int, "an integer"),  # a seed may be negative
+                          ("seed", is_int, "an integer"),  # a seed beyond SEED_RANGE (-3) loads as its twin
                           ("activation", is_finite_real, "a finite number"),
                           ("wall_time_s", lambda x: is_finite_real(x) and x >= 0, "a finite number >= 0"),
                           ("seconds_per_step", lambda x: is_finite_real(x) and x >= 0, "a finite number >= 0"),
@@ -272,7 +272,8 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
         return MEIResult(
             V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
             history=summary["history"], loss_history=summary["loss_history"], reg_history=summary["reg_history"],
-            seed=int(summary["seed"]), seed_activations={int(k): v for k, v in summary["seed_activations"].items()},
+            seed=seed_twin(summary["seed"]),  # as MEISettings.from_dict reads a seed beyond SEED_RANGE
+            seed_activations={seed_twin(int(k)): v for k, v in summary["seed_activations"].items()},
             settings=settings, neuron=int(summary["neuron"]), encoder=summary["encoder"],
             deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
             translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 import torch
 
-from .._checks import check_distinct_seeds, is_integral
+from .._checks import check_distinct_seeds, is_int, is_integral, seed_twin
 from ..contact import MAX_CONTACT_DISTANCE
 from ..deform import NarrowKernelError, RBFDeformer
 from ..encoders import Encoder
@@ -82,7 +82,10 @@ class MEISettings:
     lr_decay : float
         The learning rates follow a cosine from ``lr`` down to ``lr * lr_decay``.
     seeds : tuple of int
-        One run per seed; the seed draws the initial offsets (normal, std ``init_noise``).
+        One run per seed; the seed draws the initial offsets (normal, std ``init_noise``). Distinct integers
+        from 0 to ``2**32 - 1`` (``meshmei._checks.SEED_RANGE``: torch's CPU generator keeps a seed's low 32
+        bits, so 2**32 or -3 would repeat one of these runs; a run saved with such a seed loads with the seed in
+        the range whose run it is, ``seed % 2**32``).
     init_noise : float
         Standard deviation of the random initial offsets (breaks symmetries; 0 for none).
     sigma_factor : float
@@ -376,8 +379,8 @@ class MEISettings:
         if unknown:
             raise MEIError(f"unknown MEISettings fields {sorted(unknown)}")
         d = dict(d)
-        if "seeds" in d:
-            d["seeds"] = tuple(d["seeds"])
+        if "seeds" in d:  # a run saved with a seed beyond SEED_RANGE (-3 was taken) was the run of its twin in it
+            d["seeds"] = tuple(seed_twin(s) if is_int(s) else s for s in d["seeds"])
         if d.get("light") is not None:
             d["light"] = tuple(d["light"])
         return cls(**d)

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 
-from .._checks import is_integral, non_finite_entry
+from .._checks import check_seed, is_integral, non_finite_entry
 from ..contact import MAX_CONTACT_DISTANCE
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
@@ -33,9 +33,6 @@ METHODS = ("rbf", "vertex", "largesteps")
 # teapot's handle over seeds 0-2 (500: 2.13-2.40e-6), clean, in about 47 s against 25 s
 # (docs/reconstruction.md, *How many steps*).
 DEFAULT_STEPS = 1000
-
-# The seeds torch.Generator.manual_seed takes, less one at the top: the metrics sample the target with seed + 1.
-SEED_MIN, SEED_MAX = -(2 ** 63), 2 ** 64 - 2
 
 # The fewest vertices a stage may be remeshed to.
 MIN_STAGE_VERTICES = 32
@@ -154,8 +151,10 @@ class ReconstructionSettings:
         scaling follow the whole run (the fraction of the budget used; the stage counts, see
         ``reg_ref_vertices``).
     seed : int
-        Seed of all sampling (runs with ``steps`` are then bitwise repeatable); an integer from ``-2**63`` to
-        ``2**64 - 2`` (torch's seed range; the metrics sample the target with ``seed + 1``).
+        Seed of all sampling (runs with ``steps`` are then bitwise repeatable); an integer from 0 to
+        ``2**32 - 1`` (``meshmei._checks.SEED_RANGE``, the seeds of distinct runs: torch's CPU generator keeps a
+        seed's low 32 bits, so 0, ``2**32`` and ``-2**63`` were one run; the metrics sample the target with
+        ``seed + 1``).
     eval_every : int or None
         Evaluate :func:`surface_metrics` every this many steps (and always at the end).
     eval_times : tuple of float
@@ -402,9 +401,7 @@ def _check_values(s: ReconstructionSettings) -> None:
     m = s.max_steps
     if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1):
         raise ReconstructionError(f"max_steps must be a positive integer or None, got {m!r}")
-    seed = s.seed
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not SEED_MIN <= seed <= SEED_MAX:
-        raise ReconstructionError(f"seed must be an integer from {SEED_MIN} to {SEED_MAX}, got {seed!r}")
+    check_seed("seed", s.seed, error=ReconstructionError)  # SEED_RANGE: 0 and 2**32 were one run
     if not (isinstance(s.contact_edges, bool) or s.contact_edges == "auto"):
         raise ReconstructionError(f"contact_edges must be True, False or 'auto', got {s.contact_edges!r}")
     cr = s.coarse_ratio
