@@ -415,7 +415,8 @@ def _check_values(s: ReconstructionSettings) -> None:
             raise ReconstructionError(f"{name} must be non-negative and finite, got {getattr(s, name)!r}")
     if s.lr_scale > MAX_LR_SCALE:  # 1e10 overflowed every kernel scale at the first step, silently
         raise ReconstructionError(f"lr_scale must be at most {MAX_LR_SCALE:g} (a step may widen an RBF kernel "
-                                  f"e^lr_scale times; at 100 the first step overflowed every scale), got {s.lr_scale!r}")
+                                  "e^lr_scale times; at 100 the first step overflowed every scale), "
+                                  f"got {s.lr_scale!r}")
     if s.normal_match > MAX_NORMAL_MATCH:  # 1e160 made every 6-d distance inf: an IndexError inside the fit
         raise ReconstructionError(f"normal_match must be at most {MAX_NORMAL_MATCH:g}, got {s.normal_match!r}")
     ref = s.reg_ref_vertices
