@@ -235,6 +235,14 @@ static void emit(int64_t *found, int64_t cap, int64_t *out_a, int64_t *out_b, do
     (*found)++;
 }
 
+/* The broad phases' box tests pass about one candidate in five: a branch on each was mispredicted at every
+ * turn, and it was most of a search (a 10k sphere: 1.25 million edge-box tests for 227,000 that pass). They are
+ * made without a branch, SCAN_CHUNK candidates at a time, the passing ones written into a list in their order
+ * and then tested as before: the same pairs in the same order, measured the same way (tested against the
+ * branching code), in about 0.7 times the time (a 10k sphere, one thread: vertex-face 4.6 against 6.7 ms,
+ * edge-edge 12-14 against 17-18). */
+#define SCAN_CHUNK 64
+
 /* (vertex, face) pairs: out_v, out_f and their squared distances out_d (room for `cap`). The vertices in a
  * grid of cells about the size of a face's box widened by reach; each face looks in the cells that box
  * overlaps (mostly 8). */
@@ -249,7 +257,14 @@ int64_t contact_vertex_face(int64_t n, const double *V, int64_t m, const int64_t
     mean = m ? mean / (3.0 * (double)m) : 0.0;
     grid_t g;
     if (grid_build(&g, n, V, mean + 2.0 * widen)) return -2;
-    int64_t found = 0;
+    double *gp = malloc((size_t)(n > 0 ? n : 1) * 3 * sizeof(double)); /* the points in the grid's order */
+    if (!gp) {
+        grid_free(&g);
+        return -2;
+    }
+    for (int64_t q = 0; q < n; q++)
+        for (int a = 0; a < 3; a++) gp[3 * q + a] = V[3 * g.items[q] + a];
+    int64_t found = 0, hit[SCAN_CHUNK];
     for (int64_t f = 0; f < m; f++) {
         const int64_t *tri = F + 3 * f;
         const double *A = V + 3 * tri[0], *B = V + 3 * tri[1], *C = V + 3 * tri[2];
@@ -257,18 +272,26 @@ int64_t contact_vertex_face(int64_t n, const double *V, int64_t m, const int64_t
         boxcells_t bc = box_cells(&g, lo, hi);
         for (int64_t r = 0, from, to; r < bc.nx * bc.ny; r++) {
             cell_row(&g, &bc, r, &from, &to);
-            for (int64_t q = from; q < to; q++) {
-                int64_t v = g.items[q];
-                const double *P = V + 3 * v;
-                if (v == tri[0] || v == tri[1] || v == tri[2] || P[0] < lo[0] || P[0] > hi[0] || P[1] < lo[1] ||
-                    P[1] > hi[1] || P[2] < lo[2] || P[2] > hi[2])
-                    continue;
-                double d = point_triangle(P, A, B, C);
-                if (d < lim) emit(&found, cap, out_v, out_f, out_d, v, f, d);
+            for (int64_t q0 = from; q0 < to; q0 += SCAN_CHUNK) {
+                int64_t q1 = q0 + SCAN_CHUNK < to ? q0 + SCAN_CHUNK : to, nhit = 0;
+                for (int64_t q = q0; q < q1; q++) { /* the box test, without a branch (SCAN_CHUNK) */
+                    const double *P = gp + 3 * q;
+                    int miss = (P[0] < lo[0]) | (P[0] > hi[0]) | (P[1] < lo[1]) | (P[1] > hi[1]) | (P[2] < lo[2]) |
+                               (P[2] > hi[2]);
+                    hit[nhit] = q;
+                    nhit += !miss;
+                }
+                for (int64_t h = 0; h < nhit; h++) {
+                    int64_t v = g.items[hit[h]];
+                    if (v == tri[0] || v == tri[1] || v == tri[2]) continue;
+                    double d = point_triangle(V + 3 * v, A, B, C);
+                    if (d < lim) emit(&found, cap, out_v, out_f, out_d, v, f, d);
+                }
             }
         }
     }
     grid_free(&g);
+    free(gp);
     return found;
 }
 
@@ -358,6 +381,7 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
         for (int a = 0; a < 6; a++) packed[6 * q + a] = box[6 * ids[q] + a];
     }
     found = 0;
+    int64_t hit[SCAN_CHUNK];
     for (int64_t i = 0; i < k; i++) {
         const double *bi = box + 6 * i;
         box_of(V, E + 2 * i, 2, widen, lo, hi);
@@ -371,16 +395,24 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
         for (int64_t row = 0, from, to; row < bc.nx * bc.ny; row++) {
             cell_row(&g, &bc, row, &from, &to);
             if (!long_i && from <= pos[i]) from = pos[i] + 1; /* the grid's earlier edges found their pairs with i */
-            for (int64_t q = from; q < to; q++) {
-                const double *bj = packed + 6 * q;
-                if (fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen ||
-                    fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen || fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen)
-                    continue;
-                if (!long_i) {
-                    edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b, out_d);
-                } else { /* a short and a long edge: measured from the short one */
-                    box_of(V, E + 2 * ids[q], 2, widen, jlo, jhi);
-                    edge_pair(V, E, first, ids[q], i, jlo, jhi, lim, &found, cap, out_a, out_b, out_d);
+            for (int64_t q0 = from; q0 < to; q0 += SCAN_CHUNK) {
+                int64_t q1 = q0 + SCAN_CHUNK < to ? q0 + SCAN_CHUNK : to, nhit = 0;
+                for (int64_t q = q0; q < q1; q++) { /* the box test, without a branch (SCAN_CHUNK) */
+                    const double *bj = packed + 6 * q;
+                    int miss = (fabs(bi[0] - bj[0]) > bi[3] + bj[3] + widen) |
+                               (fabs(bi[1] - bj[1]) > bi[4] + bj[4] + widen) |
+                               (fabs(bi[2] - bj[2]) > bi[5] + bj[5] + widen);
+                    hit[nhit] = q;
+                    nhit += !miss;
+                }
+                for (int64_t h = 0; h < nhit; h++) {
+                    int64_t q = hit[h];
+                    if (!long_i) {
+                        edge_pair(V, E, first, i, ids[q], lo, hi, lim, &found, cap, out_a, out_b, out_d);
+                    } else { /* a short and a long edge: measured from the short one */
+                        box_of(V, E + 2 * ids[q], 2, widen, jlo, jhi);
+                        edge_pair(V, E, first, ids[q], i, jlo, jhi, lim, &found, cap, out_a, out_b, out_d);
+                    }
                 }
             }
         }

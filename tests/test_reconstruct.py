@@ -1378,6 +1378,29 @@ def test_a_stage_whose_remesh_is_refused_takes_the_weights_of_the_mesh_it_runs_o
     assert sum("the stage runs on the mesh it had" in w for w in res.info["warnings"]) == 2
 
 
+def test_a_stage_whose_remesh_lands_far_from_its_count_takes_the_weights_of_the_count_it_got():
+    """stages=(128, 32) on a 190-vertex sphere: the remesh to 32 gives 93 vertices, and the stage ran with the
+    Laplacian weight of 32, 8.4x too light for its mesh, without a word (fuzzing)."""
+    from meshmei.reconstruct.fit import STAGE_COUNT_TOLERANCE
+
+    src = initial_mesh("sphere", n_vertices=194)
+    from meshmei.reconstruct import ReconstructionWarning
+
+    with pytest.warns(ReconstructionWarning, match=r"stage 1: asked for 32 vertices, the remesh gave \d+"):
+        res = reconstruct(src, "bunny", "rbf", steps=4, stages=(128, 32), seed=0, **SMALL)
+    s = res.settings
+    first, second = res.info["stages"]
+    assert (first["n_vertices_asked"], second["n_vertices_asked"]) == (128, 32)
+    n = second["n_vertices"]
+    assert n > 32 * STAGE_COUNT_TOLERANCE
+    assert second["w_laplacian"] == pytest.approx(s.w_laplacian * (n / s.reg_ref_vertices) ** 2, rel=1e-12)
+    assert second["w_edge"] == pytest.approx(s.w_edge * n / s.reg_ref_vertices, rel=1e-12)
+    # the first stage landed within the tolerance and states the second's asked count, as before
+    assert 128 / STAGE_COUNT_TOLERANCE <= first["n_vertices"] <= 128 * STAGE_COUNT_TOLERANCE
+    assert first["w_laplacian"] == pytest.approx(s.w_laplacian * (32 / s.reg_ref_vertices) ** 2, rel=1e-12)
+    assert sum("asked for" in w for w in res.info["warnings"]) == 1
+
+
 def test_a_results_settings_replay_a_run_whose_stages_change_the_method():
     """The recorded (resolved) settings hold rbf's defaults; replayed, a largesteps stage refused rbf's
     coarse_lr (and would have taken rbf's learning rate)."""
