@@ -315,3 +315,26 @@ def test_each_saving_benchmark_takes_restart(monkeypatch, name, argv):
     module.main(argv)
     module.main(argv + ["--restart"])
     assert got == [False, True]
+
+
+def test_the_reconstruction_cost_alternates_the_modes_and_pairs_each_rounds_ratio(monkeypatch):
+    """recon-cost: the modes' order reversed every other round, and the ratio the median over rounds of each
+    round's ratio to off (a round whose load doubles every time cancels out), with its range."""
+    from meshmei.benchmarks import validity
+
+    load = iter([1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0])  # the machine slows down between rounds
+    order = []
+
+    def fake(src, target, method, steps, eval_samples, **kw):
+        mode = "off" if not kw.get("valid_steps", True) else "guard" if kw.get("w_contact") == 0.0 else "default"
+        order.append(mode)
+        per_step = {"off": 10.0, "guard": 12.0, "default": 15.0}[mode] * next(load) / 1000  # seconds
+        return SimpleNamespace(history=[{"time": per_step * (i + 1)} for i in range(steps)])
+
+    monkeypatch.setattr(validity, "reconstruct", fake)
+    monkeypatch.setattr(validity, "initial_mesh", lambda kind, n_vertices: (torch.zeros(n_vertices, 3), None))
+    row = validity.reconstruction_cost(100, steps=12, rounds=3)
+    assert order == ["off", "guard", "default", "default", "guard", "off", "off", "guard", "default"]
+    # each round's ratios are 1.2 and 1.5 exactly, whatever its load; the medians of the times are not
+    assert row == ["reconstruction rbf, 100 vertices", "20.0", "24.0 (1.20 (1.20-1.20))", "30.0", "1.50 (1.50-1.50)"]
+    assert validity.paired_ratio([2.0, 3.0, 9.0], [1.0, 2.0, 3.0]) == "2.00 (1.50-3.00)"
