@@ -426,6 +426,26 @@ def test_a_damaged_summary_is_one_clear_error(tmp_path):
             load_run(run, rebuild_encoder=True)
 
 
+def test_a_seed_that_ended_without_a_finite_response_is_saved_as_null_and_read_back_as_nan(tmp_path):
+    """A losing seed's NaN response went into summary.json as NaN, which JSON does not have (strict readers
+    refuse the file)."""
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", steps=2, seeds=(0, 1), image_size=16, n_vertices=40)
+    res.seed_activations[1 - res.seed] = math.nan
+    run = save_run(res, tmp_path / "run", figures=False)
+
+    def no_constants(name):
+        raise AssertionError(f"summary.json holds {name}")
+
+    summary = json.loads((run / "summary.json").read_text(), parse_constant=no_constants)
+    assert summary["seed_activations"] == {str(res.seed): res.activation, str(1 - res.seed): None}
+    back = load_run(run, rebuild_encoder=True)
+    assert back.seed_activations[res.seed] == res.activation and math.isnan(back.seed_activations[1 - res.seed])
+    for damage in ({"0": "high", "1": None}, {"first": 0.5}, {"0": math.inf}):
+        (run / "summary.json").write_text(json.dumps({**summary, "seed_activations": damage}))
+        with pytest.raises(MEIError, match="seed_activations must be a dict of seeds"):
+            load_run(run, rebuild_encoder=True)
+
+
 def test_a_run_is_read_only_with_its_own_encoder_and_image_size(tmp_path, capsys):
     """An edited summary.json (another cell, another image size) or a model that is not the run's was swept
     and reported under the run's name; each is now refused, naming what differs."""

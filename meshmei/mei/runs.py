@@ -8,6 +8,7 @@ import io
 import json
 import math
 import pickle
+import re
 from pathlib import Path
 
 import torch
@@ -52,7 +53,9 @@ def _own_summary(result: MEIResult) -> dict:
         "activation": result.activation,
         "fraction_of_bound": result.fraction_of_bound,
         "seed": result.seed,
-        "seed_activations": {str(k): v for k, v in result.seed_activations.items()},
+        # a seed whose run ended without a finite response (it lost) as null: JSON has no NaN, and Python's json
+        # wrote one that strict readers refuse (load_run reads null back as NaN)
+        "seed_activations": {str(k): v if math.isfinite(v) else None for k, v in result.seed_activations.items()},
         "encoder": result.encoder,
         "settings": result.settings.to_dict(),
         "light": None if result.light is None else result.light.tolist(),
@@ -110,6 +113,10 @@ def _check_summary(summary: dict, state: dict, directory: Path, state_bytes: byt
     def reals(x) -> bool:
         return isinstance(x, list) and all(map(is_finite_real, x))
 
+    def by_seed(x) -> bool:  # {"0": 0.91, "1": null}: null for a seed that ended without a finite response
+        return isinstance(x, dict) and all(re.fullmatch(r"-?[0-9]+", k) and (v is None or is_finite_real(v))
+                                           for k, v in x.items())
+
     for key, ok, want in (("neuron", lambda x: is_int(x) and x >= 0, "a non-negative integer"),
                           ("seed", is_int, "an integer"),  # a seed beyond SEED_RANGE (-3) loads as its twin
                           ("activation", is_finite_real, "a finite number"),
@@ -117,7 +124,8 @@ def _check_summary(summary: dict, state: dict, directory: Path, state_bytes: byt
                           ("seconds_per_step", lambda x: is_finite_real(x) and x >= 0, "a finite number >= 0"),
                           ("init", lambda x: isinstance(x, str), "a string"),
                           ("history", reals, "a list of finite numbers"),
-                          ("loss_history", reals, "a list of finite numbers")):
+                          ("loss_history", reals, "a list of finite numbers"),
+                          ("seed_activations", by_seed, "a dict of seeds to finite numbers or null")):
         if key in summary and not ok(summary[key]):
             raise damaged(f"{key} must be {want}, got {summary[key]!r:.80}")
     sizes = {"n_vertices": state["V"].shape[0], "n_faces": state["F"].shape[0]}
@@ -273,7 +281,8 @@ def load_run(directory, *, encoder: Encoder | None = None, rebuild_encoder: bool
             V=state["V"], F=state["F"], V0=state["V0"], image=state["image"], activation=float(summary["activation"]),
             history=summary["history"], loss_history=summary["loss_history"], reg_history=summary["reg_history"],
             seed=seed_twin(summary["seed"]),  # as MEISettings.from_dict reads a seed beyond SEED_RANGE
-            seed_activations={seed_twin(int(k)): v for k, v in summary["seed_activations"].items()},
+            seed_activations={seed_twin(int(k)): math.nan if v is None else v
+                              for k, v in summary["seed_activations"].items()},
             settings=settings, neuron=int(summary["neuron"]), encoder=summary["encoder"],
             deformer_state=state["deformer"], light=state["light"], rotation=state["rotation"],
             translation=state["translation"], init=summary["init"], wall_time=float(summary["wall_time_s"]),
