@@ -613,6 +613,10 @@ def test_a_seed_with_a_non_finite_end_never_wins():
     (dict(lr=1e39), "lr must be at most 3.4e[+]37"),
     (dict(lr=1e38), "lr must be at most 3.4e[+]37"),
     (dict(lr_scales=1e39), "lr_scales must be at most"),
+    # a step may widen a kernel e^lr_scales times: 100 overflowed every scale at the first step, silently
+    (dict(lr_scales=100.0), r"^lr_scales must be at most 10 \(a step may widen an RBF kernel e\^lr_scales times; .*"
+                            r"got 100\.0$"),
+    (dict(lr_scales=10.5), r"^lr_scales must be at most 10 .*got 10\.5$"),
     (dict(lr_light=1e39), "lr_light must be at most"),
     (dict(lr_pose=1e39), "lr_pose must be at most"),
     (dict(lr_albedo=1e39), "lr_albedo must be at most"),

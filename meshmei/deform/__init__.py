@@ -9,13 +9,14 @@ from .params import (
     RBFParameterisation,
     VertexParameterisation,
 )
-from .rbf import NarrowKernelError, RBFDeformer, farthest_point_sampling, rbf_dense
+from .rbf import MAX_LR_SCALE, NarrowKernelError, RBFDeformer, farthest_point_sampling, rbf_dense
 
 __all__ = [
     "RBFDeformer",
     "NarrowKernelError",
     "farthest_point_sampling",
     "rbf_dense",
+    "MAX_LR_SCALE",
     "system_matrix",
     "DifferentialSolver",
     "AdamUniform",

@@ -26,7 +26,7 @@ from .._checks import check_positive
 from ..errors import MeshError
 from ..sampling import nn_spacing
 
-__all__ = ["RBFDeformer", "NarrowKernelError", "farthest_point_sampling", "rbf_dense"]
+__all__ = ["RBFDeformer", "NarrowKernelError", "farthest_point_sampling", "rbf_dense", "MAX_LR_SCALE"]
 
 
 def farthest_point_sampling(X, k: int, *, start: int = 0) -> torch.Tensor:
@@ -206,6 +206,15 @@ def _center_index(V0, centers) -> torch.Tensor:
         raise ValueError(f"centers index vertices in [{int(cidx.min())}, {int(cidx.max())}], out of range for {n} vertices")
     return cidx.long()
 
+
+# The largest learning rate of RBF log-scales (reconstruction's lr_scale, the 3D-MEI's lr_scales). Adam and the uniform step move a parameter by
+# up to its lr a step, so a step may widen a kernel e^lr_scale times: at 10, 22,000 times, from an edge to far
+# past the unit-diagonal target. At 100 the first step overflowed float32 (e^88.7): every scale inf, every
+# kernel weighing 1 at every vertex (all n^2 pairs listed), the map one translation, and the run went on
+# without a word (sphere of 194 vertices to the bunny, 60 steps: sigma_median inf at 1e10 and 100, 2.5 at 10,
+# 0.48 at 1, 0.14 at 0.1; the 3D-MEI's default lr_scales is 0.01). Below it, a scale that still overflows
+# over many steps ends a reconstruction with a FloatingPointError (reconstruct.fit).
+MAX_LR_SCALE = 10.0
 
 # The pair list becomes a dense (n, K) matrix when it holds at least this share of all pairs and the
 # matrix has at most this many entries (4 MB in float32): memory stays bounded and meshes that must scale

@@ -12,7 +12,7 @@ import torch
 
 from .._checks import check_distinct_seeds, is_int, is_integral, seed_twin
 from ..contact import MAX_CONTACT_DISTANCE
-from ..deform import NarrowKernelError, RBFDeformer
+from ..deform import MAX_LR_SCALE, NarrowKernelError, RBFDeformer
 from ..encoders import Encoder
 from ..errors import MEIError, RenderError
 from ..optim import MAX_STEPS
@@ -78,7 +78,7 @@ class MEISettings:
     lr : float
         Learning rate of the RBF offsets (world units; the initial meshes span 1).
     lr_scales : float
-        Learning rate of the RBF log-scales (0 freezes the scales).
+        Learning rate of the RBF log-scales (0 freezes the scales), at most ``meshmei.deform.MAX_LR_SCALE`` (10).
     lr_decay : float
         The learning rates follow a cosine from ``lr`` down to ``lr * lr_decay``.
     seeds : tuple of int
@@ -302,6 +302,9 @@ class MEISettings:
             if not v <= top:
                 raise MEIError(f"{name} must be at most {top:.3g} (a tenth of {self.dtype}'s largest number: Adam's "
                                f"first step is 10 lr), got {v!r}")
+        if self.lr_scales > MAX_LR_SCALE:  # 100 overflowed every kernel scale at the first step: a translation
+            raise MEIError(f"lr_scales must be at most {MAX_LR_SCALE:g} (a step may widen an RBF kernel e^lr_scales "
+                           f"times; at 100 the first step overflowed every scale), got {self.lr_scales!r}")
         if self.light is not None:
             try:  # a string is a sequence too: "123" must not pass as (1, 2, 3)
                 lt = () if isinstance(self.light, (str, bytes)) else tuple(float(x) for x in self.light)

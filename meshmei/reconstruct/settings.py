@@ -11,6 +11,7 @@ import torch
 
 from .._checks import check_seed, is_integral, non_finite_entry
 from ..contact import MAX_CONTACT_DISTANCE
+from ..deform import MAX_LR_SCALE
 from ..errors import ReconstructionError
 from ..metrics import EVAL_SAMPLES, SurfaceMetrics
 from ..optim import MAX_STEPS, OPTIMIZERS
@@ -338,14 +339,6 @@ _WHOLES = ("steps", "n_samples", "target_pool", "eval_samples", "max_steps", "se
 
 
 MAX_NORMAL_MATCH = 1e6  # normals' weight against positions in the paired search (default 0.3 where used)
-# The largest lr_scale, the learning rate of the RBF log-scales. Adam and the uniform step move a parameter by
-# up to its lr a step, so a step may widen a kernel e^lr_scale times: at 10, 22,000 times, from an edge to far
-# past the unit-diagonal target. At 100 the first step overflowed float32 (e^88.7): every scale inf, every
-# kernel weighing 1 at every vertex (all n^2 pairs listed), the map one translation, and the run went on
-# without a word (sphere of 194 vertices to the bunny, 60 steps: sigma_median inf at 1e10 and 100, 2.5 at 10,
-# 0.48 at 1, 0.14 at 0.1; the 3D-MEI's default lr_scales is 0.01). Below it, a scale that still overflows
-# over many steps ends the run with a FloatingPointError (reconstruct.fit).
-MAX_LR_SCALE = 10.0
 
 
 def _plain_numbers(s: ReconstructionSettings) -> ReconstructionSettings:
