@@ -141,7 +141,10 @@ class ReconstructionSettings:
         Under a time budget, a restart (a stage at the count of the one before, with the same settings)
         whose share is under twice the set-up time that stage took (remesh, guard, contact pairs: 2.3-2.7 s
         at 10k vertices) is not set up: the stage before runs on through its share, and its record in
-        ``info["stages"]`` says ``merged_into``.
+        ``info["stages"]`` says ``merged_into``. A remesh lands near its count (5-7 % under in the default
+        runs; each stage records ``n_vertices_asked`` beside ``n_vertices``); one that lands more than
+        ``reconstruct.fit.STAGE_COUNT_TOLERANCE`` (1.25) times off gives its stage the regularizer weights
+        of the count it got, with a warning (see ``reg_ref_vertices``).
     stage_fractions : tuple of float or None
         Share of the steps / budget of each stage (default equal shares).
     stage_overrides : tuple of (dict or None), or None
