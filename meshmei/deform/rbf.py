@@ -207,8 +207,9 @@ def _center_index(V0, centers) -> torch.Tensor:
     return cidx.long()
 
 
-# The largest learning rate of RBF log-scales (reconstruction's lr_scale, the 3D-MEI's lr_scales). Adam and the uniform step move a parameter by
-# up to its lr a step, so a step may widen a kernel e^lr_scale times: at 10, 22,000 times, from an edge to far
+# The largest learning rate of RBF log-scales (reconstruction's lr_scale, the 3D-MEI's lr_scales). Adam and the
+# uniform step move a parameter by up to its lr a step, so a step may widen a kernel e^lr_scale times: at 10,
+# 22,000 times, from an edge to far
 # past the unit-diagonal target. At 100 the first step overflowed float32 (e^88.7): every scale inf, every
 # kernel weighing 1 at every vertex (all n^2 pairs listed), the map one translation, and the run went on
 # without a word (sphere of 194 vertices to the bunny, 60 steps: sigma_median inf at 1e10 and 100, 2.5 at 10,
