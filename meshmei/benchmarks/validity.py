@@ -346,7 +346,9 @@ def run(steps: int | None, n_cells: int, restart: bool = False):
         "reconstruction rows time the first 40 steps of one stage from a sphere toward the bunny, where the "
         "guard's star certificate (`meshmei.certify`) still stands in for libigl; a default run leaves star "
         "shape within its first stage, so its later stages pay libigl's test: the whole-run ratio is in "
-        "*Valid steps in reconstruction* (wall times).",
+        "*Valid steps in reconstruction* (wall times). Their ratios are the median of each round's ratio over two "
+        "rounds in alternating order, with the range in brackets (more rounds: *Cost of valid reconstruction "
+        "steps*).",
         "",
         markdown_table(["problem", "ms/step off", "ms/step guard (ratio)", "ms/step guard + contact barrier",
                         "ratio"], cost),
