@@ -18,7 +18,6 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .._checks import all_finite
 from ..contact import IN_CONTACT, ContactBarrier
 from ..deform import MIN_COARSE_KERNELS, PARAMETERISATIONS, NarrowKernelError
 from ..errors import MeshError, ReconstructionError
@@ -175,7 +174,8 @@ def stage_weights(s: ReconstructionSettings, sk: ReconstructionSettings, k: int 
     """The Laplacian, edge and ARAP weights of stage ``k`` (None: a run without stages), scaled from
     ``reg_ref_vertices`` to the count the stage's weights are stated for: its own, except the first stage,
     which takes the second's (see :class:`ReconstructionSettings`); ``n_mesh``, when given, instead (a stage
-    whose every remesh was refused runs on the mesh it had)."""
+    whose every remesh was refused runs on the mesh it had; one whose remesh landed more than
+    :data:`STAGE_COUNT_TOLERANCE` times off its count runs on the count it got)."""
     if s.reg_ref_vertices is None:
         return sk.w_laplacian, sk.w_edge, sk.w_arap
     if n_mesh is not None:
@@ -206,8 +206,8 @@ def _check_scales(param, sk: ReconstructionSettings, k: int, step: int) -> None:
     if not (sk.method == "rbf" and sk.lr_scale > 0):
         return
     log_sigma = param.rbf.log_sigma.detach()
-    sigma = torch.exp(log_sigma)
-    if not (float(sigma.min()) > 0 and all_finite(sigma)):
+    lo, hi = torch.aminmax(torch.exp(log_sigma))  # one reduction at every step (NaN propagates to both)
+    if not (float(lo) > 0 and float(hi) < math.inf):
         far = float(log_sigma.abs().max())
         raise FloatingPointError(f"stage {k}: lr_scale={sk.lr_scale:g} took an RBF kernel's scale out of "
                                  f"{log_sigma.dtype}'s range by step {step} (a log-scale of {far:.3g}; an infinite "
