@@ -50,14 +50,23 @@ def paired_ratio(times: list, base: list) -> str:
     return f"{median(ratios):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
 
 
+def alternated(modes: dict, rounds: int, run) -> dict:
+    """``run(**kwargs)`` for each of ``modes`` (name -> keyword arguments), in ``rounds`` rounds whose order is
+    reversed every other round; each mode's results, round by round."""
+    results = {m: [] for m in modes}
+    for r in range(rounds):
+        order = list(modes.items())
+        for mode, kw in (order[::-1] if r % 2 else order):
+            results[mode].append(run(**kw))
+    return results
+
+
 def mei_cost(steps: int = 60, rounds: int = 5) -> list:
     """Median ms per 3D-MEI step (64 px, 400 vertices, sphere, simple cell), guard on and off, alternating (the
     order reversed every other round); the ratio as :func:`paired_ratio`."""
-    times = {True: [], False: []}
-    for r in range(rounds):
-        for on in ((True, False) if r % 2 else (False, True)):
-            res = optimize_mei(GaborSimpleCell(), 0, "sphere", steps=steps, seeds=(0,), valid_steps=on)
-            times[on].append(median(step_intervals(res.time_history, 5)))
+    runs = alternated({False: dict(valid_steps=False), True: dict(valid_steps=True)}, rounds,
+                      lambda **kw: optimize_mei(GaborSimpleCell(), 0, "sphere", steps=steps, seeds=(0,), **kw))
+    times = {on: [median(step_intervals(res.time_history, 5)) for res in rs] for on, rs in runs.items()}
     off, on = median(times[False]), median(times[True])
     return ["3D-MEI, 64 px, 400 vertices", f"{1000 * off:.1f}",
             f"{1000 * on:.1f} ({paired_ratio(times[True], times[False])})", "-", "-"]
@@ -75,17 +84,13 @@ def mei_cost_split(steps: int = 60, rounds: int = 5) -> list:
     one), with its range; and the response and :data:`HEALTH_COLUMNS` after ``steps`` steps (last round)."""
     rows = []
     for init in ("sphere", "sheet"):
-        times = {m: [] for m in MEI_MODES}
-        last = {}
-        for r in range(rounds):
-            for mode, kw in (list(MEI_MODES.items())[::-1] if r % 2 else MEI_MODES.items()):
-                res = optimize_mei(GaborSimpleCell(), 0, init, steps=steps, seeds=(0,), **kw)
-                times[mode].append(median(step_intervals(res.time_history, 5)))
-                last[mode] = res
+        runs = alternated(MEI_MODES, rounds,
+                          lambda **kw: optimize_mei(GaborSimpleCell(), 0, init, steps=steps, seeds=(0,), **kw))
+        times = {mode: [median(step_intervals(res.time_history, 5)) for res in rs] for mode, rs in runs.items()}
         for mode in MEI_MODES:
+            last = runs[mode][-1]
             rows.append([init, mode, f"{1000 * median(times[mode]):.1f}", paired_ratio(times[mode], times["off"]),
-                         f"{last[mode].activation:.3f}",
-                         *health_cells([last[mode].health()])])
+                         f"{last.activation:.3f}", *health_cells([last.health()])])
             print(rows[-1], flush=True)
     return rows
 
@@ -120,11 +125,9 @@ def reconstruction_cost(n_vertices: int, steps: int = 40, rounds: int = 2) -> li
     src = initial_mesh("sphere", n_vertices=n_vertices)
     modes = {"off": UNGUARDED, "guard": dict(valid_steps=True, w_contact=0.0),
              "default": dict(valid_steps=True)}
-    times = {m: [] for m in modes}
-    for r in range(rounds):
-        for m, kw in (list(modes.items())[::-1] if r % 2 else modes.items()):
-            res = reconstruct(src, "bunny", "rbf", steps=steps, eval_samples=2000, **kw)
-            times[m].append(median(step_intervals([h["time"] for h in res.history], 5)))
+    runs = alternated(modes, rounds,
+                      lambda **kw: reconstruct(src, "bunny", "rbf", steps=steps, eval_samples=2000, **kw))
+    times = {m: [median(step_intervals([h["time"] for h in res.history], 5)) for res in rs] for m, rs in runs.items()}
     t = {m: median(v) for m, v in times.items()}
     return [f"reconstruction rbf, {src[0].shape[0]} vertices", f"{1000 * t['off']:.1f}",
             f"{1000 * t['guard']:.1f} ({paired_ratio(times['guard'], times['off'])})", f"{1000 * t['default']:.1f}",
