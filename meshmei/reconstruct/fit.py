@@ -538,6 +538,89 @@ def _pass_on_share(bounds, k: int, f: float) -> None:
     bounds[k:] = f + (bounds[k:] - bounds[k]) * (1.0 - f) / (1.0 - bounds[k])
 
 
+def _stage_mesh(V, F, k: int, n_stage, s, sk, stages, left, n_source: int, info: dict):
+    """Stage ``k``'s mesh and regularizer weights: ``(V, F, weights, remeshed)``. The mesh is ``(V, F)`` remeshed
+    to ``n_stage`` vertices where the stage asks for a count (a first stage within a tenth of it runs on the
+    source), and clean where ``s.valid_steps`` (:func:`_remesh_clean`, ``left`` seconds of its share);
+    ``remeshed`` is that remesh's record. What went wrong goes into ``info["warnings"]``."""
+    remeshed = {}
+    if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
+        V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps, left)
+    # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
+    # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
+    remesh_refused = remeshed.get("remesh_iterations", 0) is None
+    refused = remesh_refused and not remeshed.get("remesh_subdivided")  # and the mesh kept as it was
+    # a remesh far from its count: the weights a stage states for its own count follow the count it got (the
+    # first stage of several states the second's)
+    far = (n_stage is not None and not refused and not (k == 0 and len(stages) > 1)
+           and not n_stage / STAGE_COUNT_TOLERANCE <= V.shape[0] <= n_stage * STAGE_COUNT_TOLERANCE)
+    weights = stage_weights(s, sk, k if n_stage is not None else None, n_source,
+                            V.shape[0] if refused or far else None)
+    if far:
+        info["warnings"].append(
+            f"stage {k}: asked for {n_stage} vertices, the remesh gave {V.shape[0]} (more than "
+            f"{STAGE_COUNT_TOLERANCE:g} times off); the stage runs with the weights for {V.shape[0]} vertices")
+    if "remesh_refused_count" in remeshed:
+        info["warnings"].append(f"stage {k}: {remeshed['remesh_refused_count']}; the stage runs on the mesh it "
+                                f"had, {V.shape[0]} vertices, with the weights for that count")
+    elif remesh_refused:
+        tried = ("every remesh" if not remeshed.get("remesh_out_of_time") else
+                 f"the remesh (tried {remeshed['remesh_tries']} of 3 times: the stage's share of the time budget "
+                 "left no room for another)")
+        runs_on = (f"the stage runs on the mesh it had, {V.shape[0]} vertices, with the weights for that count"
+                   if refused else f"the stage runs on the mesh it had with every face split in four (the same "
+                   f"surface), {V.shape[0]} vertices")
+        info["warnings"].append(
+            f"stage {k}: {tried} to {n_stage} vertices added self-intersections or changed the topology "
+            f"({remeshed['remesh_refused_pairs']} new pairs; "
+            f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): {runs_on}")
+    return V, F, weights, remeshed
+
+
+def _stage_parameterisation(V, F, k: int, s, sk, chamfer, info: dict):
+    """Stage ``k``'s settings as it runs them on ``(V, F)`` and its parameterisation: ``(sk, param, pairing)``.
+    ``pairing``: with ``normal_match``, whether the stage's start encloses the target (else None)."""
+    sk = _guarded_step(s, sk, V.shape[0])
+    pairing = None  # normal_match: whether the stage's start encloses the target (else plain pairs)
+    if sk.normal_match > 0:
+        pairing = chamfer.encloses(V, F)
+        sk = sk if pairing else replace(sk, normal_match=0.0)
+    if isinstance(sk.centers, int) and sk.centers > V.shape[0]:  # resolved: a count is an int
+        # a kernel count at a stage's requested size: the remesh lands a few vertices off (300 gave 296),
+        # and a stage has at most one kernel per vertex (the count it got is in the stage's n_kernels)
+        sk = replace(sk, centers=V.shape[0])
+    param = _check_start(lambda: _parameterisation(sk, V.detach(), F), V, k, sk.method)
+    if sk.method == "rbf" and sk.coarse_ratio and param.coarse is None:  # it had none, without a word
+        info["warnings"].append(
+            f"stage {k} ({V.shape[0]} vertices): coarse_ratio={sk.coarse_ratio} gives "
+            f"{round(V.shape[0] / sk.coarse_ratio)} coarse kernels, fewer than {MIN_COARSE_KERNELS} (which "
+            "would only translate the shape): the stage runs without coarse kernels")
+    return sk, param, pairing
+
+
+def _stage_validity(V, F, k: int, s, info: dict):
+    """Stage ``k``'s contact barrier and step guard on ``(V, F)`` (each None where the run has none):
+    ``(contact, guard, left_out, max_step)``, ``left_out`` the start's pairs in contact that the barrier leaves
+    out, ``max_step`` the guard's step bound."""
+    contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
+               if s.w_contact > 0 else None)
+    left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit
+    if left_out:
+        info["warnings"].append(
+            f"stage {k}: {left_out} vertex-face or edge pairs of the start are in contact (closer than "
+            f"{IN_CONTACT:g} of the contact distance {contact.distance:.3g}): a T-junction (an edge split on one "
+            "side only) or parts that touch; the contact barrier leaves them out (the step guard still refuses "
+            "an intersection)")
+    max_step = None if contact is None else MAX_STEP_REACHES * contact.distance  # one edge
+    guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
+    if guard is not None and contact is not None:
+        # the barrier's distances at each accepted mesh clear most candidates of libigl's test; they need
+        # its edge pairs, searched for that alone (not in the energy) unless the run pairs edges anyway
+        contact.track_edges()
+        guard.use_contact(contact)
+    return contact, guard, left_out, max_step
+
+
 def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):
     stages = s.stages or (None,)
     bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
@@ -548,70 +631,11 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         if k in merged_into:  # run, and recorded, with the stage it was merged into
             continue
         t0 = time.perf_counter()
-        remeshed = {}
-        if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
-            left = None if budget.seconds is None else float(bounds[k + 1]) * budget.seconds - trace.seconds
-            V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps, left)
+        left = None if budget.seconds is None else float(bounds[k + 1]) * budget.seconds - trace.seconds
         sk = per_stage[k] if per_stage else s
-        # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
-        # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
-        remesh_refused = remeshed.get("remesh_iterations", 0) is None
-        refused = remesh_refused and not remeshed.get("remesh_subdivided")  # and the mesh kept as it was
-        # a remesh far from its count: the weights a stage states for its own count follow the count it got (the
-        # first stage of several states the second's)
-        far = (n_stage is not None and not refused and not (k == 0 and len(stages) > 1)
-               and not n_stage / STAGE_COUNT_TOLERANCE <= V.shape[0] <= n_stage * STAGE_COUNT_TOLERANCE)
-        weights = stage_weights(s, sk, k if n_stage is not None else None, n_source,
-                                V.shape[0] if refused or far else None)
-        if far:
-            info["warnings"].append(
-                f"stage {k}: asked for {n_stage} vertices, the remesh gave {V.shape[0]} (more than "
-                f"{STAGE_COUNT_TOLERANCE:g} times off); the stage runs with the weights for {V.shape[0]} vertices")
-        if "remesh_refused_count" in remeshed:
-            info["warnings"].append(f"stage {k}: {remeshed['remesh_refused_count']}; the stage runs on the mesh it "
-                                    f"had, {V.shape[0]} vertices, with the weights for that count")
-        elif remesh_refused:
-            tried = ("every remesh" if not remeshed.get("remesh_out_of_time") else
-                     f"the remesh (tried {remeshed['remesh_tries']} of 3 times: the stage's share of the time budget "
-                     "left no room for another)")
-            runs_on = (f"the stage runs on the mesh it had, {V.shape[0]} vertices, with the weights for that count"
-                       if refused else f"the stage runs on the mesh it had with every face split in four (the same "
-                       f"surface), {V.shape[0]} vertices")
-            info["warnings"].append(
-                f"stage {k}: {tried} to {n_stage} vertices added self-intersections or changed the topology "
-                f"({remeshed['remesh_refused_pairs']} new pairs; "
-                f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): {runs_on}")
-        sk = _guarded_step(s, sk, V.shape[0])
-        pairing = None  # normal_match: whether the stage's start encloses the target (else plain pairs)
-        if sk.normal_match > 0:
-            pairing = chamfer.encloses(V, F)
-            sk = sk if pairing else replace(sk, normal_match=0.0)
-        if isinstance(sk.centers, int) and sk.centers > V.shape[0]:  # resolved: a count is an int
-            # a kernel count at a stage's requested size: the remesh lands a few vertices off (300 gave 296),
-            # and a stage has at most one kernel per vertex (the count it got is in the stage's n_kernels)
-            sk = replace(sk, centers=V.shape[0])
-        param = _check_start(lambda: _parameterisation(sk, V.detach(), F), V, k, sk.method)
-        if sk.method == "rbf" and sk.coarse_ratio and param.coarse is None:  # it had none, without a word
-            info["warnings"].append(
-                f"stage {k} ({V.shape[0]} vertices): coarse_ratio={sk.coarse_ratio} gives "
-                f"{round(V.shape[0] / sk.coarse_ratio)} coarse kernels, fewer than {MIN_COARSE_KERNELS} (which "
-                "would only translate the shape): the stage runs without coarse kernels")
-        contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
-                   if s.w_contact > 0 else None)
-        left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit
-        if left_out:
-            info["warnings"].append(
-                f"stage {k}: {left_out} vertex-face or edge pairs of the start are in contact (closer than "
-                f"{IN_CONTACT:g} of the contact distance {contact.distance:.3g}): a T-junction (an edge split on one "
-                "side only) or parts that touch; the contact barrier leaves them out (the step guard still refuses "
-                "an intersection)")
-        max_step = None if contact is None else MAX_STEP_REACHES * contact.distance  # one edge
-        guard = StepGuard(V, F, s.validity_rules(max_step)) if s.valid_steps else None
-        if guard is not None and contact is not None:
-            # the barrier's distances at each accepted mesh clear most candidates of libigl's test; they need
-            # its edge pairs, searched for that alone (not in the energy) unless the run pairs edges anyway
-            contact.track_edges()
-            guard.use_contact(contact)
+        V, F, weights, remeshed = _stage_mesh(V, F, k, n_stage, s, sk, stages, left, n_source, info)
+        sk, param, pairing = _stage_parameterisation(V, F, k, s, sk, chamfer, info)
+        contact, guard, left_out, max_step = _stage_validity(V, F, k, s, info)
         setup = time.perf_counter() - t0
         trace.seconds += setup
         end = _merged_restarts(k, stages, per_stage, bounds, budget, setup, merged_into)
@@ -659,17 +683,24 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         info["stages"].append(stage)
         info["stages"] += [{"n_vertices": stage["n_vertices"], "end_step": trace.step, "steps": 0, "merged_into": k}
                            for _ in range(k + 1, end + 1)]
-        if guard is not None and stage["steps"] and not stage["accepted_steps"]:
-            info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
-        elif len(trace.history) > n_before and torch.equal(V, V_first):
-            # w_edge=1e30: Adam's squared gradient overflowed, every step was 0, and the history showed steps
-            # taken at the stage's lr
-            info["warnings"].append(
-                f"stage {k} ({stage['n_vertices']} vertices): none of its {len(trace.history) - n_before} steps "
-                "moved the mesh "
-                f"(each step was zero: a weight so large that the optimiser's squared gradient overflows? "
-                f"w_laplacian {weights[0]:g}, w_edge {weights[1]:g}, w_arap {weights[2]:g}, "
-                f"w_contact {sk.w_contact:g}, w_facing {sk.w_facing:g}); the stage returned its start unchanged")
+        _stage_warnings(k, stage, guard, V_start, V, V_first, F, max_step, len(trace.history) - n_before,
+                        weights, sk, info)
         if outcome.budget_spent:
             break
     return V, F
+
+
+def _stage_warnings(k: int, stage: dict, guard, V_start, V, V_first, F, max_step, steps: int, weights, sk,
+                    info: dict) -> None:
+    """What a finished stage ``k`` says of itself: a guard that accepted none of its steps (the stage returned
+    ``V_start``), or ``steps`` steps none of which moved the mesh from ``V_first``."""
+    if guard is not None and stage["steps"] and not stage["accepted_steps"]:
+        info["warnings"].append(_stall_warning(k, stage, V_start, F, max_step))
+    elif steps > 0 and torch.equal(V, V_first):
+        # w_edge=1e30: Adam's squared gradient overflowed, every step was 0, and the history showed steps
+        # taken at the stage's lr
+        info["warnings"].append(
+            f"stage {k} ({stage['n_vertices']} vertices): none of its {steps} steps moved the mesh "
+            f"(each step was zero: a weight so large that the optimiser's squared gradient overflows? "
+            f"w_laplacian {weights[0]:g}, w_edge {weights[1]:g}, w_arap {weights[2]:g}, "
+            f"w_contact {sk.w_contact:g}, w_facing {sk.w_facing:g}); the stage returned its start unchanged")
