@@ -211,6 +211,17 @@ class MEISettings:
     dtype: str = "float32"
 
     def __post_init__(self):
+        self._check_numbers()
+        self._check_seeds()
+        self._check_weights()
+        self._check_validity()
+        self._check_albedo_and_robustness()
+        self._check_optimiser()
+        self._check_scene()
+        object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
+
+    def _check_numbers(self):
+        """Flags, counts, rates and the camera: of the types and ranges they take."""
         for f in fields(self):  # numpy scalars as Python numbers: compared as such, and JSON-able in a run folder
             v = getattr(self, f.name)
             if isinstance(v, np.generic):
@@ -240,6 +251,9 @@ class MEISettings:
             raise MEIError(f"camera_distance must be positive, got {self.camera_distance!r}")
         if not 0 < self.fov_degrees < 180:
             raise MEIError(f"fov_degrees must lie in (0, 180), got {self.fov_degrees!r}")
+
+    def _check_seeds(self):
+        """``seeds``: a non-empty sequence of distinct integers in range (one int: a sequence of one)."""
         try:
             seeds = tuple(self.seeds) if not isinstance(self.seeds, numbers.Integral) else (self.seeds,)
         except TypeError:  # None, a float
@@ -249,6 +263,9 @@ class MEISettings:
         seeds = tuple(int(s) for s in seeds)
         check_distinct_seeds(seeds, error=MEIError)
         object.__setattr__(self, "seeds", seeds)
+
+    def _check_weights(self):
+        """``weights`` by registered regularizer name, and the vertex count they are stated for."""
         if not isinstance(self.weights, dict):
             raise MEIError(f"weights must be a dict of regularizer name -> weight, got {type(self.weights).__name__}")
         for k, w in self.weights.items():
@@ -261,6 +278,9 @@ class MEISettings:
             raise MEIError(f"reg_ref_vertices must be a positive integer or None, got {ref!r}")
         if ref is not None and ref > MAX_VERTICES:  # the weights it scales would underflow to 0
             raise MEIError(f"reg_ref_vertices must be a vertex count of at most {MAX_VERTICES:,}, got {ref!r}")
+
+    def _check_validity(self):
+        """The step guard's quality floor and the two barriers' weights and reach."""
         if not _is_number(self.min_quality) or not 0 <= self.min_quality < 1:
             raise MEIError(f"min_quality must lie in [0, 1), got {self.min_quality!r}")
         for name in ("barrier_weight", "contact_weight", "contact_distance"):
@@ -272,6 +292,9 @@ class MEISettings:
         if not 0 < self.contact_distance <= MAX_CONTACT_DISTANCE:
             raise MEIError(f"contact_distance must lie in (0, {MAX_CONTACT_DISTANCE:g}] mean edge lengths, got "
                            f"{self.contact_distance!r}")
+
+    def _check_albedo_and_robustness(self):
+        """The albedo's texture and start, and the robust quadrature's spread and size."""
         r = self.albedo_resolution
         if isinstance(r, bool) or not isinstance(r, int) or r < 0 or r == 1:
             raise MEIError(f"albedo_resolution must be 0 (per vertex) or an integer >= 2, got {r!r}")
@@ -290,6 +313,9 @@ class MEISettings:
         if views > MAX_ROBUST_VIEWS:  # every view is rendered at every step, in one batch
             raise MEIError(f"robust_points={self.robust_points} gives {views:,} views per step "
                            f"({'pose and light' if axes == 2 else 'two angles'}); at most {MAX_ROBUST_VIEWS:,}")
+
+    def _check_optimiser(self):
+        """``keep``, ``dtype``, and learning rates whose first Adam step fits the dtype and the RBF scales."""
         if self.keep not in ("best", "last"):
             raise MEIError(f"keep must be 'best' or 'last', got {self.keep!r}")
         if self.dtype not in ("float32", "float64"):
@@ -305,6 +331,9 @@ class MEISettings:
         if self.lr_scales > MAX_LR_SCALE:  # 100 overflowed every kernel scale at the first step: a translation
             raise MEIError(f"lr_scales must be at most {MAX_LR_SCALE:g} (a step may widen an RBF kernel e^lr_scales "
                            f"times; at 100 the first step overflowed every scale), got {self.lr_scales!r}")
+
+    def _check_scene(self):
+        """A fixed light of three finite numbers (made a tuple) and the RBF centre count."""
         if self.light is not None:
             try:  # a string is a sequence too: "123" must not pass as (1, 2, 3)
                 lt = () if isinstance(self.light, (str, bytes)) else tuple(float(x) for x in self.light)
@@ -316,7 +345,6 @@ class MEISettings:
         c = self.centers
         if c is not None and (isinstance(c, bool) or not isinstance(c, numbers.Integral) or c < 1):
             raise MEIError(f"centers must be None or an int (a positive number of RBF centres), got {c!r}")
-        object.__setattr__(self, "render", _render_settings(self.render, self.image_size))
 
     def offset_lr(self, n_vertices: int) -> float:
         """The learning rate of the RBF offsets for a mesh of ``n_vertices`` (the count the weights scale
