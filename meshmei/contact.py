@@ -63,10 +63,9 @@ queries let go of the GIL, which scipy's do with two or more query threads, not 
 from __future__ import annotations
 
 import itertools
-import math
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -411,7 +410,7 @@ class ContactBarrier:
         self.active, self.rebuilds, self._since = 0, 0, 0
         self.seconds = 0.0
         self._built_at = None
-        self._pairs = None
+        self._pairs = self._pairs_np = None  # the last search's pairs (tensors; the indices as arrays)
         self._out_vf = self._out_ee = None  # pairs left out (leave_out), as sorted keys
         self._pending = None  # (vertices, future) of a prefetch
         self._handout = None  # (vertices, pairs kept, bound on the others' distances) of the last call
@@ -573,16 +572,26 @@ class ContactBarrier:
         return i[keep], j[keep]
 
     def prefetch(self, V: torch.Tensor) -> None:
-        """Start :meth:`candidates` for ``V`` in a worker thread; the next call of :meth:`candidates` (or of
-        the energy) with these vertices takes its result. The search is NumPy and SciPy work that mostly runs
-        without the GIL, as do the KD-tree queries of a sampled Chamfer term with two or more scipy threads
-        (one keeps the GIL), so the two overlap on two cores (reconstruction: the search starts before the
-        Chamfer term and is taken after it). The result is the one the call would have given: the same search
-        on the same vertices, in the same order of calls. ``V`` must not be changed in place before it is
-        taken."""
+        """Start :meth:`candidates` for ``V`` in a worker thread where it searches; the next call of
+        :meth:`candidates` (or of the energy) with these vertices takes its result. The search is NumPy and
+        SciPy work that mostly runs without the GIL, as do the KD-tree queries of a sampled Chamfer term with
+        two or more scipy threads (one keeps the GIL), so the two overlap on two cores (reconstruction: the
+        search starts before the Chamfer term and is taken after it). A call that will not search (no vertex
+        moved ``margin``, or fewer than ``min_interval`` calls since the last search) is made here instead: the
+        hand-off to the thread would cost more than the bookkeeping it moves, and the thread's Python would
+        contend for the GIL with the caller's. The result is the one the call would have given: the same
+        search on the same vertices, in the same order of calls. ``V`` must not be changed in place before it
+        is taken."""
         self._take_pending()
         Vd = V.detach().cpu()
-        self._pending = (Vd, _worker().submit(self._search, Vd, native.enabled()))
+        compiled = native.enabled()
+        due = self._search_due(Vd)
+        if due is None:  # a search: in the worker
+            self._pending = (Vd, _worker().submit(self._refresh, Vd, compiled))
+            return
+        done = Future()
+        done.set_result(self._refresh(Vd, compiled, due))
+        self._pending = (Vd, done)
 
     def _take_pending(self, V: torch.Tensor | None = None):
         """The prefetched result if it was for ``V`` (None otherwise, or without a prefetch); a prefetch for
@@ -593,6 +602,15 @@ class ContactBarrier:
         Vp, future = pending
         result = future.result()  # the search's own error, raised here
         return result if V is not None and (Vp is V or torch.equal(Vp, V.detach())) else None
+
+    def _refreshed(self, V: torch.Tensor) -> np.ndarray:
+        """:meth:`_refresh` for ``V``, or the prefetched one when it was for ``V``: how far each vertex moved
+        since the last search."""
+        if self._pending is not None:
+            moved = self._take_pending(V)
+            if moved is not None:
+                return moved
+        return self._refresh(V, native.enabled())
 
     @torch.no_grad()
     def candidates(self, V: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -605,40 +623,65 @@ class ContactBarrier:
         most by how far its vertices moved since the search (the farthest of each side's), so a pair that
         was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
         ``d - a - b >= distance``."""
-        if self._pending is not None:
-            found = self._take_pending(V)
-            if found is not None:
-                return tuple(x.to(V.device) for x in found)
-        return self._search(V, native.enabled())
+        return self._filtered(V, self._refreshed(V))
 
     @torch.no_grad()
     def _search(self, V: torch.Tensor, compiled: bool) -> tuple[torch.Tensor, ...]:
-        """:meth:`candidates` without a prefetch (what a prefetch runs); ``compiled``: the broad phase by
-        ``_contact.c`` (decided in the calling thread, where :func:`~meshmei.native.torch_reference` holds)."""
+        """:meth:`candidates` without a prefetch; ``compiled``: the broad phase by ``_contact.c`` (decided in
+        the calling thread, where :func:`~meshmei.native.torch_reference` holds)."""
+        return self._filtered(V, self._refresh(V, compiled))
+
+    def _search_due(self, V: torch.Tensor):
+        """For :meth:`prefetch`: None where a call for ``V`` would search (or fail: the search raises then),
+        else how far each vertex moved since the last search (what :meth:`_refresh` would measure)."""
+        if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices or self._built_at is None:
+            return None
+        Vn = V.cpu().double().numpy()
+        if self._built_at.shape != Vn.shape:
+            return None
+        moved = np.sqrt(_sqlen(Vn - self._built_at))
+        return None if self._since + 1 >= self.min_interval and moved.max() > self.margin else moved
+
+    @torch.no_grad()
+    def _refresh(self, V: torch.Tensor, compiled: bool, moved: np.ndarray | None = None) -> np.ndarray:
+        """Search again for ``V`` where due (the pairs within ``distance + 2 margin``, kept in ``_pairs``) and
+        note what the last search kept and the bound on the others (:meth:`separation`); returns how far each
+        vertex moved since the last search. ``moved``: that, where :meth:`_search_due` measured it (no
+        search is due then)."""
         t0 = time.perf_counter()
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices:
             raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= "
                             f"{self._least_vertices}, got {tuple(V.shape)}")
-        Vn = V.detach().cpu().double().numpy()
         self._since += 1
-        # another vertex count: another mesh on the same faces, searched afresh (it failed in the subtraction)
-        fresh = self._built_at is None or self._built_at.shape != Vn.shape
-        moved = None if fresh else np.sqrt(_sqlen(Vn - self._built_at))
-        if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
-            self._pairs = self._candidates(Vn, compiled)
-            self._built_at = Vn.copy()
-            self.rebuilds += 1
-            self._since = 0
-            moved = np.zeros(len(Vn))
-        vt, ft, ea, eb, dvf, dee = self._pairs
+        if moved is None:
+            Vn = V.detach().cpu().double().numpy()
+            # another vertex count: another mesh on the same faces, searched afresh (it failed in the subtraction)
+            fresh = self._built_at is None or self._built_at.shape != Vn.shape
+            moved = None if fresh else np.sqrt(_sqlen(Vn - self._built_at))
+            if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
+                self._pairs = self._candidates(Vn, compiled)
+                self._pairs_np = tuple(np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in self._pairs[:4])
+                self._built_at = Vn.copy()
+                self.rebuilds += 1
+                self._since = 0
+                moved = np.zeros(len(Vn))
         # a pair not kept was beyond reach at the search and has come closer by at most twice the farthest move
         # since
         unseen = self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0))
-        # the farthest move of each face's and each edge's corners, then each pair's bound (NumPy: a few
-        # operations on arrays of a few thousand, where torch's dispatch would cost more than the work), with a
-        # relative slack far above the rounding of either kind of search distance (the kernel's or torch's)
-        Fn, (vtn, ftn, ean, ebn) = self.Fn, (x.numpy() for x in (vt, ft, ea, eb))
+        self._handout = (V.detach(), self._pairs[:4], unseen)
+        self.seconds += time.perf_counter() - t0
+        return moved
+
+    def _filtered(self, V: torch.Tensor, moved: np.ndarray) -> tuple[torch.Tensor, ...]:
+        """The cached pairs that may lie within ``distance`` of ``V``, whose vertices moved ``moved`` since the
+        search: each pair's bound (NumPy: a few operations on arrays of a few thousand, where torch's dispatch
+        would cost more than the work), with a relative slack far above the rounding of either kind of
+        search distance (the kernel's or torch's)."""
+        t0 = time.perf_counter()
+        vt, ft, ea, eb, dvf, dee = self._pairs
+        Fn, (vtn, ftn, ean, ebn) = self.Fn, self._pairs_np
         within = self.distance * (1.0 + _SLACK)
+        # the farthest move of each face's and each edge's corners
         side = np.maximum(np.maximum(moved[Fn[:, 0]], moved[Fn[:, 1]]), moved[Fn[:, 2]])
         keep = dvf.numpy() - moved[vtn] - side[ftn] < within
         out = [vtn[keep], ftn[keep]]
@@ -648,9 +691,15 @@ class ContactBarrier:
             out += [ean[keep], ebn[keep]]
         else:
             out += [ean, ebn]
-        self._handout = (V.detach(), (vt, ft, ea, eb), unseen)
         self.seconds += time.perf_counter() - t0
         return tuple(torch.from_numpy(x).to(V.device) for x in out)
+
+    def _energy_pairs(self, V: torch.Tensor) -> tuple[np.ndarray, ...]:
+        """Every pair the last search kept, for the energy of ``V`` (after :meth:`_refreshed`), as contiguous
+        int64 arrays ``(vt, ft, ea, eb)``: a superset of :meth:`candidates`' pairs that the energy's distance
+        test (``d < distance``) cuts to the same ones, in the same order, without their bounds each call."""
+        self._refreshed(V)
+        return self._pairs_np
 
     def separation(self, V: torch.Tensor):
         """The pairs the last call's search kept, where the call was for the vertices ``V``:
@@ -696,7 +745,7 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     B, n = V.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
-    found = [cb.candidates(V[b]) for b, cb in enumerate(barriers)]
+    found = [cb._energy_pairs(V[b]) for b, cb in enumerate(barriers)]  # the kept pairs: the distance test cuts them
     if native.available(V) and all_finite(V):
         total, counts = _compiled_contact(V, barriers[0], found, kinds_used, dh)
     else:
@@ -704,7 +753,7 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
         kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
         for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
                                              (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
-            parts = [(x[first], x[second]) for x in found]
+            parts = [(torch.from_numpy(x[first]), torch.from_numpy(x[second])) for x in found]
             item = torch.cat([torch.full((len(a),), b, dtype=torch.long, device=V.device)
                               for b, (a, _) in enumerate(parts)])
             if len(item):
@@ -749,7 +798,7 @@ def _compiled_contact(V, barrier, found, kinds_used, dh):
     tables = [None if t is None else np.ascontiguousarray(t, dtype=np.int64) for t in (barrier.Fn, barrier.En)]
     for b, pairs in enumerate(found):
         for kind in range(kinds_used):
-            first, second = (np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in pairs[2 * kind:2 * kind + 2])
+            first, second = pairs[2 * kind:2 * kind + 2]  # contiguous int64 (ContactBarrier._energy_pairs)
             if len(first):
                 lib.contact_energy(len(first), Vd.ctypes.data, first.ctypes.data, second.ctypes.data,
                                    tables[kind].ctypes.data, kind, b, n, dh, tiny, energy.ctypes.data,
