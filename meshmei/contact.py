@@ -726,7 +726,7 @@ class ContactBarrier:
         """The contact energy of ``V`` (a scalar with a graph to ``V`` where some pair is within reach)."""
         if not isinstance(V, torch.Tensor):  # an array failed on its missing .device
             V = torch.as_tensor(np.asarray(V, dtype=np.float64))
-        return contact_energies([self], V[None])[0]
+        return contact_energies([self], V)
 
 
 def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
@@ -739,17 +739,20 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     The two agree to rounding (float64 against ``V``'s dtype). Sets each barrier's ``active``.
 
     ``V`` on another device (a CUDA run): measured on a copy on the CPU, where the search runs, and the
-    energies handed back on ``V``'s device with their gradient (a few thousand floats each way)."""
+    energies handed back on ``V``'s device with their gradient (a few thousand floats each way). One mesh ``V
+    (n, 3)`` with one barrier gives its energy as a scalar."""
     if V.device.type != "cpu":
         return contact_energies(barriers, V.cpu()).to(V.device)
-    B, n = V.shape[:2]
+    X = V[None] if V.ndim == 2 else V  # (B, n, 3)
+    B, n = X.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
-    found = [cb._energy_pairs(V[b]) for b, cb in enumerate(barriers)]  # the kept pairs: the distance test cuts them
+    found = [cb._energy_pairs(X[b] if V.ndim == 3 else V) for b, cb in enumerate(barriers)]  # the kept pairs (the
+    # distance test cuts them)
     if native.available(V) and all_finite(V):
-        total, counts = _compiled_contact(V, barriers[0], found, kinds_used, dh)
+        total, counts = _compiled_contact(V, barriers[0], found, kinds_used, dh)  # one mesh: a scalar
     else:
-        Vf = V.reshape(-1, 3)
+        Vf = X.reshape(-1, 3)
         kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
         for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
                                              (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
@@ -759,7 +762,8 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
             if len(item):
                 rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
                 kinds.append((rows, item, dist))
-        total, counts = _torch_contact(V, Vf, kinds, dh)
+        total, counts = _torch_contact(X, Vf, kinds, dh)
+        total = total[0] if V.ndim == 2 else total
     for cb, k in zip(barriers, counts.tolist()):
         cb.active = int(k)
     return total
@@ -787,12 +791,12 @@ def _torch_contact(V, Vf, kinds, dh):
 
 def _compiled_contact(V, barrier, found, kinds_used, dh):
     """:func:`contact_energies` by ``_contact.c``'s ``contact_energy``: the energies ``(B,)`` of ``V (B, n,
-    3)`` and the counts of pairs within ``dh``. ``found``: each item's candidates, ``(vt, ft, ea, eb)`` into
+    3)`` (a scalar for one mesh ``(n, 3)``) and the counts of pairs within ``dh``. ``found``: each item's candidates, ``(vt, ft, ea, eb)`` into
     ``barrier``'s faces and edges; ``kinds_used``: 1 (vertex-face pairs) or 2 (and edge pairs). Every pair
     handed out is measured in float64, item by item, vertex-face pairs first, and its gradient written in the
     same pass (:func:`~meshmei.native.with_gradient`: the backward only scales it)."""
-    B, n = V.shape[:2]
     Vd, energy, grad = native.kernel_buffers(V)  # (B, n, 3), indexed by the kernel as (B n, 3)
+    B, n = Vd.shape[:2]
     counts = np.zeros(B, dtype=np.int64)
     tiny, lib = torch.finfo(V.dtype).tiny, native.library()
     tables = [None if t is None else np.ascontiguousarray(t, dtype=np.int64) for t in (barrier.Fn, barrier.En)]

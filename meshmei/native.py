@@ -211,23 +211,31 @@ class _WithGradient(torch.autograd.Function):
 
 
 def kernel_buffers(V: torch.Tensor, functions: int | None = None):
-    """For a kernel that writes one value per item of ``V (B, ...)`` and, where autograd wants it, their
-    gradient: ``(Vd, value, grad)``, ``V``'s coordinates as a contiguous float64 array, ``(B,)`` zeros, and
-    zeros of ``Vd``'s shape (None where no gradient is wanted: grad mode off, or ``V`` without one). With
-    ``functions`` k, for a kernel that writes k such functions: values ``(k, B)`` and gradients ``(k,)`` plus
-    ``Vd``'s shape. Hand them back with :func:`with_gradient` after the kernel has filled them."""
+    """For a kernel that writes one value per item of ``V (B, n, 3)`` and, where autograd wants it, their
+    gradient: ``(Vd, value, grad)``, ``V``'s coordinates as a contiguous float64 array ``(B, n, 3)``, ``(B,)``
+    zeros, and zeros of ``Vd``'s shape (None where no gradient is wanted: grad mode off, or ``V`` without
+    one). With ``functions`` k, for a kernel that writes k such functions: values ``(k, B)`` and gradients
+    ``(k,)`` plus ``Vd``'s shape. One mesh ``V (n, 3)`` is a batch of one for the kernel (``B`` 1), and
+    :func:`with_gradient` hands its values back without the batch axis. Hand them back with
+    :func:`with_gradient` after the kernel has filled them."""
     Vd = np.ascontiguousarray(V.detach().numpy(), dtype=np.float64)
+    if V.ndim == 2:
+        Vd = Vd[None]  # (1, n, 3), still contiguous
     wanted = torch.is_grad_enabled() and V.requires_grad
     lead = () if functions is None else (functions,)
-    return Vd, np.zeros(lead + V.shape[:1]), np.zeros(lead + Vd.shape) if wanted else None
+    return Vd, np.zeros(lead + Vd.shape[:1]), np.zeros(lead + Vd.shape) if wanted else None
 
 
 def with_gradient(V: torch.Tensor, value: np.ndarray, grad: np.ndarray | None) -> torch.Tensor:
-    """A kernel's values ``(B,)`` (one per item of ``V (B, ...)``), or ``(k, B)`` for k functions, as a tensor
+    """A kernel's values ``(B,)`` (one per item of ``V (B, n, 3)``), or ``(k, B)`` for k functions, as a tensor
     of ``V``'s dtype, with a graph to ``V`` whose gradient is ``grad`` (``(k,)`` and ``V``'s size) per unit of
     each value, or without one where ``grad`` is None (:func:`kernel_buffers`): what a kernel that writes a
     function and its gradient in one pass hands to autograd (the contact energy, the guard's barrier, the
-    regularizers). The backward only scales ``grad`` (and sums over the functions)."""
+    regularizers). The backward only scales ``grad`` (and sums over the functions). For one mesh ``V (n,
+    3)`` (a batch of one in :func:`kernel_buffers`) the values come back as ``()``, or ``(k,)``: one node
+    on ``V`` itself, where adding a batch axis and taking it off again would put two more in the graph."""
+    if V.ndim == 2:
+        value = value[..., 0]
     out = torch.from_numpy(value).to(V.dtype)
     if grad is None:
         return out

@@ -95,17 +95,16 @@ def _compiled(V: torch.Tensor, F: torch.Tensor, names) -> torch.Tensor | None:
     code (a nonzero length at unit size beyond float64's normal range)."""
     if not native.available(V):
         return None
-    X, F = (V if V.ndim == 3 else V[None]), F.contiguous()
-    topo = mesh_topology(F, X.shape[1])
-    Xd, value, grad = native.kernel_buffers(X, len(names))
+    F = F.contiguous()
+    Xd, value, grad = native.kernel_buffers(V, len(names))  # (B, n, 3): one mesh as a batch of one
+    topo = mesh_topology(F, Xd.shape[1])
     which = sum(_COMPILED[k] for k in names)
-    rc = native.library().reg_losses(X.shape[0], X.shape[1], F.shape[0], topo.n_edges, Xd.ctypes.data, F.data_ptr(),
+    rc = native.library().reg_losses(Xd.shape[0], Xd.shape[1], F.shape[0], topo.n_edges, Xd.ctypes.data, F.data_ptr(),
                                      topo.edges.data_ptr(), topo.nbr_ptr.data_ptr(), topo.nbr_idx.data_ptr(), which,
                                      value.ctypes.data, None if grad is None else grad.ctypes.data)
     if rc != 0:
         return None
-    out = native.with_gradient(X, value, grad)
-    return out if V.ndim == 3 else out[:, 0]
+    return native.with_gradient(V, value, grad)
 
 
 def regularizer_values(V, V0, F, names) -> dict:

@@ -128,9 +128,8 @@ def _compiled_barrier(guard, V: torch.Tensor, q_band: float, band: float):
     range)."""
     if not native.available(V):
         return None
-    X = V if V.ndim == 3 else V[None]
-    B, n = X.shape[:2]
-    Xd, energy, grad = native.kernel_buffers(X)
+    Xd, energy, grad = native.kernel_buffers(V)  # (B, n, 3): one mesh as a batch of one
+    B, n = Xd.shape[:2]
     turn = band > 0.0
     F = guard.F.contiguous()  # int64 (check_mesh)
     R = guard.normals.to(torch.float64).contiguous() if turn else None
@@ -143,8 +142,7 @@ def _compiled_barrier(guard, V: torch.Tensor, q_band: float, band: float):
         None if grad is None else grad.ctypes.data)
     if rc != 0:
         return None
-    value = native.with_gradient(X, energy, grad)
-    return value if V.ndim == 3 else value[0]
+    return native.with_gradient(V, energy, grad)
 
 
 @dataclass(frozen=True)
