@@ -196,6 +196,8 @@ class StarCertificate:
         self._next, self._prev = F.roll(-1, 1).reshape(-1).numpy(), F.roll(1, 1).reshape(-1).numpy()
         self._used = np.unique(self._corner)
         self._F = np.ascontiguousarray(F.numpy(), dtype=np.int64)  # for the compiled check
+        self._least = int(self._used[-1]) + 1 if len(self._used) else 0  # rows V must have
+        self._masks = {}  # the compiled check's used-vertex flags, by vertex count (made once: it runs every step)
 
     @classmethod
     def for_start(cls, V0: torch.Tensor, F: torch.Tensor, normals: torch.Tensor) -> "StarCertificate | None":
@@ -216,14 +218,16 @@ class StarCertificate:
         rules with rough angles: 0.07 against 0.22 ms a call on the 3D-MEI's sphere), else coordinate by
         coordinate in NumPy."""
         V, normals = _double(V), _double(normals)
-        if not _proper_input(V, normals, int(self._used[-1]) + 1 if len(self._used) else 0, len(self._F)):
+        if not _proper_input(V, normals, self._least, len(self._F)):
             return False
         Vn = V.numpy()
         if native.enabled() if compiled is None else compiled:
             Vn = np.ascontiguousarray(Vn)
             N = np.ascontiguousarray(normals.numpy())
-            used = np.zeros(len(Vn), dtype=np.uint8)
-            used[self._used] = 1
+            used = self._masks.get(len(Vn))
+            if used is None:
+                used = self._masks[len(Vn)] = np.zeros(len(Vn), dtype=np.uint8)
+                used[self._used] = 1
             work = np.empty(4 * len(Vn))
             return bool(native.library().star_holds(len(Vn), Vn.ctypes.data, len(self._F), self._F.ctypes.data,
                                                     N.ctypes.data, used.ctypes.data, ORIENTATION_MARGIN,

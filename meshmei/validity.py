@@ -100,7 +100,8 @@ def _kernel_frame(Vd, F, fused, normals, cos_limit, turn_faces):
     lib.guard_frame_finish(m, C.data_ptr(), S.data_ptr(), L2.data_ptr(), resolve_eps(None, torch.float64),
                            2.0 * math.sqrt(3.0), None if R is None else R.data_ptr(), cos_limit,
                            None if T is None else T.data_ptr(), N.data_ptr(), Q.data_ptr(), stats.data_ptr())
-    return N, Q, float(stats[0]), int(stats[1])
+    q, turned = stats.tolist()
+    return N, Q, q, int(turned)
 
 
 def _compiled_frame(Vd: torch.Tensor, F: torch.Tensor, normals, cos_limit: float, turn_faces):
