@@ -279,6 +279,12 @@ _WORKER = []
 os.register_at_fork(after_in_child=_WORKER.clear)
 
 
+# Up to this many cached pairs the contact energy measures them all rather than bound each first (the bounds
+# cost about 9 ns a pair and 30 us a call in NumPy, the kernel about 45 ns a pair; a default 2.5k
+# reconstruction keeps up to 110,000 pairs of which 12,000 are handed out, a 3D-MEI about a hundred).
+_HAND_ALL = 1024
+
+
 def _worker() -> ThreadPoolExecutor:
     """The one worker thread of :meth:`ContactBarrier.prefetch` (started on first use, and again in a forked
     child)."""
@@ -623,13 +629,13 @@ class ContactBarrier:
         most by how far its vertices moved since the search (the farthest of each side's), so a pair that
         was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
         ``d - a - b >= distance``."""
-        return self._filtered(V, self._refreshed(V))
+        return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._refreshed(V)))
 
     @torch.no_grad()
     def _search(self, V: torch.Tensor, compiled: bool) -> tuple[torch.Tensor, ...]:
         """:meth:`candidates` without a prefetch; ``compiled``: the broad phase by ``_contact.c`` (decided in
         the calling thread, where :func:`~meshmei.native.torch_reference` holds)."""
-        return self._filtered(V, self._refresh(V, compiled))
+        return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._refresh(V, compiled)))
 
     def _search_due(self, V: torch.Tensor):
         """For :meth:`prefetch`: None where a call for ``V`` would search (or fail: the search raises then),
@@ -672,11 +678,11 @@ class ContactBarrier:
         self.seconds += time.perf_counter() - t0
         return moved
 
-    def _filtered(self, V: torch.Tensor, moved: np.ndarray) -> tuple[torch.Tensor, ...]:
-        """The cached pairs that may lie within ``distance`` of ``V``, whose vertices moved ``moved`` since the
-        search: each pair's bound (NumPy: a few operations on arrays of a few thousand, where torch's dispatch
-        would cost more than the work), with a relative slack far above the rounding of either kind of
-        search distance (the kernel's or torch's)."""
+    def _filtered(self, moved: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The cached pairs that may lie within ``distance`` now that the vertices moved ``moved`` since the
+        search, as int64 arrays: each pair's bound (NumPy: a few operations on arrays of a few thousand, where
+        torch's dispatch would cost more than the work), with a relative slack far above the rounding of either
+        kind of search distance (the kernel's or torch's)."""
         t0 = time.perf_counter()
         vt, ft, ea, eb, dvf, dee = self._pairs
         Fn, (vtn, ftn, ean, ebn) = self.Fn, self._pairs_np
@@ -692,14 +698,17 @@ class ContactBarrier:
         else:
             out += [ean, ebn]
         self.seconds += time.perf_counter() - t0
-        return tuple(torch.from_numpy(x).to(V.device) for x in out)
+        return tuple(out)
 
     def _energy_pairs(self, V: torch.Tensor) -> tuple[np.ndarray, ...]:
-        """Every pair the last search kept, for the energy of ``V`` (after :meth:`_refreshed`), as contiguous
-        int64 arrays ``(vt, ft, ea, eb)``: a superset of :meth:`candidates`' pairs that the energy's distance
-        test (``d < distance``) cuts to the same ones, in the same order, without their bounds each call."""
-        self._refreshed(V)
-        return self._pairs_np
+        """The pairs for the energy of ``V`` (after :meth:`_refreshed`), as int64 arrays ``(vt, ft, ea, eb)``:
+        :meth:`candidates`' pairs, or, where the last search kept at most :data:`_HAND_ALL` pairs, all of them,
+        a superset that the energy's distance test (``d < distance``) cuts to the same pairs in the same order
+        (the bounds cost more than measuring a few hundred pairs)."""
+        moved = self._refreshed(V)
+        if len(self._pairs_np[0]) + len(self._pairs_np[2]) <= _HAND_ALL:
+            return self._pairs_np
+        return tuple(np.ascontiguousarray(x) for x in self._filtered(moved))
 
     def separation(self, V: torch.Tensor):
         """The pairs the last call's search kept, where the call was for the vertices ``V``:
@@ -791,10 +800,11 @@ def _torch_contact(V, Vf, kinds, dh):
 
 def _compiled_contact(V, barrier, found, kinds_used, dh):
     """:func:`contact_energies` by ``_contact.c``'s ``contact_energy``: the energies ``(B,)`` of ``V (B, n,
-    3)`` (a scalar for one mesh ``(n, 3)``) and the counts of pairs within ``dh``. ``found``: each item's candidates, ``(vt, ft, ea, eb)`` into
-    ``barrier``'s faces and edges; ``kinds_used``: 1 (vertex-face pairs) or 2 (and edge pairs). Every pair
-    handed out is measured in float64, item by item, vertex-face pairs first, and its gradient written in the
-    same pass (:func:`~meshmei.native.with_gradient`: the backward only scales it)."""
+    3)`` (a scalar for one mesh ``(n, 3)``) and the counts of pairs within ``dh``. ``found``: each item's
+    pairs, ``(vt, ft, ea, eb)`` int64 arrays into ``barrier``'s faces and edges; ``kinds_used``: 1
+    (vertex-face pairs) or 2 (and edge pairs). Every pair handed out is measured in float64, item by item,
+    vertex-face pairs first, and its gradient written in the same pass (:func:`~meshmei.native.with_gradient`:
+    the backward only scales it); a pair at ``dh`` or beyond adds nothing."""
     Vd, energy, grad = native.kernel_buffers(V)  # (B, n, 3), indexed by the kernel as (B n, 3)
     B, n = Vd.shape[:2]
     counts = np.zeros(B, dtype=np.int64)

@@ -739,3 +739,32 @@ def test_a_barrier_called_on_another_vertex_count_searches_afresh():
     used(V)
     assert float(used(V[:10])) == float(ContactBarrier(tri, 0.01)(V[:10]))
     assert float(ContactBarrier(F, 0.05)(V.numpy())) == float(ContactBarrier(F, 0.05)(V))
+
+
+@pytest.mark.parametrize("edges", [False, True])
+def test_the_energy_of_every_kept_pair_is_the_energy_of_the_bounded_ones(edges, monkeypatch):
+    """Up to _HAND_ALL kept pairs the energy measures every pair the last search kept, not only those the
+    per-call bounds hand out: the kernel's distance test cuts them to the same pairs in the same order, so the
+    energy, its gradient and the count of active pairs are the same bit for bit, whichever way is taken."""
+    import meshmei.contact as contact
+
+    V, F = _two_sheets(0.05)
+    h = mean_edge_length(V, F)
+    gen = torch.Generator().manual_seed(0)
+    moves = [V + 0.01 * h * k * torch.randn(V.shape, generator=gen, dtype=V.dtype) for k in range(8)]
+    outcomes = {}
+    for hand_all in (0, 10**9):
+        monkeypatch.setattr(contact, "_HAND_ALL", hand_all)
+        cb, got = ContactBarrier(F, h / 3, edges=edges), []
+        for W in moves:
+            Wg = W.clone().requires_grad_()
+            e = cb(Wg)
+            e.backward()
+            kept = len(cb._pairs_np[0]) + len(cb._pairs_np[2])
+            handed = sum(len(x) for x in cb.candidates(W)[::2])
+            got.append((float(e), Wg.grad.clone(), cb.active, kept, handed))
+        outcomes[hand_all] = got
+    for (e0, g0, a0, k0, n0), (e1, g1, a1, k1, n1) in zip(outcomes[0], outcomes[10**9]):
+        assert e0 == e1 and torch.equal(g0, g1) and a0 == a1 and (k0, n0) == (k1, n1)
+    assert any(e > 0 for e, *_ in outcomes[0])  # the sheets are within reach: pairs in the energy
+    assert any(k > n for *_, k, n in outcomes[0])  # and some kept pairs were not handed out: two ways indeed
