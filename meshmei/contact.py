@@ -582,8 +582,9 @@ class ContactBarrier:
         :meth:`candidates` (or of the energy) with these vertices takes its result. The search is NumPy and
         SciPy work that mostly runs without the GIL, as do the KD-tree queries of a sampled Chamfer term with
         two or more scipy threads (one keeps the GIL), so the two overlap on two cores (reconstruction: the
-        search starts before the Chamfer term and is taken after it). A call that will not search (no vertex
-        moved ``margin``, or fewer than ``min_interval`` calls since the last search) is made here instead: the
+        search starts before the Chamfer term and is taken after it), and so do the bounds of many cached pairs.
+        A call that will not search (no vertex moved ``margin``, or fewer than ``min_interval`` calls since the
+        last search) and whose last search kept at most :data:`_HAND_ALL` pairs is made here instead: the
         hand-off to the thread would cost more than the bookkeeping it moves, and the thread's Python would
         contend for the GIL with the caller's. The result is the one the call would have given: the same
         search on the same vertices, in the same order of calls. ``V`` must not be changed in place before it
@@ -591,12 +592,12 @@ class ContactBarrier:
         self._take_pending()
         Vd = V.detach().cpu()
         compiled = native.enabled()
-        due = self._search_due(Vd)
-        if due is None:  # a search: in the worker
-            self._pending = (Vd, _worker().submit(self._refresh, Vd, compiled))
+        moved = self._search_due(Vd)
+        if moved is None or not self._few_kept():  # a search, or the bounds of many pairs: in the worker
+            self._pending = (Vd, _worker().submit(self._prepare, Vd, compiled, moved))
             return
         done = Future()
-        done.set_result(self._refresh(Vd, compiled, due))
+        done.set_result(self._prepare(Vd, compiled, moved))
         self._pending = (Vd, done)
 
     def _take_pending(self, V: torch.Tensor | None = None):
@@ -609,14 +610,23 @@ class ContactBarrier:
         result = future.result()  # the search's own error, raised here
         return result if V is not None and (Vp is V or torch.equal(Vp, V.detach())) else None
 
-    def _refreshed(self, V: torch.Tensor) -> np.ndarray:
-        """:meth:`_refresh` for ``V``, or the prefetched one when it was for ``V``: how far each vertex moved
-        since the last search."""
+    def _prepared(self, V: torch.Tensor) -> tuple:
+        """:meth:`_prepare` for ``V``, or the prefetched one when it was for ``V``."""
         if self._pending is not None:
-            moved = self._take_pending(V)
-            if moved is not None:
-                return moved
-        return self._refresh(V, native.enabled())
+            prepared = self._take_pending(V)
+            if prepared is not None:
+                return prepared
+        return self._prepare(V, native.enabled())
+
+    def _prepare(self, V: torch.Tensor, compiled: bool, moved: np.ndarray | None = None) -> tuple:
+        """:meth:`_refresh` for ``V`` (``moved``: as there), then the pairs for its energy: ``(moved, pairs)``,
+        ``pairs`` the int64 arrays ``(vt, ft, ea, eb)`` of :meth:`_energy_pairs`."""
+        moved = self._refresh(V, compiled, moved)
+        return moved, (self._pairs_np if self._few_kept() else self._filtered(moved))
+
+    def _few_kept(self) -> bool:
+        """Whether the last search kept at most :data:`_HAND_ALL` pairs (False before any search)."""
+        return self._pairs_np is not None and len(self._pairs_np[0]) + len(self._pairs_np[2]) <= _HAND_ALL
 
     @torch.no_grad()
     def candidates(self, V: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -629,7 +639,7 @@ class ContactBarrier:
         most by how far its vertices moved since the search (the farthest of each side's), so a pair that
         was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
         ``d - a - b >= distance``."""
-        return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._refreshed(V)))
+        return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._prepared(V)[0]))
 
     @torch.no_grad()
     def _search(self, V: torch.Tensor, compiled: bool) -> tuple[torch.Tensor, ...]:
@@ -701,14 +711,11 @@ class ContactBarrier:
         return tuple(out)
 
     def _energy_pairs(self, V: torch.Tensor) -> tuple[np.ndarray, ...]:
-        """The pairs for the energy of ``V`` (after :meth:`_refreshed`), as int64 arrays ``(vt, ft, ea, eb)``:
+        """The pairs for the energy of ``V`` (searched where due), as int64 arrays ``(vt, ft, ea, eb)``:
         :meth:`candidates`' pairs, or, where the last search kept at most :data:`_HAND_ALL` pairs, all of them,
         a superset that the energy's distance test (``d < distance``) cuts to the same pairs in the same order
         (the bounds cost more than measuring a few hundred pairs)."""
-        moved = self._refreshed(V)
-        if len(self._pairs_np[0]) + len(self._pairs_np[2]) <= _HAND_ALL:
-            return self._pairs_np
-        return tuple(np.ascontiguousarray(x) for x in self._filtered(moved))
+        return self._prepared(V)[1]
 
     def separation(self, V: torch.Tensor):
         """The pairs the last call's search kept, where the call was for the vertices ``V``:
