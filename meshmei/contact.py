@@ -648,11 +648,13 @@ class ContactBarrier:
         return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._refresh(V, compiled)))
 
     def _search_due(self, V: torch.Tensor):
-        """For :meth:`prefetch`: None where a call for ``V`` would search (or fail: the search raises then),
-        else how far each vertex moved since the last search (what :meth:`_refresh` would measure)."""
+        """None where the next call for ``V`` searches (or fails: the search raises then), else how far each
+        vertex moved since the last search. A search is due at the first call, for another vertex count
+        (another mesh on the same faces), and once a vertex moved more than ``margin`` with ``min_interval``
+        calls since the last search."""
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices or self._built_at is None:
             return None
-        Vn = V.cpu().double().numpy()
+        Vn = V.detach().cpu().double().numpy()
         if self._built_at.shape != Vn.shape:
             return None
         moved = np.sqrt(_sqlen(Vn - self._built_at))
@@ -660,27 +662,25 @@ class ContactBarrier:
 
     @torch.no_grad()
     def _refresh(self, V: torch.Tensor, compiled: bool, moved: np.ndarray | None = None) -> np.ndarray:
-        """Search again for ``V`` where due (the pairs within ``distance + 2 margin``, kept in ``_pairs``) and
-        note what the last search kept and the bound on the others (:meth:`separation`); returns how far each
-        vertex moved since the last search. ``moved``: that, where :meth:`_search_due` measured it (no
-        search is due then)."""
+        """Search again for ``V`` where due (:meth:`_search_due`; the pairs within ``distance + 2 margin``, kept
+        in ``_pairs``) and note what the last search kept and the bound on the others (:meth:`separation`);
+        returns how far each vertex moved since the last search. ``moved``: what :meth:`_search_due` gave,
+        where it was asked already."""
         t0 = time.perf_counter()
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices:
             raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= "
                             f"{self._least_vertices}, got {tuple(V.shape)}")
+        if moved is None:
+            moved = self._search_due(V)
         self._since += 1
         if moved is None:
             Vn = V.detach().cpu().double().numpy()
-            # another vertex count: another mesh on the same faces, searched afresh (it failed in the subtraction)
-            fresh = self._built_at is None or self._built_at.shape != Vn.shape
-            moved = None if fresh else np.sqrt(_sqlen(Vn - self._built_at))
-            if moved is None or (self._since >= self.min_interval and moved.max() > self.margin):
-                self._pairs = self._candidates(Vn, compiled)
-                self._pairs_np = tuple(np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in self._pairs[:4])
-                self._built_at = Vn.copy()
-                self.rebuilds += 1
-                self._since = 0
-                moved = np.zeros(len(Vn))
+            self._pairs = self._candidates(Vn, compiled)
+            self._pairs_np = tuple(np.ascontiguousarray(x.numpy(), dtype=np.int64) for x in self._pairs[:4])
+            self._built_at = Vn.copy()
+            self.rebuilds += 1
+            self._since = 0
+            moved = np.zeros(len(Vn))
         # a pair not kept was beyond reach at the search and has come closer by at most twice the farthest move
         # since
         unseen = self.distance + 2.0 * self.margin - 2.0 * float(moved.max(initial=0.0))
@@ -763,8 +763,8 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
     B, n = X.shape[:2]
     F, E, dh = barriers[0].F, barriers[0].E, barriers[0].distance
     kinds_used = 2 if barriers[0].edge_energy else 1  # edge pairs searched for a certificate only: not in it
-    found = [cb._energy_pairs(X[b] if V.ndim == 3 else V) for b, cb in enumerate(barriers)]  # the kept pairs (the
-    # distance test cuts them)
+    # each item's pairs: all the last search kept, or those its bounds hand out (the distance test cuts either)
+    found = [cb._energy_pairs(X[b] if V.ndim == 3 else V) for b, cb in enumerate(barriers)]
     if native.available(V) and all_finite(V):
         total, counts = _compiled_contact(V, barriers[0], found, kinds_used, dh)  # one mesh: a scalar
     else:
