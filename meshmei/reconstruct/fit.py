@@ -264,7 +264,9 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         Replaces ``settings.method`` when given; otherwise the settings' method (default ``"rbf"``) runs.
     settings : ReconstructionSettings, optional
         All other options (see its attributes); keyword arguments override its fields, e.g.
-        ``reconstruct(src, "bunny", steps=300, lr=1e-3)``.
+        ``reconstruct(src, "bunny", steps=300, lr=1e-3)``. Without ``stages`` the fit runs in one stage; the
+        command line's coarse-to-fine schedule is ``stages, stage_fractions, stage_overrides =
+        default_schedule(method, n)`` (two orders of magnitude lower Chamfer-L2 on the 2.5k bunny).
     progress : bool
         Show a tqdm progress bar (over steps, or seconds of the budget).
     callback : callable, optional
