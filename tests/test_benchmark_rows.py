@@ -338,3 +338,35 @@ def test_the_reconstruction_cost_alternates_the_modes_and_pairs_each_rounds_rati
     # each round's ratios are 1.2 and 1.5 exactly, whatever its load; the medians of the times are not
     assert row == ["reconstruction rbf, 100 vertices", "20.0", "24.0 (1.20 (1.20-1.20))", "30.0", "1.50 (1.50-1.50)"]
     assert validity.paired_ratio([2.0, 3.0, 9.0], [1.0, 2.0, 3.0]) == "2.00 (1.50-3.00)"
+    assert validity.fastest_ratio([2.0, 3.0, 9.0], [1.5, 1.0, 3.0]) == "2.00"  # min / min, not paired
+
+
+def test_the_mei_cost_table_pairs_each_rounds_ratio_and_reads_the_fastest_rounds(monkeypatch):
+    """mei-cost: each start's modes alternate, the order reversed every other round; a row gives the median
+    of the rounds' paired ratios with their range, and the ratio of the fastest rounds."""
+    from meshmei.benchmarks import validity
+
+    cost = {"off": 10.0, "guard alone": 20.0, "guard + its barrier": 11.0, "guard + both barriers": 12.0,
+            "default": 13.0}
+    loads = iter([1.0] * 5 + [3.0] * 5 + [2.0] * 5 + [1.0] * 5 + [3.0] * 5 + [2.0] * 5)  # per round and start
+    order = []
+
+    def fake(encoder, neuron, init, steps, seeds, **kw):
+        mode = next(m for m, mkw in validity.MEI_MODES.items() if mkw == kw)
+        order.append((init, mode))
+        per_step = cost[mode] * next(loads) / 1000
+        health = {"self_intersections": 0, "flipped_faces": 0, "min_quality": 0.5, "watertight": True,
+                  "nonmanifold_edges": 0}
+        return SimpleNamespace(time_history=[per_step * i for i in range(steps)], activation=0.9,
+                               health=lambda: health)
+
+    monkeypatch.setattr(validity, "optimize_mei", fake)
+    rows = validity.mei_cost_split(steps=12, rounds=3)
+    modes = list(validity.MEI_MODES)
+    rounds = modes + modes[::-1] + modes
+    assert order == [("sphere", m) for m in rounds] + [("sheet", m) for m in rounds]
+    default = next(r for r in rows if r[:2] == ["sphere", "default"])
+    # every round's ratio is 1.3 whatever its load; the fastest rounds (load 1) give 1.3 too
+    assert default[2:6] == ["26.0", "1.30 (1.30-1.30)", "1.30", "0.900"]
+    assert [r[3] for r in rows if r[0] == "sheet"] == ["1.00 (1.00-1.00)", "2.00 (2.00-2.00)", "1.10 (1.10-1.10)",
+                                                       "1.20 (1.20-1.20)", "1.30 (1.30-1.30)"]
