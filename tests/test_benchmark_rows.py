@@ -370,3 +370,15 @@ def test_the_mei_cost_table_pairs_each_rounds_ratio_and_reads_the_fastest_rounds
     assert default[2:6] == ["26.0", "1.30 (1.30-1.30)", "1.30", "0.900"]
     assert [r[3] for r in rows if r[0] == "sheet"] == ["1.00 (1.00-1.00)", "2.00 (2.00-2.00)", "1.10 (1.10-1.10)",
                                                        "1.20 (1.20-1.20)", "1.30 (1.30-1.30)"]
+
+
+def test_a_cost_reading_is_the_mean_step_after_the_warm_up():
+    """The cost tables read a run's mean step, its occasional long steps (a contact search, a halving) included,
+    which a median passes over; the first five steps (warm-up) left out."""
+    from meshmei.benchmarks import validity
+
+    steps = [9.0] * 5 + [1.0, 1.0, 1.0, 4.0]  # warm-up, then three plain steps and one with a search
+    times = [0.0]
+    for d in steps:
+        times.append(times[-1] + d)
+    assert validity.mean_step(times) == 7.0 / 4
