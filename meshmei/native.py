@@ -234,8 +234,8 @@ def with_gradient(V: torch.Tensor, value: np.ndarray, grad: np.ndarray | None) -
     regularizers). The backward only scales ``grad`` (and sums over the functions). For one mesh ``V (n,
     3)`` (a batch of one in :func:`kernel_buffers`) the values come back as ``()``, or ``(k,)``: one node
     on ``V`` itself, where adding a batch axis and taking it off again would put two more in the graph."""
-    if V.ndim == 2:
-        value = value[..., 0]
+    if V.ndim == 2:  # the batch of one's axis off both
+        value, grad = value[..., 0], None if grad is None else grad[..., 0, :, :]
     out = torch.from_numpy(value).to(V.dtype)
     if grad is None:
         return out

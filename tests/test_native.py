@@ -108,3 +108,22 @@ def test_a_cache_directory_that_cannot_be_made_builds_in_the_temporary_directory
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "'compiled': True" in r.stdout, r.stderr[-2000:]
     assert len(list(tmp_path.glob("meshmei-*/kernels-*.so"))) == 1
+
+
+@pytest.mark.parametrize("functions", [None, 2])
+def test_one_mesh_is_a_batch_of_one_for_the_kernel_and_its_node_is_on_the_mesh(functions):
+    """kernel_buffers takes V (n, 3) as a batch of one; with_gradient hands the values back without that axis
+    and its node's gradient has V's own shape (not one autograd would have to reduce)."""
+    from meshmei.native import kernel_buffers, with_gradient
+
+    V = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    Vd, value, grad = kernel_buffers(V, functions)
+    lead = () if functions is None else (functions,)
+    assert Vd.shape == (1, 5, 3) and value.shape == lead + (1,) and grad.shape == lead + (1, 5, 3)
+    value[...] = 3.0
+    for k in range(functions or 1):
+        grad[(k,) if functions else ()] = k + 1.0
+    out = with_gradient(V, value, grad)
+    assert out.shape == lead and torch.equal(out, torch.full(lead, 3.0, dtype=torch.float64))
+    raw = out.grad_fn.apply(torch.ones(lead, dtype=torch.float64))[0]
+    assert raw.shape == V.shape and torch.equal(raw, torch.full((5, 3), 3.0 if functions else 1.0, dtype=torch.float64))
