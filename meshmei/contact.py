@@ -639,13 +639,10 @@ class ContactBarrier:
         most by how far its vertices moved since the search (the farthest of each side's), so a pair that
         was ``d`` apart then, and whose sides moved ``a`` and ``b`` since, is left out while
         ``d - a - b >= distance``."""
-        return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._prepared(V)[0]))
-
-    @torch.no_grad()
-    def _search(self, V: torch.Tensor, compiled: bool) -> tuple[torch.Tensor, ...]:
-        """:meth:`candidates` without a prefetch; ``compiled``: the broad phase by ``_contact.c`` (decided in
-        the calling thread, where :func:`~meshmei.native.torch_reference` holds)."""
-        return tuple(torch.from_numpy(x).to(V.device) for x in self._filtered(self._refresh(V, compiled)))
+        moved, pairs = self._prepared(V)
+        if pairs is self._pairs_np:  # all the search kept (few): bound them here; else the bounded ones already
+            pairs = self._filtered(moved)
+        return tuple(torch.from_numpy(x).to(V.device) for x in pairs)
 
     def _search_due(self, V: torch.Tensor):
         """None where the next call for ``V`` searches (or fails: the search raises then), else how far each
@@ -664,8 +661,9 @@ class ContactBarrier:
     def _refresh(self, V: torch.Tensor, compiled: bool, moved: np.ndarray | None = None) -> np.ndarray:
         """Search again for ``V`` where due (:meth:`_search_due`; the pairs within ``distance + 2 margin``, kept
         in ``_pairs``) and note what the last search kept and the bound on the others (:meth:`separation`);
-        returns how far each vertex moved since the last search. ``moved``: what :meth:`_search_due` gave,
-        where it was asked already."""
+        returns how far each vertex moved since the last search. ``compiled``: the broad phase by
+        ``_contact.c`` (decided in the calling thread, where :func:`~meshmei.native.torch_reference` holds);
+        ``moved``: what :meth:`_search_due` gave, where it was asked already."""
         t0 = time.perf_counter()
         if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] < self._least_vertices:
             raise MeshError(f"the contact barrier's faces need vertices of shape (n, 3) with n >= "

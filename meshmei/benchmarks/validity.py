@@ -78,9 +78,9 @@ def alternated(modes: dict, rounds: int, run) -> dict:
 
 
 def mei_cost(steps: int = 60, rounds: int = 5) -> list:
-    """Mean ms per 3D-MEI step (64 px, 400 vertices, sphere, simple cell; :func:`mean_step`, the median over rounds),
-    guard on and off, alternating (the
-    order reversed every other round); the ratio as :func:`paired_ratio`."""
+    """Mean ms per 3D-MEI step (:func:`mean_step`, the median over rounds; 64 px, 400 vertices, sphere, simple
+    cell), guard on and off, alternating (the order reversed every other round); the ratio as
+    :func:`paired_ratio`."""
     runs = alternated({False: dict(valid_steps=False), True: dict(valid_steps=True)}, rounds,
                       lambda **kw: optimize_mei(GaborSimpleCell(), 0, "sphere", steps=steps, seeds=(0,), **kw))
     times = {on: [mean_step(res.time_history) for res in rs] for on, rs in runs.items()}
