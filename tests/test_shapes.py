@@ -3,6 +3,7 @@ unit-diagonal normalisation."""
 
 import doctest
 import math
+import os
 import re
 
 import igl
@@ -560,3 +561,22 @@ def test_subnormal_coordinates_are_normalised_too():
     W = normalize_unit_diagonal(V)
     assert torch.allclose(W, normalize_unit_diagonal(V * 1e300 * 1e10), rtol=0, atol=1e-6)
     assert math.isclose(float((W.max(0).values - W.min(0).values).norm()), 1.0, rel_tol=1e-12)
+
+
+def test_a_run_in_a_worker_thread_exits_cleanly():
+    """pymeshlab is imported with meshmei: a process whose first pymeshlab import ran in a worker thread (a
+    3D-MEI from a built-in start, run in a threading.Thread) aborted at exit with a corrupted heap
+    (malloc_consolidate), after its results were out. Here the same run, in its own process, ends with code 0."""
+    import subprocess
+    import sys
+
+    code = ("import threading\n"
+            "from meshmei.mei import optimize_mei\n"
+            "from meshmei.encoders import GaborSimpleCell\n"
+            "t = threading.Thread(target=optimize_mei, args=(GaborSimpleCell(), 0, 'sphere'),\n"
+            "                     kwargs=dict(steps=3, seeds=(0,), image_size=16, n_vertices=64))\n"
+            "t.start(); t.join(); print('finished')\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0 and proc.stdout.strip() == "finished", proc.stderr[-2000:]
+    assert "malloc" not in proc.stderr

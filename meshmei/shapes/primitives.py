@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pymeshlab
 import torch
 
 from .._checks import check_positive, float_dtype
@@ -39,8 +40,6 @@ def _area(kind):
 
 def _base_meshset(kind, h):
     """A pymeshlab primitive at size 1 whose edges are about ``h`` long (the icosphere level is capped at 7)."""
-    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the primitives need it
-
     ms = pymeshlab.MeshSet()
     if kind == "sphere":
         # An icosphere with subdivision level s has 10 * 4^s + 2 vertices. Start at the first level at

@@ -1,10 +1,18 @@
-"""Isotropic remeshing with pymeshlab, of the starting primitives and of any mesh (``remesh``)."""
+"""Isotropic remeshing with pymeshlab, of the starting primitives and of any mesh (``remesh``).
+
+pymeshlab is imported with meshmei (this package's modules import it at the top), in the thread that imports
+meshmei, not on first use: a process whose first pymeshlab import ran in a worker thread (an
+``optimize_mei`` in a ``threading.Thread``, with torch loaded) aborted at exit with a corrupted heap
+("malloc_consolidate(): unaligned fastbin chunk detected") in 8 of 8 tries, and in none of 4 with the
+import made first in the main thread. The import costs about 0.1 s.
+"""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pymeshlab
 import torch
 
 from .._checks import check_positive
@@ -57,8 +65,6 @@ def isotropic_parameters(targetlen, *, iterations: int, feature_degrees: float, 
     leaves the input by more than 1 % of its bounding-box diagonal); the rest are pymeshlab's documented
     defaults.
     """
-    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
-
     return dict(iterations=int(iterations), adaptive=False, selectedonly=False, targetlen=targetlen,
                 featuredeg=float(feature_degrees), checksurfdist=bool(check_distance),
                 maxsurfdist=pymeshlab.PercentageValue(1.0),
@@ -90,8 +96,6 @@ def isotropic_remesh(ms, h, *, iterations, feature_degrees, check_distance=True)
     F : (m, 3) int64 array
         Both C-ordered (:func:`mesh_arrays`).
     """
-    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
-
     ms.meshing_isotropic_explicit_remeshing(**isotropic_parameters(pymeshlab.PureValue(h), iterations=iterations,
                                                                    feature_degrees=feature_degrees,
                                                                    check_distance=check_distance))
@@ -166,8 +170,6 @@ def remesh(V, F, n_vertices: int, *, iterations: int = 5):
     >>> 800 < V.shape[0] < 1200, F.dtype
     (True, torch.int64)
     """
-    import pymeshlab  # deferred on purpose: pymeshlab is heavy and only the remeshing needs it
-
     check_positive("n_vertices", n_vertices, integer=True)
     check_iterations(iterations)
     V, F = check_mesh(V, F)

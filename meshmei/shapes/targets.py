@@ -11,6 +11,7 @@ from pathlib import Path
 
 import igl
 import numpy as np
+import pymeshlab
 import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -55,8 +56,6 @@ def bunny_path():
     FileNotFoundError
         pymeshlab is installed without its sample meshes.
     """
-    import pymeshlab  # deferred on purpose: a heavy optional dependency, needed here for the bunny's path only
-
     path = Path(os.path.dirname(pymeshlab.__file__)) / "tests" / "sample_meshes" / "bunny.obj"
     if not path.is_file():
         raise FileNotFoundError(
@@ -231,8 +230,6 @@ def _teapot(resolution):
 @functools.lru_cache(maxsize=None)
 def _implicit(name):
     """A :data:`THIN_TARGETS` surface: watertight, outward, no self-intersection (checked in the tests)."""
-    import pymeshlab  # deferred, as for the bunny
-
     ms = pymeshlab.MeshSet()
     ms.create_implicit_surface(voxelsize=0.015, minx=-1, miny=-1, minz=-1, maxx=1, maxy=1, maxz=1,
                                expr=THIN_TARGETS[name])
