@@ -382,3 +382,53 @@ def test_a_cost_reading_is_the_mean_step_after_the_warm_up():
     for d in steps:
         times.append(times[-1] + d)
     assert validity.mean_step(times) == 7.0 / 4
+
+
+def test_lockstep_takes_turns_block_by_block_and_gives_each_run_its_own_result():
+    """lockstep: each run in its own process, ``block`` steps each in turn in the order given (their step
+    ends, on one clock, come in blocks), a run that ends sooner leaves the others to go on; each gives the
+    result it gives alone."""
+    from meshmei.benchmarks.validity import lockstep, lockstep_mei
+
+    tiny = dict(image_size=16, n_vertices=64)
+    runs = {"on": (lockstep_mei, ("sphere", 0, dict(steps=7, **tiny))),
+            "off": (lockstep_mei, ("sphere", 0, dict(steps=4, valid_steps=False, **tiny)))}
+    both = lockstep(runs, block=2)
+    assert list(both) == ["on", "off"]
+    ends = sorted((t, name) for name, r in both.items() for t in r["ends"])
+    assert "".join(name[1] for _, name in ends) == "nnffnnffnnn"  # o[n], o[f]f: two steps each, then on alone
+    for name, (fn, args) in runs.items():
+        alone = fn(*args, [])
+        assert len(both[name]["time_history"]) == len(alone["time_history"]) == args[2]["steps"]
+        assert both[name]["activation"] == pytest.approx(alone["activation"], abs=1e-5)  # rounding, as a repeat
+
+
+def test_a_failed_lockstep_run_is_reported_after_the_others_end():
+    from meshmei.benchmarks.validity import lockstep, lockstep_mei
+
+    tiny = dict(image_size=16, n_vertices=64)
+    with pytest.raises(RuntimeError, match=r"bad: MEIError: .*lr"):
+        lockstep({"good": (lockstep_mei, ("sheet", 0, dict(steps=3, **tiny))),
+                  "bad": (lockstep_mei, ("sheet", 0, dict(steps=3, lr=-1.0, **tiny)))}, block=1)
+
+
+def test_the_lockstep_cost_table_pairs_each_run_with_its_unguarded_twin(monkeypatch):
+    """mei-lockstep: per start, one lockstep pair per seed and round, which mode goes first alternating; the
+    ratio is the median over pairs of each pair's mean-step ratio, with its range."""
+    from meshmei.benchmarks import validity
+
+    pairs = []
+
+    def fake_lockstep(runs):
+        pairs.append(list(runs))
+        return {m: fn(*args, []) for m, (fn, args) in runs.items()}
+
+    def fake(encoder, neuron, init, seeds, callbacks, **kw):
+        per_step = (10.0 if kw.get("valid_steps") is False else 12.0 + seeds[0]) / 1000
+        return SimpleNamespace(time_history=[per_step * i for i in range(1, 21)], activation=0.9 + 0.01 * seeds[0])
+
+    monkeypatch.setattr(validity, "lockstep", fake_lockstep)
+    monkeypatch.setattr(validity, "optimize_mei", fake)
+    rows = validity.mei_cost_lockstep(starts=("sphere",), seeds=(0, 1, 2), rounds=2)
+    assert pairs == [["off", "default"], ["default", "off"]] * 3
+    assert rows == [["sphere", 20, 6, "10.00", "13.00", "1.30 (1.20-1.40)", "0.910", "0.910"]]

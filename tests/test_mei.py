@@ -83,6 +83,24 @@ def test_deterministic_for_a_seed(tiny_run):
     assert not torch.equal(other.V, tiny_run.V)
 
 
+def test_callbacks_see_every_step_of_every_seed():
+    """``callbacks`` get each step's history record, seed after seed, and leave the run as it is; one that is
+    not callable is refused before any step."""
+    kw = dict(steps=3, seeds=(0, 1), image_size=16, n_vertices=64)
+    seen, also = [], []
+    res = optimize_mei(GaborSimpleCell(), 0, "sheet", callbacks=[seen.append, also.append], **kw)
+    assert [r["step"] for r in seen] == [1, 2, 3, 1, 2, 3] and also == seen
+    assert {"time", "loss", "response", "step_scale"} <= set(seen[0])
+    plain = optimize_mei(GaborSimpleCell(), 0, "sheet", **kw)
+    torch.testing.assert_close(res.V, plain.V, atol=1e-5, rtol=0)  # rounding: as test_deterministic_for_a_seed
+    one = []
+    optimize_mei(GaborSimpleCell(), 0, "sheet", callbacks=one.append, **{**kw, "seeds": (0,)})
+    assert [r["step"] for r in one] == [1, 2, 3]
+    for bad, says in (([print, 3], r"callbacks\[1\] is not callable"), (3, "a callable or a sequence")):
+        with pytest.raises(MEIError, match=says):
+            optimize_mei(GaborSimpleCell(), 0, "sheet", callbacks=bad, **kw)
+
+
 def test_result_contents(tiny_run):
     r = tiny_run
     assert r.V.shape == r.V0.shape and r.F.dtype == torch.int64

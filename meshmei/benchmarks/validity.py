@@ -22,6 +22,7 @@ or with ``--restart``) and says so in the section.
 from __future__ import annotations
 
 import math
+import multiprocessing as mp
 import os
 import time
 from pathlib import Path
@@ -75,6 +76,81 @@ def alternated(modes: dict, rounds: int, run) -> dict:
         for mode, kw in (order[::-1] if r % 2 else order):
             results[mode].append(run(**kw))
     return results
+
+
+def _pass_turn(k: int, turns, done) -> None:
+    """Hand the turn from run ``k`` to the next run that has not finished (none left: keep it)."""
+    n = len(turns)
+    for j in range(1, n):
+        if not done[(k + j) % n]:
+            turns[(k + j) % n].release()
+            return
+
+
+def _lockstep_child(k: int, fn, args: tuple, block: int, turns, done, results) -> None:
+    """Run ``k`` of :func:`lockstep`, in its own process: wait for its turn, run ``fn(*args, callbacks)``
+    handing the turn on after every ``block`` steps, and put ``(k, result or error text)`` on ``results``."""
+    turns[k].acquire()
+
+    def after_step(record):
+        if record["step"] % block == 0 and any(not done[j] for j in range(len(turns)) if j != k):
+            _pass_turn(k, turns, done)
+            turns[k].acquire()
+
+    try:
+        results.put((k, True, fn(*args, [after_step])))
+    except BaseException as e:  # noqa: BLE001 - handed to the parent, which raises it
+        results.put((k, False, f"{type(e).__name__}: {e}"))
+    finally:
+        done[k] = 1
+        _pass_turn(k, turns, done)
+
+
+def lockstep(runs: dict, block: int = 20) -> dict:
+    """Run each of ``runs`` (name -> ``(fn, args)``; ``fn(*args, callbacks)`` a module-level function that calls
+    each of ``callbacks`` after every step with the step's record, leaves their time out of its own times,
+    and returns something picklable) in its own process, ``block`` steps each in turn, in the order given:
+    each run's result by name. Between its blocks a run waits in its callback, so the runs meet the same load
+    of the machine block by block, not round by round (this machine's load drifts within seconds: in one
+    table paired rounds of 60 steps gave ratios from 1.0 to 2.0), and each run's own times count its steps
+    alone. A run that fails raises a RuntimeError with its error, after the others have finished.
+
+    Processes, not threads: two 300-step 3D-MEIs in threads of one process took 5.2-6.1 ms a step against
+    4.0-4.8 in the main thread (torch's intra-op threads serve the main thread best), which put the guarded
+    run's ratio to the unguarded at 1.11-1.22 against 1.28-1.41 alone. Blocks of some steps: the run that
+    waits leaves its torch threads spinning for a while after its step (OpenMP's wait policy), and they take a
+    core from the other's next step; a block makes those hand-overs rare."""
+    ctx = mp.get_context("spawn")  # a fresh interpreter: torch's threads do not survive a fork
+    names = list(runs)
+    turns = [ctx.Semaphore(0) for _ in names]
+    done, results = ctx.Array("b", len(names), lock=False), ctx.Queue()
+    procs = [ctx.Process(target=_lockstep_child, args=(k, *runs[name], block, turns, done, results),
+                         name=f"lockstep-{name}") for k, name in enumerate(names)]
+    for p in procs:
+        p.start()
+    turns[0].release()
+    got = {}
+    try:
+        for _ in names:
+            k, ok, value = results.get()
+            got[names[k]] = (ok, value)
+    finally:
+        for p in procs:
+            p.join()
+    failed = [f"{name}: {value}" for name, (ok, value) in got.items() if not ok]
+    if failed:
+        raise RuntimeError("lockstep run(s) failed: " + "; ".join(failed))
+    return {name: got[name][1] for name in names}
+
+
+def lockstep_mei(init: str, seed: int, kwargs: dict, callbacks) -> dict:
+    """One 3D-MEI run of the simple cell for :func:`lockstep` (``kwargs``: :class:`MEISettings` fields): its
+    ``time_history``, ``activation`` and the ``time.monotonic()`` at the end of each step (``ends``: one clock
+    for every process, which shows how the runs took turns)."""
+    ends = []
+    res = optimize_mei(GaborSimpleCell(), 0, init, seeds=(seed,),
+                       callbacks=[lambda record: ends.append(time.monotonic()), *callbacks], **kwargs)
+    return {"time_history": res.time_history, "activation": res.activation, "ends": ends}
 
 
 def mei_cost(steps: int = 60, rounds: int = 5) -> list:
@@ -138,6 +214,57 @@ def run_mei_cost(rounds: int = 9) -> Path:
                        rows),
     ])
     return write_section("validity-mei-cost", body)
+
+
+def mei_cost_lockstep(starts=("sphere", "sheet", "torus"), seeds=(0, 1, 2), rounds: int = 2) -> list:
+    """Whole default 3D-MEI runs (simple cell, 64 px, 400 vertices, the start's default steps), the default
+    guarded run and the unguarded one stepped in :func:`lockstep`, one pair per seed and round (which goes
+    first alternates): per start, each mode's mean step (:func:`mean_step`, the median over pairs), the
+    median over pairs of each pair's ratio with its range, and each mode's response (the median over pairs)."""
+    rows = []
+    for init in starts:
+        times, acts, first = {"off": [], "default": []}, {"off": [], "default": []}, 0
+        for r in range(rounds):
+            for seed in seeds:
+                modes = {"off": dict(valid_steps=False), "default": {}}
+                order = list(modes) if first % 2 == 0 else list(modes)[::-1]
+                first += 1
+                runs = lockstep({m: (lockstep_mei, (init, seed, modes[m])) for m in order})
+                for m, res in runs.items():
+                    times[m].append(mean_step(res["time_history"]))
+                    acts[m].append(res["activation"])
+        steps = len(runs["off"]["time_history"])
+        rows.append([init, steps, len(times["off"]), f"{1000 * median(times['off']):.2f}",
+                     f"{1000 * median(times['default']):.2f}", paired_ratio(times["default"], times["off"]),
+                     f"{median(acts['off']):.3f}", f"{median(acts['default']):.3f}"])
+        print(rows[-1], flush=True)
+    return rows
+
+
+def run_mei_cost_lockstep(rounds: int = 2) -> Path:
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    rows = mei_cost_lockstep(rounds=rounds)
+    body = "\n".join([
+        "## Cost of valid 3D-MEI steps, whole runs in lockstep (`python -m meshmei.benchmarks.validity --parts "
+        "mei-lockstep`)",
+        "",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}; "
+        f"{time.perf_counter() - t0:.0f} s in all.",
+        "",
+        "Simple cell, 64 px, 400-vertex start, `optimize_mei`'s defaults for each start (its steps, one seed a "
+        "run), the default guarded run and the unguarded one stepped in lockstep: each in its own process, 20 "
+        "steps each in turn (`meshmei.benchmarks.validity.lockstep`), so that both meet the same load of the "
+        f"machine; seeds 0, 1 and 2, {rounds} rounds (which run steps first alternates). ms per "
+        "step = a run's mean step (its contact searches and the halvings of refused steps included; the first "
+        "five steps left out), the median over pairs; ratio = the median over pairs of each pair's ratio (range "
+        "in brackets); response = fraction of the bound, the median over pairs (single seeds: the benchmark "
+        "tables report the best of three). Issue 16's target: the guarantee costs at most 1.30 times the step.",
+        "",
+        markdown_table(["start", "steps", "pairs", "ms/step off", "ms/step default", "ratio", "response off",
+                        "response default"], rows),
+    ])
+    return write_section("validity-mei-lockstep", body)
 
 
 def reconstruction_cost(n_vertices: int, steps: int = 40, rounds: int = 2) -> list:
@@ -408,17 +535,19 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=None, help="3D-MEI steps per seed (default: by start, as MEISettings)")
     ap.add_argument("--cells", type=int, default=6)
     ap.add_argument("--rounds", type=int, default=9,
-                    help="alternated rounds of the mei-cost and recon-cost parts (their medians)")
+                    help="alternated rounds of the mei-cost and recon-cost parts (their medians), and of the "
+                         "mei-lockstep part (three seeds each)")
     ap.add_argument("--thin-vertices", type=int_list, default="2500",
                     help="comma-separated start sizes of the thin part, e.g. 2500,10000 (default 2500)")
     add_restart(ap)
     ap.add_argument("--parts", default="mei,reconstruction",
-                    help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), recon-cost "
+                    help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), mei-lockstep "
+                         "(the 3D-MEI's cost over whole default runs, stepped in lockstep), recon-cost "
                          "(the reconstruction step's cost), reconstruction (default CLI runs), thin (targets with "
                          "thin parts)")
     args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
-    known = {"mei", "mei-cost", "recon-cost", "reconstruction", "thin"}
+    known = {"mei", "mei-cost", "mei-lockstep", "recon-cost", "reconstruction", "thin"}
     if not parts <= known:  # an unknown part ran nothing and exited 0
         ap.error(f"--parts: unknown {', '.join(sorted(parts - known))} (known: {', '.join(sorted(known))})")
     if min(args.thin_vertices) < 32:
@@ -428,6 +557,8 @@ def main(argv=None):
         print(f"wrote {run(args.steps, args.cells, args.restart)} in {time.perf_counter() - t:.0f} s")
     if "mei-cost" in parts:
         print(f"wrote {run_mei_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
+    if "mei-lockstep" in parts:
+        print(f"wrote {run_mei_cost_lockstep(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "recon-cost" in parts:
         print(f"wrote {run_reconstruction_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "reconstruction" in parts:

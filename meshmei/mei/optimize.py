@@ -180,7 +180,7 @@ def valid_start(rbf, guard, halvings: int = 30) -> int:
 
 
 def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Progress, guard, n_weights,
-              uv=None) -> dict:
+              uv=None, callbacks=()) -> dict:
     scene = SeedScene(V0, settings, seed, uv, n_weights)
     if guard is not None:
         valid_start(scene.rbf, guard)
@@ -189,7 +189,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights, guard), make_optimizer("adam", scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, keep_from=settings.robust_widen if scene.robust is not None else 0.0,
-                   evaluate_last=True, trace=trace, progress=bar, accept=accept,
+                   evaluate_last=True, trace=trace, progress=bar, callbacks=callbacks, accept=accept,
                    max_halvings=0 if guard is None else guard.rules.max_halvings, states=(scene.rbf,),
                    error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():
@@ -208,6 +208,20 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
                 rotation=scene.rotation.detach().clone(), translation=scene.translation.detach().clone())
 
 
+def checked_callbacks(callbacks) -> tuple:
+    """``callbacks`` (one callable, or a sequence of them) as a tuple, or an MEIError before any step where
+    one is not callable (a step's record handed to it failed deep inside the run)."""
+    callbacks = (callbacks,) if callable(callbacks) else callbacks
+    try:
+        callbacks = tuple(callbacks)
+    except TypeError:
+        raise MEIError(f"callbacks must be a callable or a sequence of callables, got {callbacks!r}") from None
+    for k, cb in enumerate(callbacks):
+        if not callable(cb):
+            raise MEIError(f"callbacks[{k}] is not callable: {cb!r}")
+    return callbacks
+
+
 def guard_report(guard, scales) -> dict:
     """``guard``'s :meth:`~meshmei.validity.StepGuard.report` of one seed's run, with ``"undone"``: its steps
     of which no halving was accepted (``scales``: each step's ``step_scale``), where the mesh stayed put. A
@@ -223,7 +237,7 @@ def reg_terms(settings: MEISettings, history) -> list:
 
 
 def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISettings | None = None, *,
-                 progress: bool = False, **overrides) -> MEIResult:
+                 progress: bool = False, callbacks=(), **overrides) -> MEIResult:
     """Optimise a mesh so that ``encoder``'s neuron ``neuron`` responds maximally to its rendering.
 
     Parameters
@@ -238,6 +252,10 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     settings : MEISettings, optional
     progress : bool
         Show a tqdm progress bar over all steps of all seeds.
+    callbacks : sequence of callables
+        Each called after every step of every seed with the step's history record (a dict: ``step``,
+        ``time``, ``loss``, ``response``, the regularizers' values, ``step_scale`` with the guard), in
+        seed order; their time is not counted in the run's times (:func:`meshmei.optim.minimize`).
     **overrides
         Fields of :class:`MEISettings` replacing those of ``settings``.
 
@@ -255,6 +273,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     """
     settings = MEISettings.with_overrides(settings, overrides)
     neuron = check_neuron(encoder, neuron)
+    callbacks = checked_callbacks(callbacks)
     settings = settings_for_encoder(settings, encoder)
     V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
@@ -268,7 +287,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
             for seed in settings.seeds:
                 guard = StepGuard(V0, F, settings.validity_rules()) if settings.valid_steps else None
                 runs[seed] = _run_seed(encoder, neuron, V0, F, settings, seed, bar, guard, n_weights,
-                                       uv=sheet_uv(V0) if init_name == "sheet" else None)
+                                       uv=sheet_uv(V0) if init_name == "sheet" else None, callbacks=callbacks)
     finally:
         bar.close()
     wall = time.perf_counter() - t0
