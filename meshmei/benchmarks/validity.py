@@ -115,11 +115,12 @@ def lockstep(runs: dict, block: int = 20) -> dict:
     table paired rounds of 60 steps gave ratios from 1.0 to 2.0), and each run's own times count its steps
     alone. A run that fails raises a RuntimeError with its error, after the others have finished.
 
-    Processes, not threads: two 300-step 3D-MEIs in threads of one process took 5.2-6.1 ms a step against
-    4.0-4.8 in the main thread (torch's intra-op threads serve the main thread best), which put the guarded
-    run's ratio to the unguarded at 1.11-1.22 against 1.28-1.41 alone. Blocks of some steps: the run that
-    waits leaves its torch threads spinning for a while after its step (OpenMP's wait policy), and they take a
-    core from the other's next step; a block makes those hand-overs rare."""
+    Processes, not threads: torch's OpenMP threads serve a second Python thread badly (a loop of small
+    matrix products and convolutions ran 2.2 times slower in a thread than in the main thread here, after
+    half a second of rest too; a known torch limitation, pytorch/pytorch#37259), and two 300-step 3D-MEIs
+    in threads took 5.2-6.1 ms a step against 4.0-4.8 in the main thread, with the guarded run's ratio to
+    the unguarded at 1.11-1.22 against 1.28-1.41 alone. Blocks of some steps: turns of one step gave
+    1.12-1.22 too; a block makes the hand-overs, and whatever each costs the next step, rare."""
     ctx = mp.get_context("spawn")  # a fresh interpreter: torch's threads do not survive a fork
     names = list(runs)
     turns = [ctx.Semaphore(0) for _ in names]
