@@ -412,6 +412,19 @@ def test_a_failed_lockstep_run_is_reported_after_the_others_end():
                   "bad": (lockstep_mei, ("sheet", 0, dict(steps=3, lr=-1.0, **tiny)))}, block=1)
 
 
+def _dies(callbacks):
+    """A lockstep run whose process ends without a result (as a crash would)."""
+    os._exit(5)
+
+
+def test_a_lockstep_run_whose_process_dies_is_reported_and_the_others_go_on():
+    from meshmei.benchmarks.validity import lockstep, lockstep_mei
+
+    with pytest.raises(RuntimeError, match="dies: its process ended with code 5"):
+        lockstep({"dies": (_dies, ()),
+                  "good": (lockstep_mei, ("sheet", 0, dict(steps=3, image_size=16, n_vertices=64)))}, block=1)
+
+
 def test_the_lockstep_cost_table_pairs_each_run_with_its_unguarded_twin(monkeypatch):
     """mei-lockstep: per start, one lockstep pair per seed and round, which mode goes first alternating; the
     ratio is the median over pairs of each pair's mean-step ratio, with its range."""

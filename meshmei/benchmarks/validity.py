@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
+import queue
 import time
 from pathlib import Path
 
@@ -113,7 +114,8 @@ def lockstep(runs: dict, block: int = 20) -> dict:
     each run's result by name. Between its blocks a run waits in its callback, so the runs meet the same load
     of the machine block by block, not round by round (this machine's load drifts within seconds: in one
     table paired rounds of 60 steps gave ratios from 1.0 to 2.0), and each run's own times count its steps
-    alone. A run that fails raises a RuntimeError with its error, after the others have finished.
+    alone. A run that fails, or whose process dies, raises a RuntimeError with its error (or exit code), after
+    the others have finished.
 
     Processes, not threads: torch's OpenMP threads serve a second Python thread badly (a loop of small
     matrix products and convolutions ran 2.2 times slower in a thread than in the main thread here, after
@@ -132,9 +134,17 @@ def lockstep(runs: dict, block: int = 20) -> dict:
     turns[0].release()
     got = {}
     try:
-        for _ in names:
-            k, ok, value = results.get()
-            got[names[k]] = (ok, value)
+        while len(got) < len(names):
+            try:
+                k, ok, value = results.get(timeout=1.0)
+                got[names[k]] = (ok, value)
+            except queue.Empty:
+                for k, p in enumerate(procs):  # a run that died without a word (a crash, a kill): say so, and
+                    if p.exitcode not in (None, 0) and names[k] not in got:  # pass its turn on if it held it
+                        got[names[k]] = (False, f"its process ended with code {p.exitcode}")
+                        if not done[k]:
+                            done[k] = 1
+                            _pass_turn(k, turns, done)
     finally:
         for p in procs:
             p.join()

@@ -208,7 +208,7 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
                 rotation=scene.rotation.detach().clone(), translation=scene.translation.detach().clone())
 
 
-def checked_callbacks(callbacks) -> tuple:
+def _checked_callbacks(callbacks) -> tuple:
     """``callbacks`` (one callable, or a sequence of them) as a tuple, or an MEIError before any step where
     one is not callable (a step's record handed to it failed deep inside the run)."""
     callbacks = (callbacks,) if callable(callbacks) else callbacks
@@ -252,7 +252,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     settings : MEISettings, optional
     progress : bool
         Show a tqdm progress bar over all steps of all seeds.
-    callbacks : sequence of callables
+    callbacks : callable or sequence of callables
         Each called after every step of every seed with the step's history record (a dict: ``step``,
         ``time``, ``loss``, ``response``, the regularizers' values, ``step_scale`` with the guard), in
         seed order; their time is not counted in the run's times (:func:`meshmei.optim.minimize`).
@@ -273,7 +273,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     """
     settings = MEISettings.with_overrides(settings, overrides)
     neuron = check_neuron(encoder, neuron)
-    callbacks = checked_callbacks(callbacks)
+    callbacks = _checked_callbacks(callbacks)
     settings = settings_for_encoder(settings, encoder)
     V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
