@@ -438,10 +438,42 @@ def test_the_lockstep_cost_table_pairs_each_run_with_its_unguarded_twin(monkeypa
 
     def fake(encoder, neuron, init, seeds, callbacks, **kw):
         per_step = (10.0 if kw.get("valid_steps") is False else 12.0 + seeds[0]) / 1000
-        return SimpleNamespace(time_history=[per_step * i for i in range(1, 21)], activation=0.9 + 0.01 * seeds[0])
+        health = {"self_intersections": 0 if kw.get("valid_steps") is None else 7, "flipped_faces": 0,
+                  "min_quality": 0.2 + 0.1 * seeds[0], "watertight": True, "nonmanifold_edges": 0}
+        return SimpleNamespace(time_history=[per_step * i for i in range(1, 21)], activation=0.9 + 0.01 * seeds[0],
+                               health=lambda: health)
 
     monkeypatch.setattr(validity, "lockstep", fake_lockstep)
     monkeypatch.setattr(validity, "optimize_mei", fake)
     rows = validity.mei_cost_lockstep(starts=("sphere",), seeds=(0, 1, 2), rounds=2)
     assert pairs == [["off", "default"], ["default", "off"]] * 3
-    assert rows == [["sphere", 20, 6, "10.00", "13.00", "1.30 (1.20-1.40)", "0.910", "0.910"]]
+    # the health of the six default runs' results (the unguarded ones' 7 pairs each are not in it)
+    assert rows == [["sphere", 20, 6, "10.00", "13.00", "1.30 (1.20-1.40)", "0.910", "0.910", 0, 0, "0.200", "6/6",
+                     "6/6"]]
+
+
+def test_the_reconstruction_lockstep_table_reads_whole_runs_per_step(monkeypatch):
+    """recon-lockstep: per problem one lockstep pair per seed, which mode goes first alternating; a run's cost
+    per step is its optimisation seconds (set-ups included) over its steps; the ratio the median over pairs."""
+    from meshmei.benchmarks import validity
+
+    pairs = []
+
+    def fake_lockstep(runs):
+        pairs.append(list(runs))
+        return {m: fn(*args, []) for m, (fn, args) in runs.items()}
+
+    def fake_run(problem, init, n_vertices, seed, kwargs, callbacks):
+        guarded = kwargs == {}
+        seconds = (1.1 + 0.1 * seed if guarded else 1.0) * 10
+        health = {"self_intersections": 0 if guarded else 9, "flipped_faces": 0, "min_quality": 0.3,
+                  "watertight": True, "nonmanifold_edges": 0}
+        return {"time_history": [seconds * i / 1000 for i in range(1, 1001)], "seconds": seconds,
+                "chamfer_l2": 1e-6 if guarded else 2e-6, "health": health}
+
+    monkeypatch.setattr(validity, "lockstep", fake_lockstep)
+    monkeypatch.setattr(validity, "lockstep_reconstruction", fake_run)
+    rows = validity.reconstruction_cost_lockstep(problems=(("bunny", "sphere"),), seeds=(0, 1, 2), n_vertices=2500)
+    assert pairs == [["off", "default"], ["default", "off"], ["off", "default"]]
+    assert rows == [["bunny from the sphere, 2500 vertices", 3, "10.0", "12.0", "1.20 (1.10-1.30)", "2.00e-06",
+                     "1.00e-06", 0, 0, "0.300", "3/3", "3/3"]]

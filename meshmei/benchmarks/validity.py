@@ -121,8 +121,10 @@ def lockstep(runs: dict, block: int = 20) -> dict:
     matrix products and convolutions ran 2.2 times slower in a thread than in the main thread here, after
     half a second of rest too; a known torch limitation, pytorch/pytorch#37259), and two 300-step 3D-MEIs
     in threads took 5.2-6.1 ms a step against 4.0-4.8 in the main thread, with the guarded run's ratio to
-    the unguarded at 1.11-1.22 against 1.28-1.41 alone. Blocks of some steps: turns of one step gave
-    1.12-1.22 too; a block makes the hand-overs, and whatever each costs the next step, rare."""
+    the unguarded at 1.11-1.22 against 1.28-1.41 alone. Blocks of some steps: a hand-over wakes the
+    other process's torch threads, which may have gone to sleep, and a block of 20 makes hand-overs rare
+    (with it, three 300-step pairs from the sphere gave 1.25, 1.24 and 1.26; turns of one step were only
+    tried in threads)."""
     ctx = mp.get_context("spawn")  # a fresh interpreter: torch's threads do not survive a fork
     names = list(runs)
     turns = [ctx.Semaphore(0) for _ in names]
@@ -156,12 +158,13 @@ def lockstep(runs: dict, block: int = 20) -> dict:
 
 def lockstep_mei(init: str, seed: int, kwargs: dict, callbacks) -> dict:
     """One 3D-MEI run of the simple cell for :func:`lockstep` (``kwargs``: :class:`MEISettings` fields): its
-    ``time_history``, ``activation`` and the ``time.monotonic()`` at the end of each step (``ends``: one clock
-    for every process, which shows how the runs took turns)."""
+    ``time_history``, ``activation``, ``health`` (:meth:`~meshmei.mei.MEIResult.health`) and the
+    ``time.monotonic()`` at the end of each step (``ends``: one clock for every process, which shows how the
+    runs took turns)."""
     ends = []
     res = optimize_mei(GaborSimpleCell(), 0, init, seeds=(seed,),
                        callbacks=[lambda record: ends.append(time.monotonic()), *callbacks], **kwargs)
-    return {"time_history": res.time_history, "activation": res.activation, "ends": ends}
+    return {"time_history": res.time_history, "activation": res.activation, "health": res.health(), "ends": ends}
 
 
 def mei_cost(steps: int = 60, rounds: int = 5) -> list:
@@ -231,10 +234,12 @@ def mei_cost_lockstep(starts=("sphere", "sheet", "torus"), seeds=(0, 1, 2), roun
     """Whole default 3D-MEI runs (simple cell, 64 px, 400 vertices, the start's default steps), the default
     guarded run and the unguarded one stepped in :func:`lockstep`, one pair per seed and round (which goes
     first alternates): per start, each mode's mean step (:func:`mean_step`, the median over pairs), the
-    median over pairs of each pair's ratio with its range, and each mode's response (the median over pairs)."""
+    median over pairs of each pair's ratio with its range, each mode's response (the median over pairs), and
+    the default runs' results' :data:`HEALTH_COLUMNS` (all pairs)."""
     rows = []
     for init in starts:
         times, acts, first = {"off": [], "default": []}, {"off": [], "default": []}, 0
+        health = []
         for r in range(rounds):
             for seed in seeds:
                 modes = {"off": dict(valid_steps=False), "default": {}}
@@ -244,10 +249,11 @@ def mei_cost_lockstep(starts=("sphere", "sheet", "torus"), seeds=(0, 1, 2), roun
                 for m, res in runs.items():
                     times[m].append(mean_step(res["time_history"]))
                     acts[m].append(res["activation"])
+                health.append(runs["default"]["health"])
         steps = len(runs["off"]["time_history"])
         rows.append([init, steps, len(times["off"]), f"{1000 * median(times['off']):.2f}",
                      f"{1000 * median(times['default']):.2f}", paired_ratio(times["default"], times["off"]),
-                     f"{median(acts['off']):.3f}", f"{median(acts['default']):.3f}"])
+                     f"{median(acts['off']):.3f}", f"{median(acts['default']):.3f}", *health_cells(health)])
         print(rows[-1], flush=True)
     return rows
 
@@ -270,10 +276,11 @@ def run_mei_cost_lockstep(rounds: int = 2) -> Path:
         "step = a run's mean step (its contact searches and the halvings of refused steps included; the first "
         "five steps left out), the median over pairs; ratio = the median over pairs of each pair's ratio (range "
         "in brackets); response = fraction of the bound, the median over pairs (single seeds: the benchmark "
-        "tables report the best of three). Issue 16's target: the guarantee costs at most 1.30 times the step.",
+        "tables report the best of three); the health of the default runs' results: " + HEALTH_LEGEND + ". "
+        "Issue 16's target: the guarantee costs at most 1.30 times the step.",
         "",
         markdown_table(["start", "steps", "pairs", "ms/step off", "ms/step default", "ratio", "response off",
-                        "response default"], rows),
+                        "response default", *HEALTH_COLUMNS], rows),
     ])
     return write_section("validity-mei-lockstep", body)
 
@@ -328,6 +335,69 @@ def _default_run(V, F, target, method: str, seed: int, **kwargs):
     stages, fractions, overrides = default_schedule(method, V.shape[0])
     return reconstruct((V, F), target, method, stages=stages, stage_fractions=fractions, stage_overrides=overrides,
                        seed=seed, **kwargs)
+
+
+def lockstep_reconstruction(problem: str, init: str, n_vertices: int, seed: int, kwargs: dict, callbacks) -> dict:
+    """``meshmei reconstruct``'s default rbf run (:func:`_default_run`) of ``init`` toward ``problem`` for
+    :func:`lockstep` (``kwargs``: settings on top of the defaults): its per-step ``time_history``, the seconds
+    of its optimisation in all (``seconds``: the steps and each stage's set-up, the remesh, the guard's and
+    the barrier's start included), the final Chamfer-L2 and the result's health (:func:`surface_health`)."""
+    target = target_surface(problem)
+    V, F, _ = resolve_source(init, n_vertices, torch.float32, target)
+    res = _default_run(V, F, target, "rbf", seed, callback=lambda step, V, loss: [cb({"step": step}) for cb in callbacks],
+                       **kwargs)
+    return {"time_history": [h["time"] for h in res.history], "seconds": res.history[-1]["time"],
+            "chamfer_l2": res.final.chamfer_l2, "health": surface_health(res.final)}
+
+
+def reconstruction_cost_lockstep(problems=(("bunny", "sphere"), ("teapot", "torus")), seeds=(0, 1, 2),
+                                 n_vertices: int = 2500) -> list:
+    """The CLI's default rbf runs and the same without guard and barrier (:data:`UNGUARDED`), stepped in
+    :func:`lockstep`, one pair per seed (which goes first alternates): per problem, each mode's seconds per
+    step over the whole run (set-ups included; the median over pairs), the median over pairs of each pair's
+    ratio with its range, each mode's Chamfer-L2 (median) and the default runs' :data:`SURFACE_HEALTH_COLUMNS`."""
+    rows = []
+    for problem, init in problems:
+        per_step, cds, health = {"off": [], "default": []}, {"off": [], "default": []}, []
+        for k, seed in enumerate(seeds):
+            modes = {"off": UNGUARDED, "default": {}}
+            order = list(modes) if k % 2 == 0 else list(modes)[::-1]
+            runs = lockstep({m: (lockstep_reconstruction, (problem, init, n_vertices, seed, modes[m])) for m in order})
+            for m, res in runs.items():
+                per_step[m].append(res["seconds"] / len(res["time_history"]))
+                cds[m].append(res["chamfer_l2"])
+            health.append(runs["default"]["health"])
+        rows.append([f"{problem} from the {init}, {n_vertices} vertices", len(seeds),
+                     f"{1000 * median(per_step['off']):.1f}", f"{1000 * median(per_step['default']):.1f}",
+                     paired_ratio(per_step["default"], per_step["off"]), f"{median(cds['off']):.2e}",
+                     f"{median(cds['default']):.2e}", *health_cells(health)])
+        print(rows[-1], flush=True)
+    return rows
+
+
+def run_reconstruction_cost_lockstep() -> Path:
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    rows = reconstruction_cost_lockstep()
+    body = "\n".join([
+        "## Cost of valid reconstruction steps, whole runs in lockstep (`python -m meshmei.benchmarks.validity "
+        "--parts recon-lockstep`)",
+        "",
+        f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}; "
+        f"{time.perf_counter() - t0:.0f} s in all.",
+        "",
+        "`meshmei reconstruct`'s default rbf run (2,500 vertices, `default_schedule`, 1,000 steps) and the same "
+        "without guard and contact barrier, stepped in lockstep: each in its own process, 20 steps each in turn "
+        "(`meshmei.benchmarks.validity.lockstep`), seeds 0, 1 and 2 (which run steps first alternates). ms per "
+        "step = the run's optimisation seconds (every stage's set-up, the remesh, the guard's and the barrier's "
+        "start included) over its steps, the median over pairs; ratio = the median over pairs of each pair's "
+        "ratio (range in brackets); Chamfer-L2 the median over seeds; the health of the default runs' results: "
+        + SURFACE_HEALTH_LEGEND + ". Issue 16's target: the guarantee costs at most 1.30 times the step.",
+        "",
+        markdown_table(["problem", "pairs", "ms/step off", "ms/step default", "ratio", "Chamfer-L2 off",
+                        "Chamfer-L2 default", *SURFACE_HEALTH_COLUMNS], rows),
+    ])
+    return write_section("validity-reconstruction-lockstep", body)
 
 
 def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=(("bunny", "sphere"), ("teapot", "torus")),
@@ -553,12 +623,13 @@ def main(argv=None):
     add_restart(ap)
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), mei-lockstep "
-                         "(the 3D-MEI's cost over whole default runs, stepped in lockstep), recon-cost "
+                         "(the 3D-MEI's cost over whole default runs, stepped in lockstep), recon-lockstep (the same "
+                         "for reconstruction's default runs at 2,500 vertices), recon-cost "
                          "(the reconstruction step's cost), reconstruction (default CLI runs), thin (targets with "
                          "thin parts)")
     args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
-    known = {"mei", "mei-cost", "mei-lockstep", "recon-cost", "reconstruction", "thin"}
+    known = {"mei", "mei-cost", "mei-lockstep", "recon-lockstep", "recon-cost", "reconstruction", "thin"}
     if not parts <= known:  # an unknown part ran nothing and exited 0
         ap.error(f"--parts: unknown {', '.join(sorted(parts - known))} (known: {', '.join(sorted(known))})")
     if min(args.thin_vertices) < 32:
@@ -570,6 +641,8 @@ def main(argv=None):
         print(f"wrote {run_mei_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "mei-lockstep" in parts:
         print(f"wrote {run_mei_cost_lockstep(args.rounds)} in {time.perf_counter() - t:.0f} s")
+    if "recon-lockstep" in parts:
+        print(f"wrote {run_reconstruction_cost_lockstep()} in {time.perf_counter() - t:.0f} s")
     if "recon-cost" in parts:
         print(f"wrote {run_reconstruction_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "reconstruction" in parts:
