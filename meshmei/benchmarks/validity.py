@@ -240,7 +240,7 @@ def mei_cost_lockstep(starts=("sphere", "sheet", "torus"), seeds=(0, 1, 2), roun
     for init in starts:
         times, acts, first = {"off": [], "default": []}, {"off": [], "default": []}, 0
         health = []
-        for r in range(rounds):
+        for _ in range(rounds):
             for seed in seeds:
                 modes = {"off": dict(valid_steps=False), "default": {}}
                 order = list(modes) if first % 2 == 0 else list(modes)[::-1]
@@ -375,20 +375,22 @@ def reconstruction_cost_lockstep(problems=(("bunny", "sphere"), ("teapot", "toru
     return rows
 
 
-def run_reconstruction_cost_lockstep() -> Path:
+def run_reconstruction_cost_lockstep(n_vertices: int = 2500, seeds=(0, 1, 2)) -> Path:
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    rows = reconstruction_cost_lockstep()
+    rows = reconstruction_cost_lockstep(seeds=seeds, n_vertices=n_vertices)
+    flags = "" if n_vertices == 2500 else f" --lockstep-vertices {n_vertices} --lockstep-seeds {','.join(map(str, seeds))}"
     body = "\n".join([
-        "## Cost of valid reconstruction steps, whole runs in lockstep (`python -m meshmei.benchmarks.validity "
-        "--parts recon-lockstep`)",
+        f"## Cost of valid reconstruction steps, whole runs in lockstep at {n_vertices:,} vertices "
+        f"(`python -m meshmei.benchmarks.validity --parts recon-lockstep{flags}`)",
         "",
         f"Machine: {machine_line()}; 1-minute load average at the start {load:.1f}; "
         f"{time.perf_counter() - t0:.0f} s in all.",
         "",
-        "`meshmei reconstruct`'s default rbf run (2,500 vertices, `default_schedule`, 1,000 steps) and the same "
-        "without guard and contact barrier, stepped in lockstep: each in its own process, 20 steps each in turn "
-        "(`meshmei.benchmarks.validity.lockstep`), seeds 0, 1 and 2 (which run steps first alternates). ms per "
+        f"`meshmei reconstruct`'s default rbf run ({n_vertices:,} vertices, `default_schedule`, 1,000 steps) and the "
+        "same without guard and contact barrier, stepped in lockstep: each in its own process, 20 steps each in "
+        f"turn (`meshmei.benchmarks.validity.lockstep`), seeds {', '.join(map(str, seeds))} (which run steps "
+        "first alternates). ms per "
         "step = the run's optimisation seconds (every stage's set-up, the remesh, the guard's and the barrier's "
         "start included) over its steps, the median over pairs; ratio = the median over pairs of each pair's "
         "ratio (range in brackets); Chamfer-L2 the median over seeds; the health of the default runs' results: "
@@ -397,7 +399,7 @@ def run_reconstruction_cost_lockstep() -> Path:
         markdown_table(["problem", "pairs", "ms/step off", "ms/step default", "ratio", "Chamfer-L2 off",
                         "Chamfer-L2 default", *SURFACE_HEALTH_COLUMNS], rows),
     ])
-    return write_section("validity-reconstruction-lockstep", body)
+    return write_section("validity-reconstruction-lockstep" + ("" if n_vertices == 2500 else f"-{n_vertices}"), body)
 
 
 def reconstruction_outcomes(seeds=(0, 1, 2), n_vertices: int = 2500, problems=(("bunny", "sphere"), ("teapot", "torus")),
@@ -620,6 +622,9 @@ def main(argv=None):
                          "mei-lockstep part (three seeds each)")
     ap.add_argument("--thin-vertices", type=int_list, default="2500",
                     help="comma-separated start sizes of the thin part, e.g. 2500,10000 (default 2500)")
+    ap.add_argument("--lockstep-vertices", type=int, default=2500,
+                    help="start size of the recon-lockstep part (its own section unless 2500)")
+    ap.add_argument("--lockstep-seeds", type=int_list, default="0,1,2", help="seeds of the recon-lockstep part")
     add_restart(ap)
     ap.add_argument("--parts", default="mei,reconstruction",
                     help="comma-separated: mei (cost and 3D-MEIs), mei-cost (the 3D-MEI's cost, split), mei-lockstep "
@@ -642,7 +647,8 @@ def main(argv=None):
     if "mei-lockstep" in parts:
         print(f"wrote {run_mei_cost_lockstep(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "recon-lockstep" in parts:
-        print(f"wrote {run_reconstruction_cost_lockstep()} in {time.perf_counter() - t:.0f} s")
+        print(f"wrote {run_reconstruction_cost_lockstep(args.lockstep_vertices, tuple(args.lockstep_seeds))} in "
+              f"{time.perf_counter() - t:.0f} s")
     if "recon-cost" in parts:
         print(f"wrote {run_reconstruction_cost(args.rounds)} in {time.perf_counter() - t:.0f} s")
     if "reconstruction" in parts:
