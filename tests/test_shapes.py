@@ -579,4 +579,20 @@ def test_a_run_in_a_worker_thread_exits_cleanly():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0 and proc.stdout.strip() == "finished", proc.stderr[-2000:]
-    assert "malloc" not in proc.stderr
+    assert "malloc" not in proc.stderr and "not the main thread" not in proc.stderr
+
+
+def test_meshmei_imported_first_in_a_worker_thread_says_to_import_it_in_the_main_thread():
+    """Only the caller can import meshmei (and with it pymeshlab) in the main thread: imported first in a worker
+    thread it says so, in a warning that names the thread (such a process aborted at exit; this one leaves
+    by os._exit, past the crash, so that the test reads the warning alone)."""
+    import subprocess
+    import sys
+
+    code = ("import os, threading\n"
+            "t = threading.Thread(target=lambda: __import__('meshmei'), name='loader')\n"
+            "t.start(); t.join(); print('imported', flush=True); os._exit(0)\n")
+    proc = subprocess.run([sys.executable, "-W", "default", "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == "imported", proc.stderr[-2000:]
+    assert "RuntimeWarning: meshmei is imported in the thread 'loader', not the main thread" in proc.stderr
+    assert "import meshmei at the top of your program, in the main thread" in proc.stderr

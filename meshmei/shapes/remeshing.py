@@ -5,6 +5,8 @@ meshmei, not on first use: a process whose first pymeshlab import ran in a worke
 ``optimize_mei`` in a ``threading.Thread``, with torch loaded) aborted at exit with a corrupted heap
 ("malloc_consolidate(): unaligned fastbin chunk detected") in 11 of 11 tries, and in none of 4 with the
 import made first in the main thread (pymeshlab 2025.7.post1, torch 2.13). The import costs about 0.1 s.
+meshmei itself imported first in a worker thread cannot move it, and says so (a RuntimeWarning from
+:mod:`meshmei.shapes`).
 """
 
 from __future__ import annotations
