@@ -156,6 +156,15 @@ def lockstep(runs: dict, block: int = 20) -> dict:
     return {name: got[name][1] for name in names}
 
 
+def lockstep_pair(fn, args: tuple, unguarded: dict, k: int) -> dict:
+    """``fn(*args, kwargs, callbacks)`` with the settings ``unguarded`` (``"off"``) and with the defaults
+    (``"default"``, ``kwargs`` empty), stepped in :func:`lockstep`: the pair ``k`` of a table, whose unguarded
+    run goes first for even ``k`` and second for odd (which goes first alternates from pair to pair)."""
+    modes = {"off": unguarded, "default": {}}
+    order = list(modes) if k % 2 == 0 else list(modes)[::-1]
+    return lockstep({m: (fn, (*args, modes[m])) for m in order})
+
+
 def lockstep_mei(init: str, seed: int, kwargs: dict, callbacks) -> dict:
     """One 3D-MEI run of the simple cell for :func:`lockstep` (``kwargs``: :class:`MEISettings` fields): its
     ``time_history``, ``activation``, ``health`` (:meth:`~meshmei.mei.MEIResult.health`) and the
@@ -238,18 +247,13 @@ def mei_cost_lockstep(starts=("sphere", "sheet", "torus"), seeds=(0, 1, 2), roun
     the default runs' results' :data:`HEALTH_COLUMNS` (all pairs)."""
     rows = []
     for init in starts:
-        times, acts, first = {"off": [], "default": []}, {"off": [], "default": []}, 0
-        health = []
-        for _ in range(rounds):
-            for seed in seeds:
-                modes = {"off": dict(valid_steps=False), "default": {}}
-                order = list(modes) if first % 2 == 0 else list(modes)[::-1]
-                first += 1
-                runs = lockstep({m: (lockstep_mei, (init, seed, modes[m])) for m in order})
-                for m, res in runs.items():
-                    times[m].append(mean_step(res["time_history"]))
-                    acts[m].append(res["activation"])
-                health.append(runs["default"]["health"])
+        times, acts, health = {"off": [], "default": []}, {"off": [], "default": []}, []
+        for k, seed in enumerate(seed for _ in range(rounds) for seed in seeds):
+            runs = lockstep_pair(lockstep_mei, (init, seed), dict(valid_steps=False), k)
+            for m, res in runs.items():
+                times[m].append(mean_step(res["time_history"]))
+                acts[m].append(res["activation"])
+            health.append(runs["default"]["health"])
         steps = len(runs["off"]["time_history"])
         rows.append([init, steps, len(times["off"]), f"{1000 * median(times['off']):.2f}",
                      f"{1000 * median(times['default']):.2f}", paired_ratio(times["default"], times["off"]),
@@ -360,9 +364,7 @@ def reconstruction_cost_lockstep(problems=(("bunny", "sphere"), ("teapot", "toru
     for problem, init in problems:
         per_step, cds, health = {"off": [], "default": []}, {"off": [], "default": []}, []
         for k, seed in enumerate(seeds):
-            modes = {"off": UNGUARDED, "default": {}}
-            order = list(modes) if k % 2 == 0 else list(modes)[::-1]
-            runs = lockstep({m: (lockstep_reconstruction, (problem, init, n_vertices, seed, modes[m])) for m in order})
+            runs = lockstep_pair(lockstep_reconstruction, (problem, init, n_vertices, seed), UNGUARDED, k)
             for m, res in runs.items():
                 per_step[m].append(res["seconds"] / len(res["time_history"]))
                 cds[m].append(res["chamfer_l2"])
