@@ -582,17 +582,32 @@ def test_a_run_in_a_worker_thread_exits_cleanly():
     assert "malloc" not in proc.stderr and "not the main thread" not in proc.stderr
 
 
-def test_meshmei_imported_first_in_a_worker_thread_says_to_import_it_in_the_main_thread():
-    """Only the caller can import meshmei (and with it pymeshlab) in the main thread: imported first in a worker
-    thread it says so, in a warning that names the thread (such a process aborted at exit; this one leaves
-    by os._exit, past the crash, so that the test reads the warning alone)."""
+def test_meshmei_imported_in_a_worker_thread_leaves_pymeshlab_out_and_exits_cleanly():
+    """meshmei imported first in a worker thread (pytest-xdist's controlling process does so to look up a
+    warning class) brought pymeshlab in there, and such processes aborted at exit: now pymeshlab waits for its
+    first use, and the process ends with code 0."""
+    import subprocess
+    import sys
+
+    code = ("import sys, threading\n"
+            "t = threading.Thread(target=lambda: __import__('meshmei.reconstruct'), name='loader')\n"
+            "t.start(); t.join(); print('meshmei' in sys.modules, 'pymeshlab' in sys.modules)\n")
+    proc = subprocess.run([sys.executable, "-W", "default", "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == "True False", proc.stdout + proc.stderr[-2000:]
+    assert proc.stderr == "", proc.stderr[-2000:]
+
+
+def test_pymeshlab_first_used_in_a_worker_thread_says_to_import_meshmei_in_the_main_thread():
+    """Only the caller can bring pymeshlab into the main thread: first used in a worker thread (a start mesh
+    made there) it says so, in a warning that names the thread (such a process aborted at exit; this one
+    leaves by os._exit, past the crash, so that the test reads the warning alone)."""
     import subprocess
     import sys
 
     code = ("import os, threading\n"
-            "t = threading.Thread(target=lambda: __import__('meshmei'), name='loader')\n"
-            "t.start(); t.join(); print('imported', flush=True); os._exit(0)\n")
+            "t = threading.Thread(target=lambda: __import__('meshmei').initial_mesh('sphere', n_vertices=64), name='loader')\n"
+            "t.start(); t.join(); print('made', flush=True); os._exit(0)\n")
     proc = subprocess.run([sys.executable, "-W", "default", "-c", code], capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0 and proc.stdout.strip() == "imported", proc.stderr[-2000:]
-    assert "RuntimeWarning: meshmei is imported in the thread 'loader', not the main thread" in proc.stderr
+    assert proc.returncode == 0 and proc.stdout.strip() == "made", proc.stderr[-2000:]
+    assert "RuntimeWarning: pymeshlab is first used in the thread 'loader', not the main thread" in proc.stderr
     assert "import meshmei at the top of your program, in the main thread" in proc.stderr

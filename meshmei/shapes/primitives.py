@@ -5,10 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pymeshlab
 import torch
 
 from .._checks import check_positive, float_dtype
+from ._meshlab import pymeshlab
 from .remeshing import check_iterations, count_for_edge_length, edge_length_for_count, isotropic_remesh
 
 __all__ = ["initial_mesh", "INITIAL_KINDS", "DEFAULT_N_VERTICES", "SPHERE_RADIUS", "TORUS_MAJOR_RADIUS",

@@ -1,12 +1,6 @@
 """Isotropic remeshing with pymeshlab, of the starting primitives and of any mesh (``remesh``).
 
-pymeshlab is imported with meshmei (this package's modules import it at the top), in the thread that imports
-meshmei, not on first use: a process whose first pymeshlab import ran in a worker thread (an
-``optimize_mei`` in a ``threading.Thread``, with torch loaded) aborted at exit with a corrupted heap
-("malloc_consolidate(): unaligned fastbin chunk detected") in 11 of 11 tries, and in none of 4 with the
-import made first in the main thread (pymeshlab 2025.7.post1, torch 2.13). The import costs about 0.1 s.
-meshmei itself imported first in a worker thread cannot move it, and says so (a RuntimeWarning from
-:mod:`meshmei.shapes`).
+pymeshlab comes from :mod:`meshmei.shapes._meshlab`, which says in which thread it is imported and why.
 """
 
 from __future__ import annotations
@@ -14,12 +8,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pymeshlab
 import torch
 
 from .._checks import check_positive
 from ..errors import MeshError
 from ..mesh import check_mesh
+from ._meshlab import pymeshlab
 
 __all__ = ["edge_length_for_count", "count_for_edge_length", "isotropic_parameters", "isotropic_remesh", "remesh",
            "mesh_arrays", "MAX_REMESH_GROWTH"]

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import igl
 import numpy as np
-import pymeshlab
 import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -20,6 +19,7 @@ from scipy.spatial import cKDTree
 from .._checks import check_positive, float_dtype
 from ..errors import MeshError
 from ..quality import in_range, range_exponent
+from ._meshlab import pymeshlab
 from .remeshing import isotropic_parameters, mesh_arrays
 
 __all__ = ["target_mesh", "bunny_path", "normalize_unit_diagonal", "TARGET_NAMES", "TEAPOT_FILE", "THIN_TARGETS"]
