@@ -147,7 +147,13 @@ def _objective(encoder, neuron, F, scene: SeedScene, settings: MEISettings, n_we
 
     def objective(point):
         V = scene.vertices()
-        if contacts is not None:  # its candidate search (C and NumPy, without the GIL) runs beside the render
+        # the candidate search (C and NumPy, without the GIL) runs beside the render where the render leaves the
+        # CPU free (a GPU's). On the CPU torch's threads take every core in the render, and the search in a
+        # thread beside them cost as much or more than in line (whole default runs in one lockstep, guarded over
+        # unguarded: from the torus 1.64-1.78 against 1.55-1.66, from the sphere 1.26-1.28 both ways, and
+        # 1.44-1.59 against 1.15-1.40 once the caller had set torch's thread count, to its default 2); the same
+        # results (docs/mei.md, *The search in line*)
+        if contacts is not None and V.device.type != "cpu":
             contacts[0].prefetch(V)
         scene.widen(point.fraction)
         f = scene.expected(encoder(scene.views(V, F), neuron)[:, 0])  # one view, or the robust quadrature
