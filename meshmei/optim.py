@@ -24,7 +24,7 @@ from .deform.largesteps import AdamUniform
 MAX_STEPS = 10**12  # a budget's most steps: 30 years at a millisecond a step (more made tqdm's total overflow)
 
 __all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "Lookahead", "make_optimizer",
-           "minimize"]
+           "minimize", "checked_callbacks"]
 
 SCHEDULE_SHAPES = ("cosine", "geometric", "constant")
 OPTIMIZERS = ("adam", "uniform")
@@ -395,6 +395,22 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
     for i in (~done).nonzero().flatten().tolist() if states else ():
         states[i].restore(before_states[i])
     return torch.where(done, scale, torch.zeros_like(scale)).tolist()
+
+
+
+def checked_callbacks(callbacks, error: type[Exception] = ValueError) -> tuple:
+    """``callbacks`` (one callable, or a sequence of them, each called with every step's record) as a tuple, or
+    ``error`` where one is not callable, raised by the entry point (``optimize_mei``, ``reconstruct``) before
+    anything is built: a step's record handed to it failed deep inside the run."""
+    callbacks = (callbacks,) if callable(callbacks) else callbacks
+    try:
+        callbacks = tuple(callbacks)
+    except TypeError:
+        raise error(f"callbacks must be a callable or a sequence of callables, got {callbacks!r}") from None
+    for k, cb in enumerate(callbacks):
+        if not callable(cb):
+            raise error(f"callbacks[{k}] is not callable: {cb!r}")
+    return callbacks
 
 
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from meshmei.cli import main
-from meshmei.errors import MeshError
+from meshmei.errors import MeshError, ReconstructionError
 from meshmei.metrics import surface_metrics
 from meshmei.quality import count_self_intersections, health_report
 from meshmei.reconstruct import (DEFAULT_STEPS, RBF_FOUR_LEVEL_OVERRIDES, RBF_THREE_LEVEL_OVERRIDES,
@@ -178,6 +178,28 @@ def _fake_clock(monkeypatch, tick: float) -> _Clock:
         monkeypatch.setattr(importlib.import_module(name), "time", clock)
     return clock
 
+
+
+def test_callbacks_get_every_steps_record_and_their_time_is_not_the_runs(sphere, bunny, monkeypatch):
+    """reconstruct's ``callbacks``, as optimize_mei's: each callable gets every step's record, the history's own,
+    over both stages; what they spend is left out of the run's times (a clock that the callback moves on by
+    100 s a step leaves them as they were); one that is not callable is refused before anything is built."""
+    kw = dict(steps=8, stages=(100, 300), stage_fractions=(1, 3), **SMALL)
+    _fake_clock(monkeypatch, 1e-3)
+    plain = reconstruct(sphere, bunny, "rbf", **kw)
+    clock, seen, also = _fake_clock(monkeypatch, 1e-3), [], []
+    res = reconstruct(sphere, bunny, "rbf", callbacks=[seen.append, lambda rec: (also.append(rec["step"]),
+                                                                                 clock.sleep(100.0))], **kw)
+    assert seen == res.history and [r["stage"] for r in seen] == [0, 0, 1, 1, 1, 1, 1, 1]
+    assert also == list(range(1, 9))
+    # the same times, to the rounding of readings 100 s apart
+    assert [h["time"] for h in res.history] == pytest.approx([h["time"] for h in plain.history], rel=0, abs=1e-9)
+    assert torch.equal(res.V, plain.V)
+    for bad, says in ((["not callable"], r"callbacks\[0\] is not callable"), (3, "callbacks must be a callable")):
+        with pytest.raises(ReconstructionError, match=says):
+            reconstruct(sphere, "no such target.obj", "rbf", callbacks=bad, **kw)
+    with pytest.raises(ReconstructionError, match="callback must be callable"):
+        reconstruct(sphere, "no such target.obj", "rbf", callback="print", **kw)
 
 def test_time_budget_stops_the_run(sphere, bunny, monkeypatch):
     _fake_clock(monkeypatch, 0.01)

@@ -348,8 +348,7 @@ def lockstep_reconstruction(problem: str, init: str, n_vertices: int, seed: int,
     the barrier's start included), the final Chamfer-L2 and the result's health (:func:`surface_health`)."""
     target = target_surface(problem)
     V, F, _ = resolve_source(init, n_vertices, torch.float32, target)
-    res = _default_run(V, F, target, "rbf", seed, callback=lambda step, V, loss: [cb({"step": step}) for cb in callbacks],
-                       **kwargs)
+    res = _default_run(V, F, target, "rbf", seed, callbacks=callbacks, **kwargs)
     return {"time_history": [h["time"] for h in res.history], "seconds": res.history[-1]["time"],
             "chamfer_l2": res.final.chamfer_l2, "health": surface_health(res.final)}
 

@@ -18,7 +18,7 @@ from ..contact import ContactBarrier, contact_energies
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import load_mesh, remove_unreferenced
-from ..optim import Budget, Progress, Schedule, Trace, make_optimizer, minimize
+from ..optim import Budget, Progress, Schedule, Trace, checked_callbacks, make_optimizer, minimize
 from ..regularizers import regularizer_values, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
 from ..validity import StepGuard
@@ -214,20 +214,6 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
                 rotation=scene.rotation.detach().clone(), translation=scene.translation.detach().clone())
 
 
-def _checked_callbacks(callbacks) -> tuple:
-    """``callbacks`` (one callable, or a sequence of them) as a tuple, or an MEIError before any step where
-    one is not callable (a step's record handed to it failed deep inside the run)."""
-    callbacks = (callbacks,) if callable(callbacks) else callbacks
-    try:
-        callbacks = tuple(callbacks)
-    except TypeError:
-        raise MEIError(f"callbacks must be a callable or a sequence of callables, got {callbacks!r}") from None
-    for k, cb in enumerate(callbacks):
-        if not callable(cb):
-            raise MEIError(f"callbacks[{k}] is not callable: {cb!r}")
-    return callbacks
-
-
 def guard_report(guard, scales) -> dict:
     """``guard``'s :meth:`~meshmei.validity.StepGuard.report` of one seed's run, with ``"undone"``: its steps
     of which no halving was accepted (``scales``: each step's ``step_scale``), where the mesh stayed put. A
@@ -279,7 +265,7 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     """
     settings = MEISettings.with_overrides(settings, overrides)
     neuron = check_neuron(encoder, neuron)
-    callbacks = _checked_callbacks(callbacks)
+    callbacks = checked_callbacks(callbacks, MEIError)
     settings = settings_for_encoder(settings, encoder)
     V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)

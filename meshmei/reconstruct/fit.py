@@ -22,7 +22,7 @@ from ..contact import IN_CONTACT, ContactBarrier
 from ..deform import MIN_COARSE_KERNELS, PARAMETERISATIONS, NarrowKernelError
 from ..errors import MeshError, ReconstructionError
 from ..metrics import surface_metrics
-from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
+from ..optim import Budget, Lookahead, Progress, Schedule, Trace, checked_callbacks, make_optimizer, minimize
 from ..mesh import numpy_mesh
 from ..quality import self_intersecting_pairs, topology, triangle_quality
 from ..regularizers import regularizer_values, scale_weights
@@ -243,7 +243,7 @@ def _objective(param, vertices, F, sk, weights, chamfer, k, latest, contact):
 
 
 def reconstruct(source, target, method: str | None = None, *, settings: ReconstructionSettings | None = None,
-                progress: bool = False, callback=None, **kwargs) -> ReconstructionResult:
+                progress: bool = False, callback=None, callbacks=(), **kwargs) -> ReconstructionResult:
     """Deform ``source`` into ``target`` by minimising Chamfer distance plus regularizers with Adam.
 
     The loss per step is ``chamfer + w_laplacian * laplacian_loss + w_edge * edge_loss + w_arap *
@@ -271,6 +271,10 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         Show a tqdm progress bar (over steps, or seconds of the budget).
     callback : callable, optional
         ``callback(step, V, loss)`` after every step (``V`` detached, the vertices the loss was taken at).
+    callbacks : callable or sequence of callables, optional
+        Each called with every step's record, the dict the history keeps (``step``, ``loss``, ``chamfer``,
+        ``stage``, ``time``, ...), as ``optimize_mei``'s ``callbacks`` are; their time, like ``callback``'s,
+        is not counted in the run's times. A value that is not callable is refused before anything is built.
 
     Returns
     -------
@@ -305,6 +309,9 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     >>> len(res.history), res.V.shape[1], res.final.chamfer_l2 > 0
     (5, 3, True)
     """
+    callbacks = checked_callbacks(callbacks, ReconstructionError)
+    if callback is not None and not callable(callback):
+        raise ReconstructionError(f"callback must be callable, got {callback!r}")
     if method is not None:
         kwargs["method"] = method
     unknown = sorted(set(kwargs) - {f.name for f in fields(ReconstructionSettings)})
@@ -336,7 +343,7 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     t_start = time.perf_counter()
     F_source = F
     try:
-        V, F = _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info)
+        V, F = _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, callbacks, info)
     finally:
         bar.close()
     final = evaluation.final(V, F)
@@ -623,7 +630,7 @@ def _stage_validity(V, F, k: int, s, info: dict):
     return contact, guard, left_out, max_step
 
 
-def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, info):
+def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, callbacks, info):
     stages = s.stages or (None,)
     bounds = np.cumsum((0.0,) + (s.stage_fractions or (1.0,)))  # stage k covers [bounds[k], bounds[k+1])
     schedule = Schedule("geometric", s.lr_decay)
@@ -650,6 +657,8 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
                 edges_from[0] = rec["step"]
             if callback is not None:
                 callback(rec["step"], latest[0].detach(), rec["loss"])
+            for cb in callbacks:
+                cb(rec)
             if evaluation.due(rec["step"]):
                 with torch.no_grad():
                     evaluation(param.vertices().detach(), F, health=True)
