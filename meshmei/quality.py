@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 from ._checks import check_non_negative
-from .errors import MeshError
 from .mesh import as_faces, check_mesh, check_rest_pose, numpy_mesh
 from .operators import corners, doublearea_from_corners, edges, face_normals, sq_edge_sum_from_corners
 

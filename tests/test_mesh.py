@@ -336,7 +336,7 @@ def test_an_obj_with_index_0_is_refused_naming_its_line(tmp_path, face):
     degenerate mesh without a word (and a texture index 0 turned the face into one point)."""
     path = tmp_path / "zero.obj"
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n" + face + "\n")
-    with pytest.raises(MeshError, match=rf"zero.obj, line 9: a face uses index 0; OBJ indices count from 1"):
+    with pytest.raises(MeshError, match=r"zero.obj, line 9: a face uses index 0; OBJ indices count from 1"):
         load_mesh(path)
 
 

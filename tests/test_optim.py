@@ -467,7 +467,7 @@ def test_an_adam_group_with_a_negative_or_non_finite_lr_is_refused():
     p = torch.ones(3, requires_grad=True)
     assert isinstance(make_optimizer("adam", [{"params": [p], "lr": 0.0}]), torch.optim.Adam)  # 0: held still
     for lr in (-1.0, math.nan, math.inf, "0.1"):
-        with pytest.raises(ValueError, match=f"parameter group 0: lr must be a finite non-negative number"):
+        with pytest.raises(ValueError, match="parameter group 0: lr must be a finite non-negative number"):
             make_optimizer("adam", [{"params": [p], "lr": lr}])
 
 

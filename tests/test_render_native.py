@@ -11,7 +11,7 @@ from contextlib import nullcontext
 import pytest
 import torch
 
-from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_from_angles, rasterize, render
+from meshmei.render import Camera, RenderSettings, axis_angle_to_matrix, camera_from_angles, render
 from meshmei.render import native
 from meshmei.render.native import torch_reference
 from meshmei.render.passes import run_passes
