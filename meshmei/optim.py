@@ -397,7 +397,6 @@ def _backtrack(params, before, accept, max_halvings: int, items: int | None = No
     return torch.where(done, scale, torch.zeros_like(scale)).tolist()
 
 
-
 def checked_callbacks(callbacks, error: type[Exception] = ValueError) -> tuple:
     """``callbacks`` (one callable, or a sequence of them, each called with every step's record) as a tuple, or
     ``error`` where one is not callable, raised by the entry point (``optimize_mei``, ``reconstruct``) before

@@ -605,7 +605,8 @@ def test_pymeshlab_first_used_in_a_worker_thread_says_to_import_meshmei_in_the_m
     import sys
 
     code = ("import os, threading\n"
-            "t = threading.Thread(target=lambda: __import__('meshmei').initial_mesh('sphere', n_vertices=64), name='loader')\n"
+            "make = lambda: __import__('meshmei').initial_mesh('sphere', n_vertices=64)\n"
+            "t = threading.Thread(target=make, name='loader')\n"
             "t.start(); t.join(); print('made', flush=True); os._exit(0)\n")
     proc = subprocess.run([sys.executable, "-W", "default", "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and proc.stdout.strip() == "made", proc.stderr[-2000:]

@@ -5,7 +5,8 @@ corrupted heap ("malloc_consolidate(): unaligned fastbin chunk detected"): an ``
 ``threading.Thread`` (11 of 11 tries), a thread that only imported meshmei (1 of 1), and pytest-xdist's
 controlling process, which imports the module of each warning class its workers report in a receiving
 thread (3 of 3 in a small run; CI's run once, after every test had passed). None did with the import made
-first in the main thread (pymeshlab 2025.7.post1, torch 2.13).
+first in the main thread (pymeshlab 2025.7.post1, torch 2.13); the small run, with meshmei imported as below,
+exits cleanly (10 of 10).
 
 So meshmei imported in the main thread imports pymeshlab with it (about 0.1 s). meshmei imported in another
 thread leaves pymeshlab out until the first use, which may never come (a class unpickled, a warning class
