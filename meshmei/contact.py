@@ -56,9 +56,10 @@ each step's search in a worker thread (:meth:`ContactBarrier.prefetch`) before i
 a 3D-MEI on a GPU before its render (on the CPU torch's threads take every core in the render, and a
 3D-MEI searches in line: docs/mei.md, *The search in line*). For reconstruction, on two cores the 10k
 bunny's default run took 3 to 14 % less time (162.0 s for 167.1 s, and 143.9 s for 168.2 s, in two A/B
-pairs), the 2.5k run the same (96.6 s and 96.8 s, means of two runs each), with the same result bit for bit. The two overlap only where the Chamfer term's KD-tree
-queries let go of the GIL, which scipy's do with two or more query threads, not with one
-(:meth:`meshmei.sampling.PointIndex.query`): with two, the default 2.5k bunny run went from 47 s to 38 s.
+pairs), the 2.5k run the same (96.6 s and 96.8 s, means of two runs each), with the same result bit for bit.
+The two overlap only where the Chamfer term's KD-tree queries let go of the GIL, which scipy's do with two or
+more query threads, not with one (:meth:`meshmei.sampling.PointIndex.query`): with two, the default 2.5k
+bunny run went from 47 s to 38 s.
 """
 
 from __future__ import annotations
