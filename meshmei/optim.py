@@ -24,7 +24,7 @@ from .deform.largesteps import AdamUniform
 MAX_STEPS = 10**12  # a budget's most steps: 30 years at a millisecond a step (more made tqdm's total overflow)
 
 __all__ = ["Schedule", "Budget", "StepPoint", "Trace", "Progress", "Outcome", "Lookahead", "make_optimizer",
-           "minimize", "checked_callbacks"]
+           "minimize", "checked_callbacks", "tagged_callbacks"]
 
 SCHEDULE_SHAPES = ("cosine", "geometric", "constant")
 OPTIMIZERS = ("adam", "uniform")
@@ -411,6 +411,11 @@ def checked_callbacks(callbacks, error: type[Exception] = ValueError) -> tuple:
             raise error(f"callbacks[{k}] is not callable: {cb!r}")
     return callbacks
 
+
+def tagged_callbacks(callbacks, **tags) -> tuple:
+    """``callbacks`` each of which gets every record with ``tags`` added (a copy: the history keeps its own):
+    which seed, or which items of a batch, a step belongs to."""
+    return tuple((lambda rec, cb=cb: cb({**rec, **tags})) for cb in callbacks)
 
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
              schedule: Schedule = Schedule(), keep: str = "last", keep_from: float = 0.0,

@@ -84,12 +84,12 @@ def test_deterministic_for_a_seed(tiny_run):
 
 
 def test_callbacks_see_every_step_of_every_seed():
-    """``callbacks`` get each step's history record, seed after seed, and leave the run as it is; one that is
-    not callable is refused before any step."""
+    """``callbacks`` get each step's history record with its seed, seed after seed, and leave the run as it
+    is; one that is not callable is refused before any step."""
     kw = dict(steps=3, seeds=(0, 1), image_size=16, n_vertices=64)
     seen, also = [], []
     res = optimize_mei(GaborSimpleCell(), 0, "sheet", callbacks=[seen.append, also.append], **kw)
-    assert [r["step"] for r in seen] == [1, 2, 3, 1, 2, 3] and also == seen
+    assert [(r["step"], r["seed"]) for r in seen] == [(1, 0), (2, 0), (3, 0), (1, 1), (2, 1), (3, 1)] and also == seen
     assert {"time", "loss", "response", "step_scale"} <= set(seen[0])
     plain = optimize_mei(GaborSimpleCell(), 0, "sheet", **kw)
     torch.testing.assert_close(res.V, plain.V, atol=1e-5, rtol=0)  # rounding: as test_deterministic_for_a_seed

@@ -60,6 +60,31 @@ def test_batches_yield_each_neuron_once_as_its_seeds_finish():
     assert seen == [1, 0]
 
 
+
+def test_batch_callbacks_see_every_step_with_its_items():
+    """A batched run's ``callbacks`` get each step's record with ``items``, the batch's (neuron, seed) pairs,
+    each value per item in that order, and leave the run as it is. Under a robust objective every neuron runs
+    alone: its records are optimize_mei's (one value, their seed), with their one item. A callback that is
+    not callable is refused before any step."""
+    enc = _two_cell_encoder()
+    s = MEISettings(steps=2, seeds=(0, 1), image_size=24, n_vertices=40)
+    seen = []
+    res = optimize_mei_batch(enc, [1, 0], "sheet", s, batch_size=3, callbacks=seen.append)
+    first, second = [(1, 0), (1, 1), (0, 0)], [(0, 1)]
+    assert [(r["step"], r["items"]) for r in seen] == [(1, first), (2, first), (1, second), (2, second)]
+    assert all(len(r["response"]) == len(r["loss"]) == len(r["items"]) for r in seen)
+    plain = optimize_mei_batch(enc, [1, 0], "sheet", s, batch_size=3)
+    for n in (0, 1):
+        torch.testing.assert_close(res[n].V, plain[n].V, atol=1e-5, rtol=0)  # rounding, as optimize_mei's test
+    robust = []
+    optimize_mei_batch(enc, [1, 0], "sheet", s, robust_pose=0.2, callbacks=robust.append)
+    assert [(r["step"], r["seed"], r["items"]) for r in robust] == [
+        (1, 0, [(1, 0)]), (2, 0, [(1, 0)]), (1, 1, [(1, 1)]), (2, 1, [(1, 1)]),
+        (1, 0, [(0, 0)]), (2, 0, [(0, 0)]), (1, 1, [(0, 1)]), (2, 1, [(0, 1)])]
+    assert all(isinstance(r["response"], float) for r in robust)
+    with pytest.raises(MEIError, match=r"callbacks\[0\] is not callable"):
+        optimize_mei_batch(enc, [0], "sheet", s, callbacks=[3], progress=False)
+
 def test_guarded_items_equal_their_guarded_runs_alone():
     """valid_steps (the default) in float64 at ten times the default rate: each item's guard refuses and
     halves its own steps, and every item ends where its guarded run alone ends, with the same step scales."""

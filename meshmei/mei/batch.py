@@ -19,7 +19,8 @@ import torch
 from ..deform.rbf import dense_map, dense_negatives
 from ..encoders import Encoder, frozen_encoder
 from ..errors import MEIError
-from ..optim import Budget, Lookahead, Progress, Schedule, Trace, make_optimizer, minimize
+from ..optim import (Budget, Lookahead, Progress, Schedule, Trace, checked_callbacks, make_optimizer, minimize,
+                     tagged_callbacks)
 from ..regularizers import regularizer_values
 from ..render import axis_angle_to_matrix, render
 from ..validity import StepGuard, face_frame
@@ -189,8 +190,10 @@ def check_batch_size(batch_size) -> None:
         raise MEIError(f"batch_size must be a positive integer, got {batch_size!r}")
 
 
-def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress, uv) -> list[dict]:
-    """Optimise the ``(neuron, seed)`` items together; one run dict per item, as ``optimize_mei`` makes per seed."""
+def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar: Progress, uv,
+               callbacks=()) -> list[dict]:
+    """Optimise the ``(neuron, seed)`` items together; one run dict per item, as ``optimize_mei`` makes per seed.
+    ``callbacks`` get each step's record with ``items``."""
     neurons = [n for n, _ in items]
     scene = BatchScene(V0, settings, [s for _, s in items], uv, F, n_weights)
     trace = Trace()
@@ -198,6 +201,7 @@ def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar
                    make_optimizer("adam", scene.groups), Budget(steps=settings.steps),
                    schedule=Schedule("cosine", settings.lr_decay, endpoint=True), keep=settings.keep,
                    evaluate_last=True, trace=trace, progress=bar, accept=scene.acceptor(),
+                   callbacks=tagged_callbacks(callbacks, items=[tuple(item) for item in items]),
                    max_halvings=scene.max_halvings, states=scene.rbfs, error=MEIError, where=f" (items {items})")
     with torch.no_grad():
         V = scene.vertices().detach()
@@ -207,7 +211,8 @@ def _run_batch(encoder, items, V0, F, settings: MEISettings, n_weights: int, bar
 
 
 def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings | None = None, *,
-                batch_size: int = 8, progress: Progress | None = None, **overrides) -> Iterator[tuple[int, MEIResult]]:
+                batch_size: int = 8, progress: Progress | None = None, callbacks=(),
+                **overrides) -> Iterator[tuple[int, MEIResult]]:
     """3D-MEIs of several neurons, their (neuron, seed) items run ``batch_size`` at a time; yields
     ``(neuron, MEIResult)`` as soon as all of a neuron's seeds are done, in the order of ``neurons``.
 
@@ -216,8 +221,15 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
     has its own guard and contact barrier; a refused item's step is halved on its own. With a robust
     objective (K views per item) every neuron runs alone through :func:`optimize_mei`.
     ``progress`` (a :class:`~meshmei.optim.Progress` over steps of batches) is updated, not closed.
+
+    ``callbacks`` (one callable or several) are called after every step of every batch with the step's
+    history record and ``items``, the batch's ``(neuron, seed)`` pairs: each item's values (``response``,
+    ``loss``, the regularizers', ``step_scale``) are lists in that order. With a robust objective a neuron's
+    records are :func:`optimize_mei`'s (one value each, its ``seed``), with ``items`` ``[(neuron, seed)]``.
+    Their time is not counted in the run's times.
     """
     settings = settings_for_encoder(MEISettings.with_overrides(settings, overrides), encoder)
+    callbacks = checked_callbacks(callbacks, MEIError)
     neurons = [check_neuron(encoder, n) for n in neurons]
     if len(set(neurons)) != len(neurons):
         twice = sorted({n for n in neurons if neurons.count(n) > 1})
@@ -225,7 +237,8 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
     check_batch_size(batch_size)
     if settings.robust_pose > 0 or settings.robust_light > 0:
         for n in neurons:  # K views per item: each neuron alone
-            yield n, optimize_mei(encoder, n, init, settings)
+            alone = [(lambda rec, n=n, cb=cb: cb({**rec, "items": [(n, rec["seed"])]})) for cb in callbacks]
+            yield n, optimize_mei(encoder, n, init, settings, callbacks=alone)
         return
     V0, F, init_name = initial(init, settings, encoder.device)
     settings = settings.for_start(init_name)
@@ -239,7 +252,7 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
             chunk = items[start:start + batch_size]
             t0 = time.perf_counter()
             runs = _run_batch(encoder, chunk, V0, F, settings, n_weights, bar,
-                              sheet_uv(V0) if init_name == "sheet" else None)
+                              sheet_uv(V0) if init_name == "sheet" else None, callbacks)
             share = (time.perf_counter() - t0) / len(chunk)
             for (n, s), run in zip(chunk, runs):
                 done.setdefault(n, {})[s] = run
@@ -250,8 +263,8 @@ def mei_batches(encoder: Encoder, neurons, init="sheet", settings: MEISettings |
 
 
 def optimize_mei_batch(encoder: Encoder, neurons, init="sheet", settings: MEISettings | None = None, *,
-                       batch_size: int = 8, progress: bool = False, **overrides) -> dict[int, MEIResult]:
-    """3D-MEIs of several neurons, batched (see :func:`mei_batches`): ``{neuron: MEIResult}``.
+                       batch_size: int = 8, progress: bool = False, callbacks=(), **overrides) -> dict[int, MEIResult]:
+    """3D-MEIs of several neurons, batched (see :func:`mei_batches`, also for ``callbacks``): ``{neuron: MEIResult}``.
 
     Examples
     --------
@@ -268,6 +281,6 @@ def optimize_mei_batch(encoder: Encoder, neurons, init="sheet", settings: MEISet
         raise MEIError(f"neurons must be a sequence of neuron indices (e.g. [{neurons!r}]), got {neurons!r}") from None
     bar = Progress(s.steps * -(-len(neurons) * len(s.seeds) // batch_size), "3D-MEI batches", enabled=progress)
     try:
-        return dict(mei_batches(encoder, neurons, init, s, batch_size=batch_size, progress=bar))
+        return dict(mei_batches(encoder, neurons, init, s, batch_size=batch_size, progress=bar, callbacks=callbacks))
     finally:
         bar.close()

@@ -18,7 +18,7 @@ from ..contact import ContactBarrier, contact_energies
 from ..encoders import Encoder, encoder_spec, frozen_encoder
 from ..errors import EncoderError, MEIError
 from ..mesh import load_mesh, remove_unreferenced
-from ..optim import Budget, Progress, Schedule, Trace, checked_callbacks, make_optimizer, minimize
+from ..optim import Budget, Progress, Schedule, Trace, checked_callbacks, make_optimizer, minimize, tagged_callbacks
 from ..regularizers import regularizer_values, scale_weights
 from ..shapes import INITIAL_KINDS, initial_mesh
 from ..validity import StepGuard
@@ -195,8 +195,8 @@ def _run_seed(encoder, neuron, V0, F, settings: MEISettings, seed: int, bar: Pro
     out = minimize(_objective(encoder, neuron, F, scene, settings, n_weights, guard), make_optimizer("adam", scene.groups),
                    Budget(steps=settings.steps), schedule=Schedule("cosine", settings.lr_decay, endpoint=True),
                    keep=settings.keep, keep_from=settings.robust_widen if scene.robust is not None else 0.0,
-                   evaluate_last=True, trace=trace, progress=bar, callbacks=callbacks, accept=accept,
-                   max_halvings=0 if guard is None else guard.rules.max_halvings, states=(scene.rbf,),
+                   evaluate_last=True, trace=trace, progress=bar, callbacks=tagged_callbacks(callbacks, seed=seed),
+                   accept=accept, max_halvings=0 if guard is None else guard.rules.max_halvings, states=(scene.rbf,),
                    error=MEIError, where=f" of seed {seed}")
     with torch.no_grad():
         V = scene.rbf().detach()
@@ -245,9 +245,9 @@ def optimize_mei(encoder: Encoder, neuron: int, init="sphere", settings: MEISett
     progress : bool
         Show a tqdm progress bar over all steps of all seeds.
     callbacks : callable or sequence of callables
-        Each called after every step of every seed with the step's history record (a dict: ``step``,
-        ``time``, ``loss``, ``response``, the regularizers' values, ``step_scale`` with the guard), in
-        seed order; their time is not counted in the run's times (:func:`meshmei.optim.minimize`).
+        Each called after every step of every seed with the step's history record and its ``seed`` (a dict:
+        ``step``, ``time``, ``loss``, ``response``, the regularizers' values, ``step_scale`` with the guard,
+        ``seed``), in seed order; their time is not counted in the run's times (:func:`meshmei.optim.minimize`).
     **overrides
         Fields of :class:`MEISettings` replacing those of ``settings``.
 
