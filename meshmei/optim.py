@@ -417,6 +417,7 @@ def tagged_callbacks(callbacks, **tags) -> tuple:
     which seed, or which items of a batch, a step belongs to."""
     return tuple((lambda rec, cb=cb: cb({**rec, **tags})) for cb in callbacks)
 
+
 def minimize(objective: Callable, optimizer: torch.optim.Optimizer, budget: Budget, *,
              schedule: Schedule = Schedule(), keep: str = "last", keep_from: float = 0.0,
              trace: Trace | None = None, stop_at: float = 1.0, stop_step: int | None = None,

@@ -60,7 +60,6 @@ def test_batches_yield_each_neuron_once_as_its_seeds_finish():
     assert seen == [1, 0]
 
 
-
 def test_batch_callbacks_see_every_step_with_its_items():
     """A batched run's ``callbacks`` get each step's record with ``items``, the batch's (neuron, seed) pairs,
     each value per item in that order, and leave the run as it is. Under a robust objective every neuron runs
@@ -84,6 +83,7 @@ def test_batch_callbacks_see_every_step_with_its_items():
     assert all(isinstance(r["response"], float) for r in robust)
     with pytest.raises(MEIError, match=r"callbacks\[0\] is not callable"):
         optimize_mei_batch(enc, [0], "sheet", s, callbacks=[3], progress=False)
+
 
 def test_guarded_items_equal_their_guarded_runs_alone():
     """valid_steps (the default) in float64 at ten times the default rate: each item's guard refuses and

@@ -179,7 +179,6 @@ def _fake_clock(monkeypatch, tick: float) -> _Clock:
     return clock
 
 
-
 def test_callbacks_get_every_steps_record_and_their_time_is_not_the_runs(sphere, bunny, monkeypatch):
     """reconstruct's ``callbacks``, as optimize_mei's: each callable gets every step's record, the history's own,
     over both stages; what they spend is left out of the run's times (a clock that the callback moves on by
@@ -200,6 +199,7 @@ def test_callbacks_get_every_steps_record_and_their_time_is_not_the_runs(sphere,
             reconstruct(sphere, "no such target.obj", "rbf", callbacks=bad, **kw)
     with pytest.raises(ReconstructionError, match="callback must be callable"):
         reconstruct(sphere, "no such target.obj", "rbf", callback="print", **kw)
+
 
 def test_time_budget_stops_the_run(sphere, bunny, monkeypatch):
     _fake_clock(monkeypatch, 0.01)

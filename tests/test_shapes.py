@@ -5,6 +5,8 @@ import doctest
 import math
 import os
 import re
+import subprocess
+import sys
 
 import igl
 import numpy as np
@@ -567,9 +569,6 @@ def test_a_run_in_a_worker_thread_exits_cleanly():
     """pymeshlab is imported with meshmei: a process whose first pymeshlab import ran in a worker thread (a
     3D-MEI from a built-in start, run in a threading.Thread) aborted at exit with a corrupted heap
     (malloc_consolidate), after its results were out. Here the same run, in its own process, ends with code 0."""
-    import subprocess
-    import sys
-
     code = ("import threading\n"
             "from meshmei.mei import optimize_mei\n"
             "from meshmei.encoders import GaborSimpleCell\n"
@@ -586,9 +585,6 @@ def test_meshmei_imported_in_a_worker_thread_leaves_pymeshlab_out_and_exits_clea
     """meshmei imported first in a worker thread (pytest-xdist's controlling process does so to look up a
     warning class) brought pymeshlab in there, and such processes aborted at exit: now pymeshlab waits for its
     first use, and the process ends with code 0."""
-    import subprocess
-    import sys
-
     code = ("import sys, threading\n"
             "t = threading.Thread(target=lambda: __import__('meshmei.reconstruct'), name='loader')\n"
             "t.start(); t.join(); print('meshmei' in sys.modules, 'pymeshlab' in sys.modules)\n")
@@ -601,9 +597,6 @@ def test_pymeshlab_first_used_in_a_worker_thread_says_to_import_meshmei_in_the_m
     """Only the caller can bring pymeshlab into the main thread: first used in a worker thread (a start mesh
     made there) it says so, in a warning that names the thread (such a process aborted at exit; this one
     leaves by os._exit, past the crash, so that the test reads the warning alone)."""
-    import subprocess
-    import sys
-
     code = ("import os, threading\n"
             "make = lambda: __import__('meshmei').initial_mesh('sphere', n_vertices=64)\n"
             "t = threading.Thread(target=make, name='loader')\n"

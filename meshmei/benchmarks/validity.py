@@ -380,7 +380,8 @@ def run_reconstruction_cost_lockstep(n_vertices: int = 2500, seeds=(0, 1, 2)) ->
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     rows = reconstruction_cost_lockstep(seeds=seeds, n_vertices=n_vertices)
-    flags = "" if n_vertices == 2500 else f" --lockstep-vertices {n_vertices} --lockstep-seeds {','.join(map(str, seeds))}"
+    flags = ("" if n_vertices == 2500 else
+             f" --lockstep-vertices {n_vertices} --lockstep-seeds {','.join(map(str, seeds))}")
     body = "\n".join([
         f"## Cost of valid reconstruction steps, whole runs in lockstep at {n_vertices:,} vertices "
         f"(`python -m meshmei.benchmarks.validity --parts recon-lockstep{flags}`)",

@@ -33,7 +33,6 @@ class _Deferred:
                           stacklevel=3)
         import pymeshlab as module
 
-        globals()["pymeshlab"] = module
         return getattr(module, name)
 
 
