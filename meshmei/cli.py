@@ -357,7 +357,8 @@ def _add_reconstruct(sub) -> None:
                         "pairing by normal in the first stage, at most 150 and 250 steps in the two coarse stages "
                         "and a quarter of the Laplacian weight in the two fine stages: RBF_THREE_LEVEL_OVERRIDES); "
                         "'auto4': auto3's schedule for n/4, then one stage at n (n/64,n/16,n/4,n/4,n; for rbf the "
-                        "same settings, and the last stage as light: RBF_FOUR_LEVEL_OVERRIDES); "
+                        "same settings, at most 350 and 250 steps in the two n/4 stages, and the last stage as light: "
+                        "RBF_FOUR_LEVEL_OVERRIDES); "
                         "'auto' (default): auto4 for rbf from 8,000 vertices, auto3 from 2,000, else auto2 "
                         "(default_schedule), counted on the start as built (a generated one lands within about 8 %% "
                         "of --n-vertices); 'none': one stage")

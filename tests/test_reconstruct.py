@@ -376,7 +376,10 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
         assert default_schedule("rbf", n) == (*default_stages(n, 3), RBF_THREE_LEVEL_OVERRIDES)
     # from 8k (the benchmark's 10k) four: what three give n/4, then one stage at n as light as the fine ones
     assert FOUR_LEVEL_MIN_VERTICES == 4 * THREE_LEVEL_MIN_VERTICES
-    assert RBF_FOUR_LEVEL_OVERRIDES == (*RBF_THREE_LEVEL_OVERRIDES, RBF_THREE_LEVEL_OVERRIDES[-1])
+    # the first four stages as three levels' (and capped as below), the last as light as the fine ones
+    assert [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_FOUR_LEVEL_OVERRIDES] == [
+        {k: v for k, v in o.items() if k != "max_steps"} for o in (*RBF_THREE_LEVEL_OVERRIDES,
+                                                                    RBF_THREE_LEVEL_OVERRIDES[-1])]
     for n in (FOUR_LEVEL_MIN_VERTICES, 10_000, 28_000):
         assert default_schedule("rbf", n) == (*default_stages(n, 4), RBF_FOUR_LEVEL_OVERRIDES)
     for n in (THREE_LEVEL_MIN_VERTICES, *starts, 10_000, 28_000):
@@ -406,6 +409,14 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
     shares = default_stages(10_000, 3)[1]
     assert [o["max_steps"] for o in RBF_THREE_LEVEL_OVERRIDES[:2]] == [round(f * DEFAULT_STEPS) for f in shares[:2]]
     assert all("max_steps" not in (o or {}) for o in RBF_THREE_LEVEL_OVERRIDES[2:])
+    # four levels: up to the last stage at most the steps the default three-level run gives its stages (the
+    # 2,500-vertex default run's, stage by stage), so a long budget goes to the last stage; the default run
+    # at 10k gives each stage fewer steps than its limit, so the limits cut only longer budgets
+    four = [o.get("max_steps") for o in RBF_FOUR_LEVEL_OVERRIDES]
+    assert four == [round(f * DEFAULT_STEPS) for f in shares] + [None]
+    for n in (FOUR_LEVEL_MIN_VERTICES, 10_000):
+        steps = [round(f * DEFAULT_STEPS) for f in default_stages(n, 4)[1]]
+        assert all(k < cap for k, cap in zip(steps, four[:-1]))
     assert default_schedule("largesteps", 10_000, 3, n_samples=3000)[2] is None
     with pytest.raises(ValueError, match="method"):
         default_schedule("bogus", 10_000)

@@ -218,8 +218,10 @@ class ReconstructionSettings:
         that reaches it ends there, and what is left of its share of the budget goes to the stages after it,
         in their proportions (the stage's record says ``max_steps`` and ``ended_at_max_steps``); set for
         the last stage, or for a run without stages, the run ends there. ``default_schedule`` limits rbf's
-        two coarse stages of three to the steps a default run of 1,000 gives them (150 and 250), so that a
-        long time budget goes to the final resolution (docs/reconstruction.md, *Long budgets*).
+        two coarse stages of three to the steps a default run of 1,000 gives them (150 and 250), and with four
+        levels also the two stages at n/4 (350 and 250, what the 2,500-vertex default run gives its 2,500-vertex
+        stages), so that a long time budget goes to the final resolution (docs/reconstruction.md, *Long
+        budgets*, *The 2,500-vertex stages' limits*).
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
