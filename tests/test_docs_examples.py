@@ -19,7 +19,9 @@ SHORTER = {
     "mei.md": [(r"steps=300", "steps=3"), (r"steps=200", "steps=3"), (r"progress=True", "progress=False")],
     "population.md": [(r"range\(100\)", "range(2)"), (r"steps=300", "steps=3")],
     "reconstruction.md": [(r"time_budget=30", "time_budget=1"), (r"eval_times=\(10, 20\)", "eval_times=(0.5,)"),
-                          (r"progress=True", "progress=False")],
+                          (r"progress=True", "progress=False"),
+                          (r'stages="auto"\)', 'stages="auto", steps=12, n_samples=500, target_pool=2000, '
+                                               'eval_samples=1000)')],
     "rendering.md": [],
     "shapes.md": [],
     "tuning.md": [],

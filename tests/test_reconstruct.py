@@ -1842,3 +1842,35 @@ def test_a_budget_spent_before_the_first_step_says_whether_the_start_was_remeshe
     assert not res.history and res.V.shape[0] == res.info["stages"][0]["n_vertices"] != sphere[0].shape[0]
     assert res.info["warnings"][-1] == (f"the time budget (1e-09 s) ran out before the first step: the result is "
                                         f"the start remeshed to {res.V.shape[0]} vertices, not a fit")
+
+
+def test_stages_auto_runs_the_command_lines_schedule_of_the_source_as_built(sphere, bunny):
+    from meshmei.reconstruct import NAMED_SCHEDULES, default_schedule, source_mesh
+
+    assert NAMED_SCHEDULES == ("auto", "auto2", "auto3", "auto4")
+    n = sphere[0].shape[0]
+    for name, levels in (("auto", None), ("auto3", 3)):
+        stages, fractions, overrides = default_schedule("rbf", n, levels, n_samples=SMALL["n_samples"])
+        assert stages is not None and (overrides is not None) == (levels == 3)
+        named = reconstruct(sphere, bunny, "rbf", steps=16, stages=name, seed=1, **SMALL)
+        given = reconstruct(sphere, bunny, "rbf", steps=16, stages=stages, stage_fractions=fractions,
+                            stage_overrides=overrides, seed=1, **SMALL)
+        # the same run bit for bit, and its settings hold the schedule it resolved to (a replay needs no name)
+        assert torch.equal(named.V, given.V) and torch.equal(named.F, given.F)
+        assert [h["loss"] for h in named.history] == [h["loss"] for h in given.history]
+        assert named.to_json()["settings"] == given.to_json()["settings"]
+        assert [st["n_vertices_asked"] for st in named.info["stages"] if "n_vertices_asked" in st] == list(stages)
+    # a named source is counted as built (the torus of 2,500 vertices lands under 2,500), as the CLI counts it
+    teapot = target_mesh("teapot")
+    built = source_mesh("torus", target=teapot)[0].shape[0]
+    assert built != 2500 and default_schedule("rbf", built)[0] != default_schedule("rbf", 2500)[0]
+    res = reconstruct("torus", teapot, "rbf", steps=8, stages="auto", **SMALL)
+    assert tuple(res.to_json()["settings"]["stages"]) == default_schedule("rbf", built)[0]
+    # what it cannot be given with, and names it does not know: refused before anything is built
+    for bad in (dict(stages="auto", stage_fractions=(0.5, 0.5)), dict(stages="auto3", stage_overrides=(None,) * 4)):
+        with pytest.raises(ReconstructionError, match="sets the stages' shares and overrides itself"):
+            reconstruct(sphere, "no/such/target.obj", "rbf", steps=4, **bad)
+    with pytest.raises(ReconstructionError, match=r"one of \('auto', 'auto2', 'auto3', 'auto4'\), got 'auto5'"):
+        reconstruct(sphere, "no/such/target.obj", "rbf", steps=4, stages="auto5")
+    with pytest.raises(ReconstructionError, match="reconstruct\\(\\) resolves it"):
+        ReconstructionSettings(stages="auto").resolved()

@@ -4,6 +4,7 @@ from .fit import reconstruct, stage_weights
 from .runs import save_reconstruction
 from .schedule import (
     FOUR_LEVEL_MIN_VERTICES,
+    NAMED_SCHEDULES,
     RBF_FOUR_LEVEL_OVERRIDES,
     RBF_THREE_LEVEL_OVERRIDES,
     THREE_LEVEL_MIN_VERTICES,
@@ -40,6 +41,7 @@ __all__ = [
     "THREE_LEVEL_MIN_VERTICES",
     "FOUR_LEVEL_MIN_VERTICES",
     "schedule_from_text",
+    "NAMED_SCHEDULES",
     "SOURCE_NAMES",
     "source_mesh",
     "resolve_source",

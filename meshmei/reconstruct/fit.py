@@ -29,6 +29,7 @@ from ..regularizers import regularizer_values, scale_weights
 from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
 from ..validity import StepGuard
+from .schedule import NAMED_SCHEDULES, schedule_from_text
 from .settings import AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings, ReconstructionWarning
 from .sources import source_mesh, target_surface
 
@@ -264,9 +265,11 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
         Replaces ``settings.method`` when given; otherwise the settings' method (default ``"rbf"``) runs.
     settings : ReconstructionSettings, optional
         All other options (see its attributes); keyword arguments override its fields, e.g.
-        ``reconstruct(src, "bunny", steps=300, lr=1e-3)``. Without ``stages`` the fit runs in one stage; the
-        command line's coarse-to-fine schedule is ``stages, stage_fractions, stage_overrides =
-        default_schedule(method, n)`` (two orders of magnitude lower Chamfer-L2 on the 2.5k bunny).
+        ``reconstruct(src, "bunny", steps=300, lr=1e-3)``. Without ``stages`` the fit runs in one stage;
+        ``stages="auto"`` runs the command line's coarse-to-fine schedule (:func:`default_schedule` for the
+        method and the source's vertex count as built: its stages, shares and overrides; ``"auto2"``,
+        ``"auto3"``, ``"auto4"`` force that many levels), two orders of magnitude lower Chamfer-L2 on the
+        2.5k bunny. The result's settings hold the schedule it resolved to.
     progress : bool
         Show a tqdm progress bar (over steps, or seconds of the budget).
     callback : callable, optional
@@ -321,10 +324,15 @@ def reconstruct(source, target, method: str | None = None, *, settings: Reconstr
     if "method" in kwargs and kwargs["method"] != base.method:
         base = base.without_method_defaults()  # a result's resolved settings held the other method's lr, ...
     given = replace(base, **kwargs)
-    s = given.resolved()
-    per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
+    named = _named_schedule(given)
+    s = (replace(given, stages=None) if named else given).resolved()  # every other value checked before loading
     Vt, Ft, frame = target_surface(target, return_frame=True)
     V, F = source_mesh(source, target=(Vt, Ft))
+    if named:  # the schedule of the source as built, as the command line counts it
+        stages, fractions, overrides = schedule_from_text(named, s.method, V.shape[0], n_samples=s.n_samples)
+        given = replace(given, stages=stages, stage_fractions=fractions, stage_overrides=overrides)
+        s = given.resolved()
+    per_stage = given.stage_settings() if s.stage_overrides else None  # each stage's own settings
     Vt = Vt.to(V.dtype)
     g = torch.Generator(device=V.device).manual_seed(s.seed)
     by_normal = any(sk.normal_match > 0 for sk in (per_stage or [s]))  # the target's normals are needed
@@ -628,6 +636,20 @@ def _stage_validity(V, F, k: int, s, info: dict):
         contact.track_edges()
         guard.use_contact(contact)
     return contact, guard, left_out, max_step
+
+
+def _named_schedule(given: ReconstructionSettings) -> str | None:
+    """``stages`` when it names a schedule (:data:`~meshmei.reconstruct.schedule.NAMED_SCHEDULES`: ``"auto"``,
+    ``"auto2"``, ...), which sets the shares and overrides too; None when it gives counts or nothing."""
+    if not isinstance(given.stages, str):
+        return None
+    if given.stages not in NAMED_SCHEDULES:
+        raise ReconstructionError(f"stages must be vertex counts, None or one of {NAMED_SCHEDULES}, "
+                                  f"got {given.stages!r}")
+    if given.stage_fractions is not None or given.stage_overrides is not None:
+        raise ReconstructionError(f"stages={given.stages!r} sets the stages' shares and overrides itself; for other "
+                                  f"ones pass the counts (default_schedule(method, n) gives all three to start from)")
+    return given.stages
 
 
 def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, callback, callbacks, info):

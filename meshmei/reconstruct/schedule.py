@@ -9,7 +9,12 @@ from ..errors import ReconstructionError
 from .settings import METHODS, MIN_STAGE_VERTICES
 
 __all__ = ["RBF_THREE_LEVEL_OVERRIDES", "RBF_FOUR_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES",
-           "FOUR_LEVEL_MIN_VERTICES", "default_stages", "default_schedule", "schedule_from_text"]
+           "FOUR_LEVEL_MIN_VERTICES", "NAMED_SCHEDULES", "default_stages", "default_schedule", "schedule_from_text"]
+
+# The schedules named by text, in reconstruct(stages=...) and the CLI's --stages: the levels they force (None:
+# default_schedule's pick)
+_LEVELS = {"auto": None, "auto2": 2, "auto3": 3, "auto4": 4}
+NAMED_SCHEDULES = tuple(_LEVELS)
 
 # rbf with three levels (default_stages(n, levels=3)) in the benchmark (variant rbf-3levels) and the CLI's
 # --stages auto3. The coarsest stage (625 vertices at 10k) draws 5,000 Chamfer samples a step instead of
@@ -152,9 +157,8 @@ def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: in
     (one stage), or comma-separated vertex counts with equal shares (``"600,2500,2500"``), each at least
     ``MIN_STAGE_VERTICES`` (32). ``n_vertices`` is the start's count, a positive integer."""
     _vertex_count(n_vertices)
-    levels = {"auto": None, "auto2": 2, "auto3": 3, "auto4": 4}
-    if spec in levels:
-        return default_schedule(method, n_vertices, levels[spec], n_samples=n_samples)
+    if spec in _LEVELS:
+        return default_schedule(method, n_vertices, _LEVELS[spec], n_samples=n_samples)
     if not spec or spec == "none":
         return None, None, None
     try:

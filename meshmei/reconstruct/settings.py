@@ -135,13 +135,15 @@ class ReconstructionSettings:
         (its record says ``n_coarse_kernels`` 0): 10**6 on a 194-vertex mesh gave none, without a word.
     coarse_lr : float
         Learning rate of the coarse offsets as a multiple of ``lr`` (default 3).
-    stages : tuple of int, or None
+    stages : tuple of int, "auto", "auto2", "auto3", "auto4", or None
         Vertex counts of coarse-to-fine stages; the source is remeshed to ``stages[0]`` at the start and the
-        current shape to each next count between stages. None: one stage at the source's resolution. The
-        command line runs :func:`~meshmei.reconstruct.default_schedule` instead (its stages, shares and
-        overrides): on the 2.5k bunny its default run reaches Chamfer-L2 about 1.2e-6, one stage of the
-        same method about 1e-4 (``reconstruct("sphere", "bunny")``, 2026-11-30); pass its three values to
-        fit as the command line does.
+        current shape to each next count between stages. None: one stage at the source's resolution.
+        ``"auto"`` (in :func:`~meshmei.reconstruct.reconstruct`): the command line's default schedule,
+        :func:`~meshmei.reconstruct.default_schedule` for the method and the source's vertex count (its
+        stages, shares and overrides; ``stage_fractions`` and ``stage_overrides`` must then be unset);
+        ``"auto2"``... force that many levels, as ``--stages`` does. On the 2.5k bunny the default run
+        reaches Chamfer-L2 about 1.2e-6, one stage of the same method about 1e-4 (``reconstruct("sphere",
+        "bunny")``, 2026-11-30).
         Under a time budget, a restart (a stage at the count of the one before, with the same settings)
         whose share is under twice the set-up time that stage took (remesh, guard, contact pairs: 2.3-2.7 s
         at 10k vertices) is not set up: the stage before runs on through its share, and its record in
@@ -246,7 +248,7 @@ class ReconstructionSettings:
     centers: int | None = None
     coarse_ratio: int | None = None
     coarse_lr: float | None = None
-    stages: tuple | None = None
+    stages: tuple | str | None = None
     stage_fractions: tuple | None = None
     stage_overrides: tuple | None = None
     seed: int = 0
@@ -475,6 +477,9 @@ def _check_used(s: ReconstructionSettings) -> None:
 
 
 def _resolve_stages(s: ReconstructionSettings) -> ReconstructionSettings:
+    if isinstance(s.stages, str):  # reconstruct() resolves a named schedule against the source it builds
+        raise ReconstructionError(f"stages={s.stages!r} names a schedule of a source's vertex count: reconstruct() "
+                                  f"resolves it; settings on their own need the counts (default_schedule(method, n))")
     if s.stages is None:
         if s.stage_fractions is not None:
             raise ReconstructionError("stage_fractions needs stages")
