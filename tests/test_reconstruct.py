@@ -351,7 +351,7 @@ def test_cli_stage_schedules(tmp_path, capsys):
         # smoothing in the fine stages), with the first stage's samples following --samples
         first = {**RBF_THREE_LEVEL_OVERRIDES[0], "n_samples": 150}
         want = [first, *RBF_THREE_LEVEL_OVERRIDES[1:]] if levels == 3 else None
-        if levels == 4:  # the same, and the last stage at n as light as the fine stages
+        if levels == 4:  # the same, and the last stage at n lighter still
             want = [first, *RBF_FOUR_LEVEL_OVERRIDES[1:]]
         assert settings["stage_overrides"] == want
     out_dir = tmp_path / "ls3"
@@ -374,12 +374,13 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
     assert THREE_LEVEL_MIN_VERTICES <= min(starts) and THREE_LEVEL_MIN_VERTICES >= 16 * 100  # first stage >= 100
     for n in (THREE_LEVEL_MIN_VERTICES, *starts, FOUR_LEVEL_MIN_VERTICES - 1):
         assert default_schedule("rbf", n) == (*default_stages(n, 3), RBF_THREE_LEVEL_OVERRIDES)
-    # from 8k (the benchmark's 10k) four: what three give n/4, then one stage at n as light as the fine ones
+    # from 8k (the benchmark's 10k) four: what three give n/4, then one lighter stage at n
     assert FOUR_LEVEL_MIN_VERTICES == 4 * THREE_LEVEL_MIN_VERTICES
-    # the first four stages as three levels' (and capped as below), the last as light as the fine ones
-    assert [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_FOUR_LEVEL_OVERRIDES] == [
-        {k: v for k, v in o.items() if k != "max_steps"} for o in (*RBF_THREE_LEVEL_OVERRIDES,
-                                                                    RBF_THREE_LEVEL_OVERRIDES[-1])]
+    # the first four stages as three levels' (and capped as below), the last with a fifth of the fine
+    # stages' Laplacian weight
+    assert [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_FOUR_LEVEL_OVERRIDES[:4]] == [
+        {k: v for k, v in o.items() if k != "max_steps"} for o in RBF_THREE_LEVEL_OVERRIDES]
+    assert RBF_FOUR_LEVEL_OVERRIDES[4] == {"w_laplacian": RBF_THREE_LEVEL_OVERRIDES[-1]["w_laplacian"] / 5}
     for n in (FOUR_LEVEL_MIN_VERTICES, 10_000, 28_000):
         assert default_schedule("rbf", n) == (*default_stages(n, 4), RBF_FOUR_LEVEL_OVERRIDES)
     for n in (THREE_LEVEL_MIN_VERTICES, *starts, 10_000, 28_000):

@@ -41,12 +41,13 @@ RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps
                              {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
 
 # rbf with four levels (default_stages(n, levels=4): what three levels give a run at n/4, then one stage at n)
-# takes the three-level settings for its first four stages, and the last stage the fine stages' lighter
-# smoothing. The stages at n/4 have the regularizer weights of a run at n/4 (reg_ref_vertices scales them
-# by stage count), so up to the last stage a 10k run is a 2.5k run; the last stage starts from an even
-# remesh of that 2.5k result. At 10k a 10 s run got to 6.2e-7 on the bunny where three levels ended at
-# 3.5e-5 (their two 10k stages ran 60 steps after 2.3 s of remeshing and setting up), and 1.8e-6 through
-# the teapot's handle against 2.7e-6 (docs/reconstruction.md, *Four levels at 10k*).
+# takes the three-level settings for its first four stages, and the last stage a fifth of the fine stages'
+# Laplacian weight (0.5, that is 8 at 10k vertices, below). The stages at n/4 have the regularizer weights of
+# a run at n/4 (reg_ref_vertices scales them by stage count), so up to the last stage a 10k run is a 2.5k
+# run; the last stage starts from an even remesh of that 2.5k result. At 10k a 10 s run got to 6.2e-7 on the
+# bunny where three levels ended at 3.5e-5 (their two 10k stages ran 60 steps after 2.3 s of remeshing and
+# setting up), and 1.8e-6 through the teapot's handle against 2.7e-6 (docs/reconstruction.md, *Four levels
+# at 10k*).
 #
 # The two stages at n/4 also take at most the steps that the 2,500-vertex default run gives its two
 # 2,500-vertex stages (350 and 250), as the coarse stages do theirs: a long budget then goes to the stage at
@@ -54,8 +55,15 @@ RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps
 # so it, every 10 s and 30 s run and the 50 s runs measured are unchanged. In the 100 s runs at 10k the
 # last stage got 58 s instead of 28 s: the teapot through the handle 9.9e-7 against 1.18e-6 (seed 0) and
 # the bunny 4.7e-7 against 4.9e-7, both clean (docs/reconstruction.md, *The 2,500-vertex stages' limits*).
+#
+# The last stage starts from the 2,500-vertex shape, which has arrived: it needs little smoothing, and the
+# step guard and the contact barrier keep it clean. Its Laplacian weight was 2.5 (40 at 10k), the fine stages'
+# of three levels, until 2026-11-30; at 0.5 the teapot through the handle at 10k ended at 7.8e-7 in 70 s
+# against 1.12e-6 (1.0: 8.5e-7; 0.25: 7.7e-7 with the smallest triangle quality 0.18 against 0.24), 9.8e-7 in
+# 30 s against 1.36e-6, and the bunny at 3.1e-7 in 70 s against 5.0e-7, all clean
+# (docs/reconstruction.md, *The last stage's smoothing*).
 RBF_FOUR_LEVEL_OVERRIDES = (*RBF_THREE_LEVEL_OVERRIDES[:2], {**RBF_THREE_LEVEL_OVERRIDES[2], "max_steps": 350},
-                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250}, {"w_laplacian": 2.5})
+                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250}, {"w_laplacian": 0.5})
 
 
 def _vertex_count(n_vertices) -> int:
