@@ -183,9 +183,8 @@ def test_a_cpu_3d_mei_searches_its_contacts_in_line(monkeypatch):
     """On the CPU the contact barrier's candidate search runs in the step, not in the worker thread beside the
     render (torch's threads take every core there: with it the guarded run cost 1.64-1.78 times the unguarded
     from the torus against 1.55-1.66 without, and 1.44-1.59 against 1.15-1.40 from the sphere once the caller
-    had set torch's thread count). The
-    separation certificate still clears steps from the barrier's distances (from the torus, where the star
-    certificate does not apply)."""
+    had set torch's thread count). The separation certificate still clears steps from the barrier's distances
+    (from the torus, where the star certificate does not apply)."""
     from meshmei.contact import ContactBarrier
 
     prefetched = []
