@@ -376,12 +376,11 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
         assert default_schedule("rbf", n) == (*default_stages(n, 3), RBF_THREE_LEVEL_OVERRIDES)
     # from 8k (the benchmark's 10k) four: what three give n/4, then one lighter stage at n
     assert FOUR_LEVEL_MIN_VERTICES == 4 * THREE_LEVEL_MIN_VERTICES
-    # the first three stages as three levels' (and capped as below), the second at n/4 as the first fine stage,
-    # the last as three levels' last: a fifth of the first fine stage's Laplacian weight, in both schedules
-    uncapped = [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_FOUR_LEVEL_OVERRIDES]
-    three = [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_THREE_LEVEL_OVERRIDES]
-    assert uncapped == [*three[:3], three[2], three[3]]
-    assert RBF_THREE_LEVEL_OVERRIDES[3] == {"w_laplacian": RBF_THREE_LEVEL_OVERRIDES[2]["w_laplacian"] / 5}
+    # the first four stages as three levels' (and capped as below), the last with a fifth of the fine
+    # stages' Laplacian weight
+    assert [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_FOUR_LEVEL_OVERRIDES[:4]] == [
+        {k: v for k, v in o.items() if k != "max_steps"} for o in RBF_THREE_LEVEL_OVERRIDES]
+    assert RBF_FOUR_LEVEL_OVERRIDES[4] == {"w_laplacian": RBF_THREE_LEVEL_OVERRIDES[-1]["w_laplacian"] / 5}
     for n in (FOUR_LEVEL_MIN_VERTICES, 10_000, 28_000):
         assert default_schedule("rbf", n) == (*default_stages(n, 4), RBF_FOUR_LEVEL_OVERRIDES)
     for n in (THREE_LEVEL_MIN_VERTICES, *starts, 10_000, 28_000):

@@ -21,9 +21,9 @@ NAMED_SCHEDULES = tuple(_LEVELS)
 # 10,000: a step there costs about what a 10k step does, mostly sampling and searching, so half the samples
 # nearly doubles its steps, and eight samples per vertex are still plenty (at 10k it reached 5.6e-4 at 2 s
 # where it was at 1.1e-3, before large steps' 7.6e-4; docs/reconstruction.md, *Fifth round*). Once the 625-
-# and 2,500-vertex stages have moved the shape, the first fine stage needs less smoothing, a quarter of the
-# default Laplacian weight (2.5, that is 40 at 10k vertices against 160), and the last a twentieth (0.5, below).
-# Measured at 10k on three problems; 2.5 was the first value tried (*Coarse-to-fine*).
+# and 2,500-vertex stages have moved the shape, the two fine stages need less smoothing, a quarter of the
+# default Laplacian weight (2.5, that is 40 at 10k vertices against 160). Measured at 10k on three problems;
+# 2.5 was the first value tried (*Coarse-to-fine*).
 #
 # In the coarsest stage a target sample whose nearest mesh sample faces away is paired by position and
 # normal (normal_match, 0.3 of the target's diagonal): a sphere then enters a cavity (the cup: 5.8e-7
@@ -38,23 +38,21 @@ NAMED_SCHEDULES = tuple(_LEVELS)
 # 1,000-step run (the CLI's default), every 10 s run and the 30 s runs at 10k are as before
 # (docs/reconstruction.md, *Long budgets*).
 #
-# The last stage continues from the first fine stage's shape at the same count: since 2026-11-30 (evening) it
-# takes a fifth of that stage's weight (0.5; 2.5 before), as four levels' last stage does (below). The CLI's
-# default runs at 2,500 vertices, seeds 0-2: the bunny 1.09e-6 / 1.10e-6 / 1.09e-6 against 1.22e-6 / 1.18e-6 /
-# 1.09e-6, the teapot through the handle 1.62e-6 / 1.90e-6 / 1.57e-6 against 1.96e-6 / 2.05e-6 / 1.78e-6, all
-# clean (1.0 and 0.25 each lost on one of the two; the first fine stage at 1.0 as well left the teapot's seed 1 at
-# 3.3e-6; docs/reconstruction.md, *The last stage's smoothing at 2,500 vertices*).
+# The last stage at four levels' lighter weight (0.5, below) gained in the 2,500-vertex default runs of 1,000
+# steps but stalled in longer ones (the teapot at 4e-6 from 50 s on, against 1.5e-6) and lost on three of
+# four thin targets: tried and reverted (docs/reconstruction.md, *The last stage's smoothing at 2,500
+# vertices: tried, not taken*).
 RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps": 150}, {"max_steps": 250},
-                             {"w_laplacian": 2.5}, {"w_laplacian": 0.5})
+                             {"w_laplacian": 2.5}, {"w_laplacian": 2.5})
 
 # rbf with four levels (default_stages(n, levels=4): what three levels give a run at n/4, then one stage at n)
-# takes the three-level settings for its first three stages, the first fine stage's for the second stage at n/4,
-# and three levels' last stage's for its last (a Laplacian weight of 0.5, that is 8 at 10k, below). The stages at
-# n/4 have the regularizer weights of a run at n/4 (reg_ref_vertices scales them by stage count), so up to the
-# last stage a 10k run is a 2.5k run as it was before its last stage was made lighter; the last stage starts from
-# an even remesh of that 2.5k result. At 10k a 10 s run got to 6.2e-7 on the bunny where three levels ended at
-# 3.5e-5 (their two 10k stages ran 60 steps after 2.3 s of remeshing and setting up), and 1.8e-6 through the
-# teapot's handle against 2.7e-6 (docs/reconstruction.md, *Four levels at 10k*).
+# takes the three-level settings for its first four stages, and the last stage a fifth of the fine stages'
+# Laplacian weight (0.5, that is 8 at 10k vertices, below). The stages at n/4 have the regularizer weights of
+# a run at n/4 (reg_ref_vertices scales them by stage count), so up to the last stage a 10k run is a 2.5k
+# run; the last stage starts from an even remesh of that 2.5k result. At 10k a 10 s run got to 6.2e-7 on the
+# bunny where three levels ended at 3.5e-5 (their two 10k stages ran 60 steps after 2.3 s of remeshing and
+# setting up), and 1.8e-6 through the teapot's handle against 2.7e-6 (docs/reconstruction.md, *Four levels
+# at 10k*).
 #
 # The two stages at n/4 also take at most the steps that the 2,500-vertex default run gives its two
 # 2,500-vertex stages (350 and 250), as the coarse stages do theirs: a long budget then goes to the stage at
@@ -69,12 +67,8 @@ RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps
 # against 1.12e-6 (1.0: 8.5e-7; 0.25: 7.7e-7 with the smallest triangle quality 0.18 against 0.24), 9.8e-7 in
 # 30 s against 1.36e-6, and the bunny at 3.1e-7 in 70 s against 5.0e-7, all clean
 # (docs/reconstruction.md, *The last stage's smoothing*).
-#
-# The second stage at n/4 keeps the first fine stage's weight (2.5): with the lighter one, as the 2,500-vertex
-# run's last stage now has, the CLI's default run at 10k gave the teapot 9.05e-7 against 8.77e-7 and the
-# bunny 3.38e-7 as before (seed 0, 2026-11-30).
 RBF_FOUR_LEVEL_OVERRIDES = (*RBF_THREE_LEVEL_OVERRIDES[:2], {**RBF_THREE_LEVEL_OVERRIDES[2], "max_steps": 350},
-                            {**RBF_THREE_LEVEL_OVERRIDES[2], "max_steps": 250}, RBF_THREE_LEVEL_OVERRIDES[3])
+                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250}, {"w_laplacian": 0.5})
 
 
 def _vertex_count(n_vertices) -> int:

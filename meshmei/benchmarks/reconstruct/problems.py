@@ -36,10 +36,10 @@ class Variant(NamedTuple):
 # "largesteps-lr0.025" is large steps with the learning rate that suits 10k vertices better than the default
 # (tuned at 2.5k); "rbf-coarse" adds the coarse kernel set (ReconstructionSettings.coarse_ratio). The
 # "-3levels" variants have three levels: at 10k vertices, stages of 625, 2,500 and 10,000 vertices instead of
-# 2,500 and 10,000; for rbf, default_schedule also sets the Laplacian weight of its first 10k stage to 2.5 (40
-# after scaling, a quarter of the default 160) and of the last to 0.5: once the 625- and 2,500-vertex stages
-# have moved the shape, the fine stages need less smoothing; and it draws half the Chamfer samples in the
-# 625-vertex stage (RBF_THREE_LEVEL_OVERRIDES).
+# 2,500 and 10,000; for rbf, default_schedule also sets the Laplacian weight of its two 10k stages to 2.5 (40
+# after scaling, a quarter of the default 160): once the 625- and 2,500-vertex stages have moved the shape, the
+# fine stages need less smoothing; and it draws half the Chamfer samples in the 625-vertex stage
+# (RBF_THREE_LEVEL_OVERRIDES).
 # The peers (free vertices and large steps) run as published: no step guard and no contact barrier
 # (UNGUARDED). "rbf" runs meshmei's defaults, which have both (issue 16), with the CLI's schedule (three
 # levels at 2,000 vertices and more, RBF_THREE_LEVEL_OVERRIDES); "rbf-unguarded" is rbf with two levels
