@@ -53,7 +53,8 @@ ENCODERS = ("gabor-simple", "gabor-complex", "demo")
 def _steps_help(mesh_files: bool) -> str:
     return (f"Adam steps per seed (default: {DEFAULT_STEPS['sheet']} from the sheet"
             + (f", {DEFAULT_STEPS['custom']} from a mesh file" if mesh_files else "")
-            + f", {DEFAULT_STEPS['sphere']} from the sphere or torus; at least {ALBEDO_MIN_STEPS} with --albedo)")
+            + f", {DEFAULT_STEPS['sphere']} from the sphere, {DEFAULT_STEPS['torus']} from the torus; at least "
+              f"{ALBEDO_MIN_STEPS} with --albedo)")
 
 
 # the options that name files or folders (a model spec, path:factory, too)

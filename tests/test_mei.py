@@ -17,6 +17,8 @@ import torch
 from meshmei.encoders import GaborComplexCell, GaborSimpleCell
 from meshmei.errors import MEIError
 from meshmei.mei import ALBEDO_MIN_STEPS, DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEISettings, grid_search, load_run, optimize_mei, pixel_mei, save_run
+from meshmei.mei import DEFAULT_SIGMA_FACTOR
+from meshmei.mei.settings import make_deformer
 from meshmei.quality import health_line
 from meshmei.shapes import initial_mesh
 
@@ -173,6 +175,29 @@ def test_steps_and_contact_weight_default_by_start():
     assert res.settings.steps == DEFAULT_STEPS["custom"] == len(res.history)
     assert res.settings.contact_weight == DEFAULT_CONTACT_WEIGHT["custom"]
     assert res.settings.to_dict()["steps"] == DEFAULT_STEPS["custom"]  # what summary.json stores
+    assert res.settings.sigma_factor == DEFAULT_SIGMA_FACTOR["custom"]
+
+
+def test_kernel_width_default_by_start():
+    # None: the start decides (narrower kernels from the torus, with its longer run); a given width is kept
+    assert MEISettings().sigma_factor is None
+    assert {k: MEISettings().for_start(k).sigma_factor for k in DEFAULT_SIGMA_FACTOR} == DEFAULT_SIGMA_FACTOR
+    assert DEFAULT_SIGMA_FACTOR["torus"] < DEFAULT_SIGMA_FACTOR["sphere"] == DEFAULT_SIGMA_FACTOR["sheet"]
+    assert MEISettings(sigma_factor=3.0).for_start("torus").sigma_factor == 3.0
+    assert MEISettings().for_start("my_mesh").sigma_factor == DEFAULT_SIGMA_FACTOR["custom"]
+    # a run's kernels have the width it records: sigma = sigma_factor * the mean centre spacing
+    for init in ("torus", "sphere"):
+        res = optimize_mei(GaborSimpleCell(), 0, init, image_size=16, seeds=(0,), steps=1, n_vertices=120,
+                           lr_scales=0.0)  # the scales stay where the run started them
+        assert res.settings.sigma_factor == DEFAULT_SIGMA_FACTOR[init]
+        unscaled = make_deformer(res.V0, dataclasses.replace(res.settings, sigma_factor=1.0))
+        ratio = res.deformer().log_sigma.exp() / unscaled.log_sigma.exp()
+        assert torch.allclose(ratio, torch.full_like(ratio, DEFAULT_SIGMA_FACTOR[init]), rtol=1e-5)
+    # settings not resolved for a start build a mesh of your own's kernels
+    ratio = make_deformer(res.V0, MEISettings()).log_sigma.exp() / unscaled.log_sigma.exp()
+    assert torch.allclose(ratio, torch.full_like(ratio, DEFAULT_SIGMA_FACTOR["custom"]), rtol=1e-5)
+    with pytest.raises(MEIError, match="sigma_factor"):
+        MEISettings(sigma_factor=float("nan"))
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="names an fd's file through /proc")
 def test_a_saved_run_is_on_disk_before_it_is_renamed_into_place(tmp_path, tiny_run, monkeypatch):

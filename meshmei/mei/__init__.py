@@ -6,12 +6,14 @@ from .diverse import DiverseMEIs, diverse_meis
 from .optimize import optimize_mei
 from .pixel import PixelMEIResult, gaussian_blur, pixel_image_size, pixel_mei
 from .runs import RUN_FORMAT, load_run, save_run
-from .settings import ALBEDO_MIN_STEPS, DEFAULT_CONTACT_WEIGHT, DEFAULT_STEPS, MEIResult, MEISettings
+from .settings import (ALBEDO_MIN_STEPS, DEFAULT_CONTACT_WEIGHT, DEFAULT_SIGMA_FACTOR, DEFAULT_STEPS, MEIResult,
+                       MEISettings)
 
 __all__ = [
     "MEISettings",
     "MEIResult",
     "DEFAULT_CONTACT_WEIGHT",
+    "DEFAULT_SIGMA_FACTOR",
     "DEFAULT_STEPS",
     "ALBEDO_MIN_STEPS",
     "optimize_mei",

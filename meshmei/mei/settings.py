@@ -24,13 +24,16 @@ from ..render.settings import MAX_IMAGE_SIZE
 from ..shapes.primitives import MAX_VERTICES
 from ..validity import ValidityRules
 
-__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "ALBEDO_MIN_STEPS", "DEFAULT_CONTACT_WEIGHT", "make_deformer",
-           "rebuild_deformer"]
+__all__ = ["MEISettings", "MEIResult", "DEFAULT_STEPS", "ALBEDO_MIN_STEPS", "DEFAULT_CONTACT_WEIGHT",
+           "DEFAULT_SIGMA_FACTOR", "make_deformer", "rebuild_deformer"]
 
 # Steps per seed when ``MEISettings.steps`` is None, by start. A closed start has farther to travel to a
 # relief than the sheet: from the sphere and the torus, 300 steps left Gabor cells at 0.88-0.95 of their
 # bound and 800 reach 0.95 (docs/mei.md, *How many steps*). A mesh of your own gets the sheet's count.
-DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 800, "custom": 300}
+# From the torus 1,600 (with narrower kernels, DEFAULT_SIGMA_FACTOR below): at 800 it reached 0.95 of the bound
+# in 9 of 18 Gabor cells, at 1,600 with the default kernels in 4 of 6 (docs/mei.md, *The torus's kernels and
+# steps*).
+DEFAULT_STEPS = {"sheet": 300, "sphere": 800, "torus": 1600, "custom": 300}
 
 # With an albedo (and ``steps`` None) a run takes at least this many steps: its texture's 4,096 values are
 # still climbing at 300. Demo neuron 9 at 300 steps ended at 0.921-0.970 of its pixel MEI depending on
@@ -48,6 +51,13 @@ MAX_ROBUST_VIEWS = 4096
 # (0.964-0.992 against 0.971-0.991) and its step 14 % cheaper. From the sphere two of six cells lost 0.02-0.04
 # without it, and the torus stalls (docs/mei.md, *Valid objects*). A mesh of your own keeps the barrier.
 DEFAULT_CONTACT_WEIGHT = {"sheet": 0.0, "sphere": 100.0, "torus": 100.0, "custom": 100.0}
+
+# RBF kernel width in mean centre spacings when ``MEISettings.sigma_factor`` is None, by start. From the torus
+# 1.5 with its 1,600 steps: over 18 Gabor cells (three sets of six, two of them used for no choice) 18 reached
+# 0.95 of the bound, against 9 at 2.0 and 800 steps; at 2.0 and 1,600 steps 4 of 6, at 1.5 and 800 steps 4
+# of 6 and 5 of 6; wider kernels (3, 4) lost on every cell (docs/mei.md, *The torus's kernels and steps*).
+DEFAULT_SIGMA_FACTOR = {"sheet": 2.0, "sphere": 2.0, "torus": 1.5, "custom": 2.0}
+
 
 def _is_number(v) -> bool:
     """A real number, not a bool (nor a string that spells one)."""
@@ -88,8 +98,9 @@ class MEISettings:
         the range whose run it is, ``seed % 2**32``).
     init_noise : float
         Standard deviation of the random initial offsets (breaks symmetries; 0 for none).
-    sigma_factor : float
-        Initial RBF scale as a multiple of the mean spacing of the kernel centres.
+    sigma_factor : float or None
+        Initial RBF scale as a multiple of the mean spacing of the kernel centres. None (default): by start,
+        :data:`DEFAULT_SIGMA_FACTOR` (2, but 1.5 from the torus).
     centers : int or None
         Number of RBF centres (farthest-point sampled); None puts one on every vertex (the paper).
     r_cut : float
@@ -178,7 +189,7 @@ class MEISettings:
     lr_decay: float = 0.05
     seeds: tuple = (0, 1, 2)
     init_noise: float = 1e-3
-    sigma_factor: float = 2.0
+    sigma_factor: float | None = None
     centers: int | None = None
     r_cut: float = 4.0
     weights: dict = field(default_factory=_default_weights)
@@ -241,9 +252,11 @@ class MEISettings:
                      "camera_distance", "fov_degrees", "lr_albedo", "albedo_smoothness", "albedo_shape_lr",
                      "robust_pose", "robust_light"):
             v = getattr(self, name)
+            if name == "sigma_factor" and v is None:  # by start (for_start)
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise MEIError(f"{name} must be a finite non-negative number, got {v!r}")
-        if self.lr <= 0 or self.sigma_factor <= 0 or self.r_cut <= 0:
+        if self.lr <= 0 or (self.sigma_factor is not None and self.sigma_factor <= 0) or self.r_cut <= 0:
             raise MEIError(f"lr, sigma_factor and r_cut must be positive, got {self.lr}, {self.sigma_factor}, {self.r_cut}")
         if self.lr_decay > 1:
             raise MEIError(f"lr_decay must lie in [0, 1] (the learning rates' final share), got {self.lr_decay!r}")
@@ -357,18 +370,20 @@ class MEISettings:
         return lr
 
     def for_start(self, init_name: str) -> "MEISettings":
-        """These settings with ``steps`` and ``contact_weight`` set for the start ``init_name`` (a key of
-        :data:`DEFAULT_STEPS` and :data:`DEFAULT_CONTACT_WEIGHT`, else ``"custom"``; with ``albedo``, at
-        least :data:`ALBEDO_MIN_STEPS` steps) where they are None."""
+        """These settings with ``steps``, ``contact_weight`` and ``sigma_factor`` set for the start
+        ``init_name`` (a key of :data:`DEFAULT_STEPS`, :data:`DEFAULT_CONTACT_WEIGHT` and
+        :data:`DEFAULT_SIGMA_FACTOR`, else ``"custom"``; with ``albedo``, at least :data:`ALBEDO_MIN_STEPS`
+        steps) where they are None."""
         known = init_name if init_name in DEFAULT_STEPS else "custom"
         if self.steps is not None:
             steps = self.steps
         else:
             steps = max(DEFAULT_STEPS[known], ALBEDO_MIN_STEPS) if self.albedo else DEFAULT_STEPS[known]
         contact = DEFAULT_CONTACT_WEIGHT[known] if self.contact_weight is None else self.contact_weight
-        if steps == self.steps and contact == self.contact_weight:
+        sigma = DEFAULT_SIGMA_FACTOR[known] if self.sigma_factor is None else self.sigma_factor
+        if steps == self.steps and contact == self.contact_weight and sigma == self.sigma_factor:
             return self
-        return replace(self, steps=steps, contact_weight=contact)
+        return replace(self, steps=steps, contact_weight=contact, sigma_factor=sigma)
 
     def render_settings(self) -> RenderSettings:
         """The :class:`~meshmei.render.RenderSettings` of the run (``render``, at ``image_size``)."""
@@ -555,10 +570,13 @@ def _render_settings(render, image_size: int) -> RenderSettings:
 
 
 def make_deformer(V0, settings: MEISettings, centers=None):
+    """The RBF deformer of ``settings`` over ``V0``; settings not resolved for a start
+    (:meth:`MEISettings.for_start`) take a mesh of your own's kernel width."""
+    sigma_factor = DEFAULT_SIGMA_FACTOR["custom"] if settings.sigma_factor is None else settings.sigma_factor
     if centers is None:
         centers = settings.centers
     try:  # a kernel too narrow for the dtype: NaN vertices at the first render, were it built
-        return RBFDeformer(V0, centers, sigma_factor=settings.sigma_factor, r_cut=settings.r_cut,
+        return RBFDeformer(V0, centers, sigma_factor=sigma_factor, r_cut=settings.r_cut,
                            learn_scales=settings.lr_scales > 0)
     except NarrowKernelError as err:
         raise MEIError(f"sigma_factor={settings.sigma_factor!r}: {err}; raise sigma_factor") from None
