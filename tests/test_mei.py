@@ -199,6 +199,7 @@ def test_kernel_width_default_by_start():
     with pytest.raises(MEIError, match="sigma_factor"):
         MEISettings(sigma_factor=float("nan"))
 
+
 @pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="names an fd's file through /proc")
 def test_a_saved_run_is_on_disk_before_it_is_renamed_into_place(tmp_path, tiny_run, monkeypatch):
     """Every file of a run folder is fsynced before the folder's rename makes it a finished result: a

@@ -579,7 +579,7 @@ def make_deformer(V0, settings: MEISettings, centers=None):
         return RBFDeformer(V0, centers, sigma_factor=sigma_factor, r_cut=settings.r_cut,
                            learn_scales=settings.lr_scales > 0)
     except NarrowKernelError as err:
-        raise MEIError(f"sigma_factor={settings.sigma_factor!r}: {err}; raise sigma_factor") from None
+        raise MEIError(f"sigma_factor={sigma_factor!r}: {err}; raise sigma_factor") from None
 
 
 def rebuild_deformer(V0, state, settings):
