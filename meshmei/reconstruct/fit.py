@@ -32,6 +32,7 @@ from ..validity import StepGuard
 from .schedule import NAMED_SCHEDULES, schedule_from_text
 from .settings import AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings, ReconstructionWarning
 from .sources import source_mesh, target_surface
+from .surgery import adapt_topology
 
 __all__ = ["reconstruct"]
 
@@ -555,13 +556,17 @@ def _pass_on_share(bounds, k: int, f: float) -> None:
     bounds[k:] = f + (bounds[k:] - bounds[k]) * (1.0 - f) / (1.0 - bounds[k])
 
 
-def _stage_mesh(V, F, k: int, n_stage, s, sk, stages, left, n_source: int, info: dict):
+def _stage_mesh(V, F, k: int, n_stage, s, sk, stages, left, n_source: int, info: dict, target):
     """Stage ``k``'s mesh and regularizer weights: ``(V, F, weights, remeshed)``. The mesh is ``(V, F)`` remeshed
     to ``n_stage`` vertices where the stage asks for a count (a first stage within a tenth of it runs on the
-    source), and clean where ``s.valid_steps`` (:func:`_remesh_clean`, ``left`` seconds of its share);
-    ``remeshed`` is that remesh's record. What went wrong goes into ``info["warnings"]``."""
+    source), and clean where ``s.valid_steps`` (:func:`_remesh_clean`, ``left`` seconds of its share); with
+    ``s.surgery``, after the stage before it the mesh's topology is first adapted to the target ``target``
+    (numpy arrays; :func:`_surgery`). ``remeshed`` is the remesh's record, with the surgery's under
+    ``"surgery"``. What went wrong goes into ``info["warnings"]``."""
     remeshed = {}
-    if n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
+    if n_stage is not None and k > 0 and s.surgery:
+        V, F, remeshed = _surgery(V, F, n_stage, s.valid_steps, left, target)
+    elif n_stage is not None and (k > 0 or abs(V.shape[0] - n_stage) > 0.1 * n_stage):
         V, F, remeshed = _remesh_clean(V, F, n_stage, s.valid_steps, left)
     # every remesh refused: the stage keeps the mesh it had and takes the weights of that mesh's count, not
     # of the count it asked for (a 9,917-vertex stage ran with the weights of 100 vertices; review)
@@ -592,6 +597,27 @@ def _stage_mesh(V, F, k: int, n_stage, s, sk, stages, left, n_source: int, info:
             f"({remeshed['remesh_refused_pairs']} new pairs; "
             f"{', '.join(remeshed['remesh_refused_topology']) or 'topology kept'}): {runs_on}")
     return V, F, weights, remeshed
+
+
+def _surgery(V, F, n: int, clean: bool, left, target):
+    """:func:`~meshmei.reconstruct.surgery.adapt_topology` of ``(V, F)`` to ``target``, then the remesh to ``n``
+    vertices (:func:`_remesh_clean`): ``(V, F, record)``, the record the remesh's with the surgery's under
+    ``"surgery"``. A sealed mesh (marching cubes, many times ``n`` vertices) whose remesh is refused is
+    dropped, and the mesh as it was remeshed instead (``"dropped"`` in the surgery's record)."""
+    t0 = time.perf_counter()
+    Vn, Fn = numpy_mesh(V, F)
+    V2, F2, surgery = adapt_topology(Vn, Fn, *target)
+    if not (surgery["perforated"] or surgery["sealed"]):
+        V2, F2, remeshed = _remesh_clean(V, F, n, clean, None if left is None else left - surgery["seconds"])
+        return V2, F2, {**remeshed, "surgery": surgery}
+    V2 = torch.from_numpy(np.ascontiguousarray(V2)).to(device=V.device, dtype=V.dtype)
+    F2 = torch.from_numpy(np.ascontiguousarray(F2, dtype=np.int64)).to(F.device)
+    spent = time.perf_counter() - t0
+    U, G, remeshed = _remesh_clean(V2, F2, n, clean, None if left is None else left - spent)
+    if surgery["sealed"] and remeshed.get("remesh_iterations", 0) is None and not remeshed.get("remesh_subdivided"):
+        surgery["dropped"] = "its remesh was refused"
+        U, G, remeshed = _remesh_clean(V, F, n, clean, None if left is None else left - spent)
+    return U, G, {**remeshed, "surgery": surgery}
 
 
 def _stage_parameterisation(V, F, k: int, s, sk, chamfer, info: dict):
@@ -658,13 +684,14 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
     schedule = Schedule("geometric", s.lr_decay)
     n_source = V.shape[0]
     merged_into = {}  # a restart stage run as part of the stage before it (_merged_restarts)
+    target = numpy_mesh(evaluation.Vt, evaluation.Ft) if s.surgery else None
     for k, n_stage in enumerate(stages):
         if k in merged_into:  # run, and recorded, with the stage it was merged into
             continue
         t0 = time.perf_counter()
         left = None if budget.seconds is None else float(bounds[k + 1]) * budget.seconds - trace.seconds
         sk = per_stage[k] if per_stage else s
-        V, F, weights, remeshed = _stage_mesh(V, F, k, n_stage, s, sk, stages, left, n_source, info)
+        V, F, weights, remeshed = _stage_mesh(V, F, k, n_stage, s, sk, stages, left, n_source, info, target)
         sk, param, pairing = _stage_parameterisation(V, F, k, s, sk, chamfer, info)
         contact, guard, left_out, max_step = _stage_validity(V, F, k, s, info)
         setup = time.perf_counter() - t0

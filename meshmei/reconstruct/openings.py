@@ -13,7 +13,7 @@ from ..errors import MeshError
 from ..mesh import check_mesh, remove_unreferenced
 from ..shapes.primitives import DEFAULT_N_VERTICES, TORUS_MAJOR_RADIUS, TORUS_MINOR_RADIUS, initial_mesh
 
-__all__ = ["find_opening", "torus_through_opening", "opening_parts", "plane_basis"]
+__all__ = ["find_opening", "torus_through_opening", "opening_parts", "plane_basis", "spans_opening"]
 
 # An axis found within this angle of a coordinate axis is taken to be that axis: models are usually built
 # in an aligned frame, and ray-cast estimates of a symmetric loop's axis are off by a fraction of a degree.
@@ -101,6 +101,15 @@ class _Probe:
     def squared_distance(self, Q):
         """Squared distance from each point of ``Q`` (k, 3) to the mesh: (k,)."""
         return igl.point_mesh_squared_distance(Q, self.V, self.F)[0]
+
+
+def spans_opening(V, F, Q, D, *, rays: int = 24) -> np.ndarray:
+    """Whether each point of ``Q`` (k, 3) lies in an opening of the surface ``(V, F)`` (numpy arrays) across
+    the unit direction in the same row of ``D`` (k, 3): open both ways along it and surrounded in the plane
+    normal to it, as :func:`find_opening` tests its points. (k,) bool."""
+    probe = _Probe(np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64), rays)
+    return np.array([bool(probe.surrounded(q[None], d / np.linalg.norm(d))[0]) for q, d in zip(Q, D)],
+                    dtype=bool)
 
 
 # the search's sizes a call may ask for (defaults 28, 24, 64): grid 300 ran for minutes (grid^3 winding

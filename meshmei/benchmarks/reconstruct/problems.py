@@ -40,13 +40,14 @@ class Variant(NamedTuple):
 # after scaling, a quarter of the default 160): once the 625- and 2,500-vertex stages have moved the shape, the
 # fine stages need less smoothing; and it draws half the Chamfer samples in the 625-vertex stage
 # (RBF_THREE_LEVEL_OVERRIDES).
-# The peers (free vertices and large steps) run as published: no step guard and no contact barrier
-# (UNGUARDED). "rbf" runs meshmei's defaults, which have both (issue 16), with the CLI's schedule (three
-# levels at 2,000 vertices and more, RBF_THREE_LEVEL_OVERRIDES); "rbf-unguarded" is rbf with two levels
-# without them, and the rbf ablations (nolap, coarse, 3levels) stay unguarded, as they were measured, so that
-# they compare with "rbf-unguarded". Records of "rbf" made before the guard was the default were renamed
+# The peers (free vertices and large steps) run as published: no step guard, no contact barrier and no
+# topology surgery (UNGUARDED). "rbf" runs meshmei's defaults, which have the first two (issue 16) and, since
+# 2026-11-30, the surgery, with the CLI's schedule (three levels at 2,000 vertices and more,
+# RBF_THREE_LEVEL_OVERRIDES); "rbf-unguarded" is rbf with two levels without any of them, and the rbf
+# ablations (nolap, coarse, 3levels) stay unguarded, as they were measured, so that they compare with
+# "rbf-unguarded". Records of "rbf" made before the guard was the default were renamed
 # "rbf-unguarded" in docs/reconstruction_benchmark.json.
-UNGUARDED = {"valid_steps": False, "w_contact": 0.0}
+UNGUARDED = {"valid_steps": False, "w_contact": 0.0, "surgery": False}
 VARIANTS = {
     "rbf": Variant("rbf", None, {}, None),
     "rbf-unguarded": Variant("rbf", 2, UNGUARDED, None),
