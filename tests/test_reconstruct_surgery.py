@@ -74,9 +74,10 @@ def test_perforate_cuts_the_sheet_over_the_opening_and_nothing_else():
     removed_vertices = len(V) - len(V2)
     assert removed_vertices > 0
     assert np.abs(V2[:, 2]).max() <= np.abs(V[:, 2]).max()
-    # the hole is inside the ring's opening: every face taken out lies off the target, within its hole
+    # the hole is inside the ring's opening: every vertex taken out lies within the cut's reach (one mean edge)
+    # of the plate's part inside the hole
     gone = np.setdiff1d(np.arange(len(V)), [i for i, v in enumerate(map(tuple, V)) if v in kept])
-    assert np.linalg.norm(V[gone, :2], axis=1).max() < 0.3 - minor
+    assert np.linalg.norm(V[gone, :2], axis=1).max() < 0.3 - minor + edge
 
 
 def test_perforate_cuts_only_where_the_target_has_an_opening():
@@ -99,6 +100,23 @@ def test_perforate_leaves_a_mesh_without_a_sheet_alone():
     V, F = _plate(thickness=0.3)  # a thick lens: its two sides are far apart, no sheet
     edge = np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1).mean()
     assert perforate(V, F, Vt, Ft, _off(V, F, Vt, Ft), thickness=2 * edge) is None
+
+
+def test_seal_carves_the_sheets_it_is_given_out_of_the_rebuilt_solid():
+    # the voxel route of a sheet the mesh cannot be cut through: rebuilt without it, the plate stays whole;
+    # with its middle's points to carve, the rebuilt plate has a hole there, around the ring's axis
+    Vt, Ft, _ = _ring()
+    V, F = _plate()
+    C = V[F].mean(1)
+    middle = C[np.linalg.norm(C[:, :2], axis=1) < 0.1]
+    kept = seal(V, F, Vt, Ft, spacing=0.01, min_gain=0.0)
+    assert kept is not None and topology(kept[1])["euler"] == 2
+    got = seal(V, F, Vt, Ft, spacing=0.01, min_gain=0.0, carve=[middle], reach=0.02, far=0.01)
+    assert got is not None
+    V2, F2 = got
+    assert topology(F2)["euler"] == 0 and _closed_manifold(F2) and len(self_intersecting_pairs(V2, F2)) == 0
+    w = igl.fast_winding_number(V2, F2, np.array([[0.0, 0.0, 0.0], [0.15, 0.0, 0.0], [0.45, 0.0, 0.0]]))
+    assert abs(w[0]) < 0.5 and (w[1:] > 0.5).all()  # open at the axis, solid beside the hole and out to the rim
 
 
 def _revolved(profile, n_theta=64):
@@ -135,12 +153,22 @@ def test_seal_closes_thin_passages_and_fills_the_cavity():
     assert np.linalg.norm(V2, axis=1).max() < 0.30 + 0.01  # within a voxel of the shell's outside
 
 
-def test_seal_leaves_wide_openings_solids_and_what_the_target_leaves_open_alone():
-    V, F = _shell(hole=0.1)  # openings five voxels across: not a thin passage
-    assert seal(V, F, *_ball(0.3), spacing=0.01) is None
+def test_seal_plugs_a_wide_hole_where_the_target_has_surface():
+    # openings twelve voxels across, too wide to close, but the target (the ball) has surface across them
+    V, F = _shell(hole=0.06)
+    got = seal(V, F, *_ball(0.3), spacing=0.01)
+    assert got is not None
+    V2, F2 = got
+    assert topology(F2)["euler"] == 2 and _closed_manifold(F2) and len(self_intersecting_pairs(V2, F2)) == 0
+    assert _volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)
+
+
+def test_seal_leaves_openings_solids_and_what_the_target_leaves_open_alone():
+    V, F = _shell(hole=0.06)  # the wide openings again, and the target has them too
+    assert seal(V, F, V, F, spacing=0.01) is None
     V, F = _ball(0.3)  # a solid: nothing to fill
     assert seal(V, F, *_ball(0.3), spacing=0.01) is None
-    # the thin passages again, but the target is the shell itself: its inside is open, not to be filled
+    # thin passages, closed by the voxels, but the target is the shell itself: its inside is open, not to fill
     V, F = _shell(hole=0.006)
     assert seal(V, F, V, F, spacing=0.01) is None
 
