@@ -39,6 +39,7 @@ from .reconstruct import (
     schedule_from_text,
     target_surface,
 )
+from .reconstruct.surgery import surgery_lines
 from .shapes import DEFAULT_N_VERTICES, INITIAL_KINDS
 from .shapes.targets import THIN_TARGETS
 from .story import FULL, QUICK, run_story
@@ -417,6 +418,8 @@ def _run_reconstruct(args) -> int:
           f"target's normals, {f.degenerate_faces} degenerate, min triangle quality {f.min_quality:.3f}, "
           f"{closedness(f.boundary_edges, f.nonmanifold_edges)}; wrote {out}"
           + (f"; WARNING: {len(stalled)} warning(s) (below)" if stalled else ""))
+    for line in surgery_lines(res.info["stages"]):
+        print(line)
     for message in stalled:
         print(f"meshmei reconstruct: warning: {message}", file=sys.stderr)
     return 0

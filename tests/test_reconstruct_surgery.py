@@ -178,6 +178,11 @@ def test_adapt_topology_waits_for_a_close_fit_and_leaves_a_good_one_alone():
     V, F, record = adapt_topology(Vt, Ft, Vt, Ft)
     assert V is Vt and F is Ft
     assert record["checked"] and record["perforated"] == 0 and not record["sealed"]
+    # a flat mesh on a flat target (no convex hull to measure): tried, nothing to do, no error
+    Vs, Fs = _np(initial_mesh("sheet", n_vertices=400, dtype=torch.float64))
+    assert np.ptp(Vs[:, 2]) == 0
+    V, F, record = adapt_topology(Vs, Fs, Vs, Fs)
+    assert V is Vs and record["checked"] and not record["sealed"]
     # the ring's plate: most faces are far from the ring, so the fit is not close enough to try
     Vr, Fr, _ = _ring()
     Vp, Fp = _plate()
@@ -222,3 +227,21 @@ def test_the_centred_torus_opens_the_teapots_handle():
     assert topology(res.F)["euler"] == 0  # genus one: the handle's hole
     assert f.accuracy * f.area_ratio < 7.27e-6
     assert f.chamfer_l2 < 5e-6
+
+
+def test_surgery_lines_say_what_was_done_and_nothing_else():
+    from meshmei.reconstruct.surgery import surgery_lines
+
+    stages = [{"n_vertices": 150},
+              {"surgery": {"fit": 0.03, "checked": False, "perforated": 0, "sealed": False, "carved": 0,
+                           "seconds": 0.01}},
+              {"surgery": {"fit": 0.011, "checked": True, "perforated": 1, "sealed": True, "carved": 1,
+                           "seconds": 1.43}},
+              {"surgery": {"fit": 0.004, "checked": True, "perforated": 0, "sealed": True, "carved": 0,
+                           "seconds": 1.5, "dropped": "its remesh was refused"}}]
+    assert surgery_lines(stages) == [
+        "topology surgery before stage 2: a sheet cut, a sheet carved, the solid rebuilt with its thin passages "
+        "sealed (1.4 s)",
+        "topology surgery before stage 3: the solid rebuilt with its thin passages sealed (1.5 s) (dropped: its "
+        "remesh was refused)"]
+    assert surgery_lines([{"n_vertices": 150}, {}]) == []

@@ -26,15 +26,16 @@ import igl
 import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
+import torch
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from ..quality import self_intersecting_pairs, topology
+from ..quality import edge_use, self_intersecting_pairs, topology
 from .openings import spans_opening
 
-__all__ = ["FAR_FROM_TARGET", "FIT_QUANTILE", "FIT_GATE", "CUT_REACH", "SHEET_THICKNESS", "SEAL_VOXELS", "SEAL_GAIN", "SEAL_PROBES", "SEAL_SMALL",
-           "adapt_topology",
-           "perforate", "seal", "sheet_patches"]
+__all__ = ["FAR_FROM_TARGET", "FIT_QUANTILE", "FIT_GATE", "CUT_REACH", "SHEET_THICKNESS", "SEAL_VOXELS",
+           "SEAL_GAIN", "SEAL_REACH", "SEAL_PROBES", "SEAL_SMALL", "adapt_topology", "perforate", "seal",
+           "sheet_patches", "surgery_lines"]
 
 # A face is off the target when its centroid is farther than this share of the target's bounding-box
 # diagonal from it: the F-score's threshold, where a sample counts as wrong
@@ -87,7 +88,7 @@ def adapt_topology(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray)
         if cut is not None:
             V, F, record["perforated"] = cut
         # with sheets to carve the solid is rebuilt whatever the cavities; else only where one could be filled
-        if sheets or _hull_volume(V) >= SEAL_GAIN * abs(_signed_volume(V, F)):
+        if sheets or _may_seal(V, F, Vt, Ft):
             sealed = seal(V, F, Vt, Ft, spacing=float(np.linalg.norm(V.max(0) - V.min(0))) / SEAL_VOXELS,
                           min_gain=0.0 if sheets else SEAL_GAIN, carve=sheets, reach=thickness, far=far)
             if sealed is not None:
@@ -100,8 +101,25 @@ def _areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
 
 
+def _may_seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray) -> bool:
+    """Whether a seal could keep its result: of :data:`SEAL_PROBES` points spread over the mesh's bounding box
+    (a fixed draw), the target encloses at least :data:`SEAL_GAIN` times as many as the mesh does (a seal
+    fills only space the target encloses, and must fill that much); a few milliseconds, where a seal that
+    fails takes seconds (the cup's thin shell: 7.6 s over three stages, for nothing)."""
+    if _hull_volume(V) < SEAL_GAIN * abs(_signed_volume(V, F)):
+        return False
+    P = V.min(0) + np.random.default_rng(0).random((SEAL_PROBES, 3)) * (V.max(0) - V.min(0))
+    in_target = int((np.abs(igl.fast_winding_number(Vt, Ft, P)) > 0.5).sum())
+    in_mesh = int((np.abs(igl.fast_winding_number(V, F, P)) > 0.5).sum())
+    return in_target >= SEAL_GAIN * max(in_mesh, 1)
+
+
 def _hull_volume(V: np.ndarray) -> float:
-    return float(ConvexHull(V).volume)
+    """The convex hull's volume; 0 for points in a plane or on a line (qhull refuses them)."""
+    try:
+        return float(ConvexHull(V).volume)
+    except QhullError:
+        return 0.0
 
 
 def _face_components(F: np.ndarray, chosen: np.ndarray) -> list[np.ndarray]:
@@ -126,7 +144,8 @@ def _is_disk(F: np.ndarray) -> bool:
     E = igl.edges(F)
     if nv - len(E) + len(F) != 1:
         return False
-    return len(_boundary_loops(F)) == 1
+    loops = _boundary_loops(F)
+    return loops is not None and len(loops) == 1
 
 
 def _boundary_loops(F: np.ndarray) -> list[list[int]] | None:
@@ -224,9 +243,9 @@ def perforate(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, off:
     cut, no intersecting pair).
 
     A sheet is cut through two disks facing each other across it: for each of :data:`CUT_REACH` in turn,
-    the faces of each side over the off-target faces of either side (:func:`_facing_disks`); failing both, the two off-target
-    patches themselves (whose holes may not face each other, so that the tube between them crosses the
-    sheet). Each sheet is cut alone first, by the first of these that passes; those that pass are cut
+    the faces of each side over the off-target faces of either side (:func:`_facing_disks`); failing both,
+    the two off-target patches themselves (whose holes may not face each other, so that the tube between
+    them may cross the sheet). Each sheet is cut alone first, by the first of these that passes; those that pass are cut
     together, or, if that fails the checks, only the first of them. Returns ``(V2, F2, cuts)``, ``cuts`` the
     number of holes cut; the vertices inside the removed faces are dropped."""
     pairs = sheet_patches(V, F, Vt, Ft, off, thickness=thickness)
@@ -320,9 +339,7 @@ def _cut(V: np.ndarray, F: np.ndarray, pairs, euler: int):
 
 def _closed(F: np.ndarray) -> bool:
     """Every edge of ``F`` used by exactly two faces."""
-    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    _, count = np.unique(E, axis=0, return_counts=True)
-    return bool((count == 2).all())
+    return edge_use(torch.from_numpy(np.ascontiguousarray(F))) == (0, 0)
 
 
 def seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, *, spacing: float,
@@ -408,3 +425,20 @@ def _surface_points(V, F, area, spacing):
 
 def _signed_volume(V, F) -> float:
     return float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
+
+
+def surgery_lines(stages) -> list[str]:
+    """One line for each stage of a run's ``info["stages"]`` whose start topology surgery changed (none for a
+    run without it, or where it changed nothing): what was done and what it took."""
+    lines = []
+    for k, stage in enumerate(stages):
+        s = stage.get("surgery") or {}
+        done = [what for what, n in (("a sheet cut", s.get("perforated", 0)),
+                                     ("a sheet carved", s.get("carved", 0))) for _ in range(n)]
+        if s.get("sealed"):
+            done.append("the solid rebuilt with its thin passages sealed")
+        if not done:
+            continue
+        dropped = f" (dropped: {s['dropped']})" if s.get("dropped") else ""
+        lines.append(f"topology surgery before stage {k}: {', '.join(done)} ({s['seconds']:.1f} s){dropped}")
+    return lines

@@ -173,14 +173,30 @@ def _membrane_note(results, target, mf):
             f"at twice it. A lower bound that tightens as the spacing falls: {mf['limit']:.2e} at the {target}'s "
             f"area with spacing {mf['limit_spacing']:g}.")
     blocking = [p for p in BLOCKING if PROBLEMS[p][0] == target]
-    held = [(r["budgets"][k]["accuracy"] * r["budgets"][k]["area_ratio"] * mf["target_area"] / mf["integral"], key)
-            for key, r in results.items() if key.problem in blocking for k in r["budgets"]
-            if "area_ratio" in r["budgets"][k]]
+    ratios = [(r["budgets"][k]["accuracy"] * r["budgets"][k]["area_ratio"] * mf["target_area"] / mf["integral"],
+               key, _opening_cut(r["budgets"][k]))
+              for key, r in results.items() if key.problem in blocking for k in r["budgets"]
+              if "area_ratio" in r["budgets"][k]]
+    held = [(x, key) for x, key, cut in ratios if not cut]
+    cut = [x for x, _, cut in ratios if cut]
     if held:
         lowest, key = min(held)
-        text += (f" Check on the {len(held)} results from the centred torus with a recorded area: accuracy "
-                 f"times area over the bound is at least {lowest:.2f} ({key_text(key, ', ')}), so none goes below it.")
+        text += (f" Check on the {len(held)} results from the centred torus with a recorded area that kept its "
+                 f"topology: accuracy times area over the bound is at least {lowest:.2f} ({key_text(key, ', ')}), "
+                 f"so none goes below it.")
+    if cut:
+        one = len(cut) == 1
+        text += (f" The {len(cut)} result{'' if one else 's'} whose opening topology surgery cut (rbf since "
+                 f"2026-11-30; docs/reconstruction.md, *Topology surgery*) no longer block{'s' if one else ''} it "
+                 f"and {'is' if one else 'are'} not bound by it: the same ratio is {min(cut):.2f} to "
+                 f"{max(cut):.2f} there.")
     return text
+
+
+def _opening_cut(record) -> bool:
+    """Whether a run's topology surgery cut a sheet (in the mesh or in a seal's voxels) in some stage."""
+    return any(st.get("surgery", {}).get("perforated") or st.get("surgery", {}).get("carved")
+               for st in record.get("info", {}).get("stages", []))
 
 
 def _targets_notes(results):
