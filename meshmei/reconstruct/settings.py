@@ -228,11 +228,11 @@ class ReconstructionSettings:
         Between stages, once the fit is close to the target elsewhere, change the mesh's topology where the
         target's differs (:func:`~meshmei.reconstruct.surgery.adapt_topology`): cut a hole through a thin
         sheet of the mesh that spans an opening of the target, and seal thin passages (and holes where the
-        target has surface), filling the cavity they close where the target encloses it. Each change keeps the mesh closed, manifold and free of intersecting pairs; the stage's
-        record says what was done (``surgery``). From the centred torus on the teapot, whose surface must
-        otherwise span the handle and whose own hole has nowhere to go, the default run ends at 1.95e-6
-        against 2.76e-5 at 2.5k and 8.7e-7 against 1.49e-5 at 10k (docs/reconstruction.md, *Topology
-        surgery*). True (default) or False.
+        target has surface), filling the cavity they close where the target encloses it. Each change keeps
+        the mesh closed, manifold and free of intersecting pairs; the stage's record says what was done
+        (``surgery``). From the centred torus on the teapot, whose surface must otherwise span the handle
+        and whose own hole has nowhere to go, the default run ends at 1.95e-6 against 2.76e-5 at 2.5k and
+        8.7e-7 against 1.49e-5 at 10k (docs/reconstruction.md, *Topology surgery*). True (default) or False.
     eval_samples : int
         Samples per surface for the metrics (100,000 is the project's reported metric).
     """
