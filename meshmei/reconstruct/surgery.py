@@ -79,12 +79,12 @@ def adapt_topology(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray)
               "carved": 0}
     if record["checked"]:
         thickness = SHEET_THICKNESS * float(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1).mean())
-        cut = perforate(V, F, Vt, Ft, d > far, thickness=thickness)
+        pairs = sheet_patches(V, F, Vt, Ft, d > far, thickness=thickness)
+        cut = _perforated(V, F, pairs, thickness)
         # sheets the mesh could not be cut through (the tube between their holes crossed the mesh) are carved
         # out of the solid by seal, if it rebuilds the mesh anyway
-        sheets = [] if cut is not None else [
-            _surface_points(V, F[np.concatenate(p)], _areas(V, F[np.concatenate(p)]), thickness / 4.0)
-            for p in sheet_patches(V, F, Vt, Ft, d > far, thickness=thickness)]
+        sheets = [] if cut is not None else [_surface_points(V, G, _areas(V, G), thickness / 4.0)
+                                             for G in (F[np.concatenate(p)] for p in pairs)]
         if cut is not None:
             V, F, record["perforated"] = cut
         # with sheets to carve the solid is rebuilt whatever the cavities; else only where one could be filled
@@ -245,10 +245,14 @@ def perforate(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, off:
     A sheet is cut through two disks facing each other across it: for each of :data:`CUT_REACH` in turn,
     the faces of each side over the off-target faces of either side (:func:`_facing_disks`); failing both,
     the two off-target patches themselves (whose holes may not face each other, so that the tube between
-    them may cross the sheet). Each sheet is cut alone first, by the first of these that passes; those that pass are cut
-    together, or, if that fails the checks, only the first of them. Returns ``(V2, F2, cuts)``, ``cuts`` the
-    number of holes cut; the vertices inside the removed faces are dropped."""
-    pairs = sheet_patches(V, F, Vt, Ft, off, thickness=thickness)
+    them may cross the sheet). Each sheet is cut alone first, by the first of these that passes; those that
+    pass are cut together, or, if that fails the checks, only the first of them. Returns ``(V2, F2, cuts)``,
+    ``cuts`` the number of holes cut; the vertices inside the removed faces are dropped."""
+    return _perforated(V, F, sheet_patches(V, F, Vt, Ft, off, thickness=thickness), thickness)
+
+
+def _perforated(V: np.ndarray, F: np.ndarray, pairs: list, thickness: float):
+    """:func:`perforate` of the sheets ``pairs`` (:func:`sheet_patches`), found already."""
     if not pairs:
         return None
     euler = topology(F)["euler"]
@@ -257,17 +261,21 @@ def perforate(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, off:
     C = V[F].mean(1)
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
-    passing = []
+    passing, alone = [], []  # each sheet's first cut that passes, and its result
     for A, B in pairs:
         for cut in [*_facing_disks(A, B, F, C, N, tt, thickness, edge), (A, B)]:
-            if _cut(V, F, [cut], euler) is not None:
+            got = _cut(V, F, [cut], euler)
+            if got is not None:
                 passing.append(cut)
+                alone.append(got)
                 break
-    for chosen in ([passing, passing[:1]] if len(passing) > 1 else [passing] if passing else []):
-        got = _cut(V, F, chosen, euler)
+    if not passing:
+        return None
+    if len(passing) > 1:
+        got = _cut(V, F, passing, euler)
         if got is not None:
-            return (*got, len(chosen))
-    return None
+            return (*got, len(passing))
+    return (*alone[0], 1)
 
 
 # perforate's cut: on each side of a sheet, the faces within this many mean edge lengths (across the sheet's
