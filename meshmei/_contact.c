@@ -382,7 +382,12 @@ int64_t contact_edge_edge(int64_t n, const double *V, int64_t k, const int64_t *
     }
     found = 0;
     int64_t hit[SCAN_CHUNK];
-    for (int64_t i = 0; i < k; i++) {
+    /* The short edges in the grid's order, then the long ones: neighbouring queries read the same cells in turn
+     * (a 10k fit of the teapot: 26.3 ms against 28.8 in edge order, medians of 30 alternated calls). The same
+     * pairs, each found and measured from the same edge as in edge order; only the order they are written in
+     * differs, and the caller sorts them. */
+    for (int64_t t = 0; t < k; t++) {
+        int64_t i = t < nshort ? ids[t] : longs[t - nshort];
         const double *bi = box + 6 * i;
         box_of(V, E + 2 * i, 2, widen, lo, hi);
         int long_i = size[i] > 2.0 * mean;

@@ -22,6 +22,8 @@ __all__ = [
     "nearest_neighbors",
     "nn_spacing",
     "PointIndex",
+    "spatial_order",
+    "SORT_QUERIES_FROM",
     "chamfer_distance",
 ]
 
@@ -221,6 +223,37 @@ def _point_array(X, name: str, shape: str = "(n, 3)", *, nonempty: bool = False)
     return Xn
 
 
+# PointIndex.query hands a large index its queries in Morton (Z-curve) order and puts the answers back in
+# theirs: consecutive queries then walk the same branches of the tree, which stay in cache. The answers are the
+# same (each query is searched on its own). Measured on two cores, 10,000 samples of a 10k-vertex fit of the
+# teapot, 40 draws: into its 200,000-point pool 10.7 ms for 16.9 (two scipy threads; one: 15.8 for 22.2), the
+# order's 1.3 ms included; into the 10,000 samples' own tree (which stays in cache anyway) 5.5 ms for 4.3, so
+# the smaller indices keep the callers' order.
+SORT_QUERIES_FROM = 50_000  # points in the index
+_SORT_MIN_QUERIES = 512
+_MORTON_BITS = 10
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """The low 10 bits of each uint32 of ``x`` moved to every third bit (bit k to bit 3k)."""
+    x = x & np.uint32(0x3FF)
+    for shift, mask in ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249)):
+        x = (x | (x << np.uint32(shift))) & np.uint32(mask)
+    return x
+
+
+def spatial_order(X: np.ndarray) -> np.ndarray:
+    """A permutation of the points ``X`` ``(n, 3)`` (finite) along a Morton curve over their bounding box, 2^10
+    cells a side: points near each other in space come near each other in the order (mostly)."""
+    lo = X.min(0)
+    span = float((X.max(0) - lo).max())
+    scale = (1 << _MORTON_BITS) / span if span > 0 else 0.0
+    cell = np.minimum((X - lo) * scale, (1 << _MORTON_BITS) - 1).astype(np.uint32)
+    code = _spread_bits(cell[:, 0]) | (_spread_bits(cell[:, 1]) << np.uint32(1)) | (_spread_bits(cell[:, 2])
+                                                                                    << np.uint32(2))
+    return np.argsort(code)
+
+
 class PointIndex:
     """Nearest-neighbour queries into a fixed point set, fast at any query distance.
 
@@ -309,9 +342,19 @@ class PointIndex:
         beside forty 10,000-point queries into 200,000 points took 0.80 s with the queries' 0.66 s, and
         ran alongside them (0.43 s in all) with two workers. Pass 2 or more where another thread has work
         during the query (:meth:`meshmei.contact.ContactBarrier.prefetch`); alone, one is as fast or
-        faster on two cores.
+        faster on two cores. An index of at least :data:`SORT_QUERIES_FROM` points takes many queries in
+        Morton order (:func:`spatial_order`) and answers in the order given.
         """
         Pn = _point_array(P, "P")
+        if self.n >= SORT_QUERIES_FROM and len(Pn) >= _SORT_MIN_QUERIES:
+            order = spatial_order(Pn)
+            found = np.empty(len(Pn), dtype=np.int64)
+            found[order] = self._query(np.ascontiguousarray(Pn[order]), near_first, workers)
+            return found
+        return self._query(Pn, near_first, workers)
+
+    def _query(self, Pn: np.ndarray, near_first: bool | None, workers: int) -> np.ndarray:
+        """:meth:`query` on checked points, in their order."""
         if near_first is None:
             near_first = self.far_share < 0.5
         if near_first:

@@ -11,7 +11,9 @@ import pytest
 import torch
 
 from meshmei.errors import MeshError
-from meshmei.sampling import PointIndex, chamfer_distance, nearest_neighbors, nn_spacing, sample_points
+import meshmei.sampling as sampling
+from meshmei.sampling import (PointIndex, chamfer_distance, nearest_neighbors, nn_spacing, sample_points,
+                              spatial_order)
 
 from conftest import icosphere
 
@@ -171,6 +173,42 @@ def test_point_index_answers_the_same_with_query_threads():
             a = one.query(queries, near_first=near_first, workers=1)
             b = two.query(queries, near_first=near_first, workers=2)
             assert np.array_equal(a, b) and one.far_share == two.far_share
+
+
+def test_a_large_index_answers_in_the_order_asked_whatever_order_it_searches(monkeypatch):
+    # from SORT_QUERIES_FROM points the queries are searched in Morton order and the answers put back: the
+    # same answers, near and far, by either search order and thread count, and the same far_share
+    V, F = icosphere(3)
+    Q = sample_points(V, F, sampling.SORT_QUERIES_FROM + 1000, generator=0)
+    near = sample_points(V, F, 3000, generator=1) * 1.001
+    far = torch.randn(3000, 3, dtype=V.dtype, generator=torch.Generator().manual_seed(2)) * 2.0
+    mixed = torch.cat([near, far])[torch.randperm(6000, generator=torch.Generator().manual_seed(3))]
+    sorted_index, plain_index = PointIndex(Q), PointIndex(Q)
+    for queries in (near, far, mixed):
+        for near_first in (True, False):
+            for workers in (1, 2):
+                got = sorted_index.query(queries, near_first=near_first, workers=workers)
+                with monkeypatch.context() as m:
+                    m.setattr(sampling, "SORT_QUERIES_FROM", math.inf)
+                    want = plain_index.query(queries, near_first=near_first, workers=workers)
+                assert np.array_equal(got, want) and sorted_index.far_share == plain_index.far_share
+    assert np.array_equal(sorted_index.query(near), nearest_neighbors(near, Q).numpy())
+
+
+def test_spatial_order_is_a_permutation_that_keeps_neighbours_together():
+    rng = np.random.default_rng(0)
+    X = rng.standard_normal((5000, 3))
+    X /= np.linalg.norm(X, axis=1, keepdims=True)  # a sphere's surface, as samples lie
+    order = spatial_order(X)
+    assert np.array_equal(np.sort(order), np.arange(len(X)))
+
+    def step(Y):
+        return float(np.linalg.norm(np.diff(Y, axis=0), axis=1).mean())
+
+    # consecutive points: random order steps about the sphere's mean chord (1.33); the curve's steps are short
+    assert step(X[order]) < 0.1 * step(X)
+    for flat in (np.zeros((7, 3)), np.ones((1, 3)), np.column_stack([X[:, :2], np.zeros(len(X))])):
+        assert np.array_equal(np.sort(spatial_order(flat)), np.arange(len(flat)))
 
 
 def test_point_index_on_duplicated_points_stays_exact_near():
