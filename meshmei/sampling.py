@@ -228,7 +228,9 @@ def _point_array(X, name: str, shape: str = "(n, 3)", *, nonempty: bool = False)
 # same (each query is searched on its own). Measured on two cores, 10,000 samples of a 10k-vertex fit of the
 # teapot, 40 draws: into its 200,000-point pool 10.7 ms for 16.9 (two scipy threads; one: 15.8 for 22.2), the
 # order's 1.3 ms included; into the 10,000 samples' own tree (which stays in cache anyway) 5.5 ms for 4.3, so
-# the smaller indices keep the callers' order.
+# the smaller indices keep the callers' order. In a whole run the gain is smaller: over a default 1,000-step
+# bunny run at 2.5k the pool's queries took 10.9 and 12.3 s against 12.5 and 14.0, of 34-39 s
+# (docs/reconstruction.md, *Query order*).
 SORT_QUERIES_FROM = 50_000  # points in the index
 _SORT_MIN_QUERIES = 512
 _MORTON_BITS = 10
