@@ -247,6 +247,9 @@ def _spread_bits(x: np.ndarray) -> np.ndarray:
 def spatial_order(X: np.ndarray) -> np.ndarray:
     """A permutation of the points ``X`` ``(n, 3)`` (finite) along a Morton curve over their bounding box, 2^10
     cells a side: points near each other in space come near each other in the order (mostly)."""
+    X = np.asarray(X)
+    if len(X) == 0:
+        return np.zeros(0, dtype=np.int64)
     lo = X.min(0)
     span = float((X.max(0) - lo).max())
     scale = (1 << _MORTON_BITS) / span if span > 0 else 0.0

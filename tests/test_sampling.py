@@ -207,7 +207,8 @@ def test_spatial_order_is_a_permutation_that_keeps_neighbours_together():
 
     # consecutive points: random order steps about the sphere's mean chord (1.33); the curve's steps are short
     assert step(X[order]) < 0.1 * step(X)
-    for flat in (np.zeros((7, 3)), np.ones((1, 3)), np.column_stack([X[:, :2], np.zeros(len(X))])):
+    flat_cases = (np.zeros((7, 3)), np.ones((1, 3)), np.zeros((0, 3)), np.column_stack([X[:, :2], np.zeros(len(X))]))
+    for flat in flat_cases:
         assert np.array_equal(np.sort(spatial_order(flat)), np.arange(len(flat)))
 
 
