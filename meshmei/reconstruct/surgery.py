@@ -87,7 +87,7 @@ def adapt_topology(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray)
         cut = _perforated(V, F, pairs, thickness)
         # sheets the mesh could not be cut through (the tube between their holes crossed the mesh) are carved
         # out of the solid by seal, if it rebuilds the mesh anyway
-        sheets = [] if cut is not None else [_surface_points(V, G, _areas(V, G), thickness / 4.0)
+        sheets = [] if cut is not None else [_surface_points(V, G, thickness / 4.0)
                                              for G in (F[np.concatenate(p)] for p in pairs)]
         if cut is not None:
             V, F, record["perforated"] = cut
@@ -101,10 +101,6 @@ def adapt_topology(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray)
                 (V, F), record["sealed"], record["carved"] = sealed, True, len(sheets)
     record["seconds"] = round(time.perf_counter() - t0, 4)
     return V, F, record
-
-
-def _areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
 
 
 def _may_seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray) -> bool:
@@ -380,13 +376,13 @@ def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: floa
     G = lo + spacing * np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
     solid = np.abs(igl.fast_winding_number(V, F, G.reshape(-1, 3)).reshape(n)) > 0.5
     # the surface's own voxels: points of every face at a third of a voxel apart
-    P = _surface_points(V, F, _areas(V, F), spacing / 3.0)
+    P = _surface_points(V, F, spacing / 3.0)
     ball = ndi.generate_binary_structure(3, 1)
     solid |= ndi.binary_dilation(_voxels(P, lo, spacing, n), ball)  # walls two voxels thick: no leak between
     before = int(solid.sum())
     # the target's surface where it passes within SEAL_REACH voxels of the solid: it plugs a hole the mesh has
     # where the target has surface (the teapot's lid, through which the torus's hole left)
-    plug = ndi.binary_dilation(_voxels(_surface_points(Vt, Ft, _areas(Vt, Ft), spacing / 3.0), lo, spacing, n), ball)
+    plug = ndi.binary_dilation(_voxels(_surface_points(Vt, Ft, spacing / 3.0), lo, spacing, n), ball)
     plug &= ndi.distance_transform_edt(~solid) <= SEAL_REACH
     filled = ndi.binary_fill_holes(ndi.binary_closing(solid | plug, ball))
     if filled.sum() < min_gain * before:
@@ -429,9 +425,9 @@ def _voxels(P, lo, spacing: float, n) -> np.ndarray:
     return out
 
 
-def _surface_points(V, F, area, spacing):
+def _surface_points(V, F, spacing):
     """Points on every face of ``(V, F)``, about ``spacing`` apart (barycentric lattice per face)."""
-    k = np.clip(np.ceil(np.sqrt(2.0 * area) / spacing).astype(int), 1, 64)
+    k = np.clip(np.ceil(np.sqrt(igl.doublearea(V, F).ravel()) / spacing).astype(int), 1, 64)
     out = []
     for m in np.unique(k):
         faces = F[k == m]
