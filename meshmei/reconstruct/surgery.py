@@ -375,6 +375,7 @@ def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: floa
     n = np.ceil((V.max(0) + 4 * spacing - lo) / spacing).astype(int) + 1
     G = lo + spacing * np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
     solid = np.abs(igl.fast_winding_number(V, F, G.reshape(-1, 3)).reshape(n)) > 0.5
+    inside = int(solid.sum())  # the solid's own volume, in voxels
     # the surface's own voxels: points of every face at a third of a voxel apart
     P = _surface_points(V, F, spacing / 3.0)
     ball = ndi.generate_binary_structure(3, 1)
@@ -385,7 +386,9 @@ def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: floa
     plug = ndi.binary_dilation(_voxels(_surface_points(Vt, Ft, spacing / 3.0), lo, spacing, n), ball)
     plug &= ndi.distance_transform_edt(~solid) <= SEAL_REACH
     filled = ndi.binary_fill_holes(ndi.binary_closing(solid | plug, ball))
-    if filled.sum() < min_gain * before:
+    # what the seal adds, against the solid's own volume (not its voxels with the thickened walls, mostly wall
+    # in a thin shell: measured so, seals that filled the teapot counted as adding too little)
+    if filled.sum() - before < (min_gain - 1.0) * inside:
         return None, SEAL_REFUSED["gain"]
     added = np.flatnonzero((filled & ~solid).reshape(-1))
     if len(added) > SEAL_SMALL * before:  # (a rebuild for carving alone may add a little, and that unchecked)
