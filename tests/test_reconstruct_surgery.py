@@ -6,7 +6,11 @@ import pytest
 import torch
 
 from meshmei.quality import self_intersecting_pairs, topology
-from meshmei.reconstruct.surgery import SEAL_REFUSED, _sealed, adapt_topology, perforate, seal, sheet_patches
+import scipy.ndimage as ndi
+from scipy.spatial import ConvexHull, cKDTree
+
+from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _inside, _sealed, _surface_points, _voxels,
+                                         adapt_topology, perforate, seal, sheet_patches)
 from meshmei.shapes import initial_mesh
 
 
@@ -169,6 +173,59 @@ def test_seal_counts_what_it_adds_against_the_solids_own_volume():
     V, F = _shell(hole=0.006, inner=0.2)
     assert _sealed(V, F, *_ball(0.3), spacing=0.01, min_gain=2.5, carve=(), reach=0.0, far=0.0) == \
         (None, SEAL_REFUSED["gain"])
+
+
+def _long_box(length=0.6, side=0.1):
+    """A closed box of 12 triangles, outward, long thin faces on its sides (aspect ``length / side``)."""
+    V = np.array([[x, y, z] for x in (0, length) for y in (0, side) for z in (0, side)], dtype=float)
+    V -= V.mean(0)
+    F = ConvexHull(V).simplices.astype(np.int64)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    flip = np.einsum("ij,ij->i", n, V[F].mean(1) - V.mean(0)) < 0
+    F[flip] = F[flip][:, ::-1]
+    return V, F
+
+
+def _grid(V, F, spacing):
+    """_sealed's grid and wall for ``(V, F)`` at ``spacing``: ``(G, wall, lo)``."""
+    lo = V.min(0) - 4 * spacing
+    n = np.ceil((V.max(0) + 4 * spacing - lo) / spacing).astype(int) + 1
+    G = lo + spacing * np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
+    ball = ndi.generate_binary_structure(3, 1)
+    return G, ndi.binary_dilation(_voxels(_surface_points(V, F, spacing / 3.0), lo, spacing, n), ball), lo
+
+
+@pytest.mark.parametrize("case", ["shell", "ring", "long box", "long box, not tight"])
+def test_inside_is_the_winding_number_of_every_voxel(case):
+    # the seal's inside from a few probes per piece of the grid is exactly the test of every voxel: with long
+    # thin faces (cover points added) and where a face would need too many subdivisions (every voxel tested)
+    spacing = 0.01
+    if case == "shell":
+        V, F = _shell(hole=0.006, inner=0.25)
+    elif case == "ring":
+        V, F, _ = _ring()
+    else:
+        V, F = _long_box()
+        spacing = 0.02 if case == "long box" else 0.005
+        Q, tight = _cover_points(V, F, spacing / 3.0, COVER * spacing)
+        assert len(Q) > 0 and tight == (case == "long box")
+    G, wall, lo = _grid(V, F, spacing)
+    every = (np.abs(igl.fast_winding_number(V, F, G.reshape(-1, 3)).reshape(wall.shape)) > 0.5) & ~wall
+    assert every.sum() > 0
+    assert np.array_equal(_inside(V, F, G, wall, lo, spacing), every)
+
+
+def test_cover_points_leave_no_point_of_a_face_farther_than_cover():
+    V, F = _long_box(side=0.05)  # side faces of aspect 12
+    spacing = 0.02
+    P = np.concatenate([_surface_points(V, F, spacing / 3.0), _cover_points(V, F, spacing / 3.0, COVER * spacing)[0]])
+    rng = np.random.default_rng(0)
+    b = rng.dirichlet(np.ones(3), size=(len(F), 400))
+    X = np.einsum("fpk,fkd->fpd", b, V[F]).reshape(-1, 3)
+    d = cKDTree(P).query(X)[0]
+    assert d.max() < COVER * spacing
+    # the lattice alone leaves points of the long faces farther than that
+    assert cKDTree(_surface_points(V, F, spacing / 3.0)).query(X)[0].max() > COVER * spacing
 
 
 def test_seal_plugs_a_wide_hole_where_the_target_has_surface():
