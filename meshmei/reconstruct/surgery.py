@@ -434,10 +434,10 @@ def _inside(V, F, G, wall, lo, spacing: float) -> np.ndarray:
     The surface crosses no segment between two neighbouring voxels that a tight wall leaves out, so each
     6-connected piece of the rest of the grid lies on one side of it, and its winding number is taken at
     :data:`PIECE_PROBES` of its voxels. The wall is made tight by points added on the faces that its own
-    lattice leaves too coarse (:data:`COVER`), and those points' voxels are tested one by one, so the result
-    is the same as testing every voxel (at 10k vertices, a few thousand points for about 900,000: 0.1 s for
-    1.0). Every voxel is tested where a face would need more than 64 subdivisions, or a piece's probes
-    disagree."""
+    lattice leaves too coarse (:data:`COVER`), and those points' voxels are tested one by one: by the exact
+    winding number the result is that of every voxel, and on the centred torus's teapot fits libigl's fast
+    one gave the same seals bit for bit (285 to 716 points for about 900,000: 0.04-0.06 s for 1.0). Every voxel
+    is tested where a face would need more than 64 subdivisions, or a piece's probes disagree."""
     n = wall.shape
     Q, tight = _cover_points(V, F, spacing / 3.0, COVER * spacing)
     if tight:
