@@ -420,9 +420,9 @@ def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: floa
     return (Vm, Fm), "kept"
 
 
-# _sealed's winding numbers: where every point of the surface lies within this many voxels of a point whose
-# voxel is in the wall (under one half, so that the surface cannot pass between two neighbouring voxels that
-# the wall leaves out), at up to PIECE_PROBES voxels of each piece of the grid the wall leaves
+# _inside: a wall whose points leave no point of the surface farther than this many voxels (under one half:
+# then the surface cannot pass between two neighbouring voxels outside the wall), and the winding number at
+# up to PIECE_PROBES voxels of each piece of the grid outside it
 COVER = 0.45
 PIECE_PROBES = 16
 
@@ -482,10 +482,10 @@ def _subdivisions(V, F, spacing) -> np.ndarray:
 
 def _cover_points(V, F, spacing, cover):
     """``(points, tight)``: points on the faces of ``(V, F)`` whose :func:`_surface_points` lattice at
-    ``spacing`` leaves a point of the face farther than ``cover`` from every lattice point (a long thin face), on
-    a lattice fine enough (each of a lattice's triangles is its face shrunk, and no point of a triangle is
-    farther than its longest edge over the square root of 3 from a corner); ``tight``: no face needed more
-    than 64 subdivisions for that."""
+    ``spacing`` is too coarse to leave no point of the face farther than ``cover`` from a lattice point (long
+    thin faces), on a lattice fine enough: each of a lattice's triangles is its face shrunk, and no point of a
+    triangle is farther than its longest edge over the square root of 3 from a corner. ``tight``: no face
+    needed more than 64 subdivisions for that."""
     longest = np.linalg.norm(V[F] - V[np.roll(F, 1, axis=1)], axis=2).max(1)
     k = np.maximum(np.ceil(longest / (np.sqrt(3.0) * cover)).astype(int), 1)
     coarse = k > _subdivisions(V, F, spacing)
@@ -495,7 +495,7 @@ def _cover_points(V, F, spacing, cover):
 
 def _lattice(V, F, k) -> np.ndarray:
     """The points of each face ``F[i]`` at barycentric coordinates in steps of ``1 / k[i]``."""
-    out = [np.zeros((0, 3))]
+    out = [np.zeros((0, 3), dtype=V.dtype)]
     for m in np.unique(k):
         faces = F[k == m]
         i, j = np.meshgrid(np.arange(m + 1), np.arange(m + 1), indexing="ij")
