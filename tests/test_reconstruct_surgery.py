@@ -4,12 +4,10 @@ import igl
 import numpy as np
 import pytest
 import torch
-
-from meshmei.quality import self_intersecting_pairs, topology
-import scipy.ndimage as ndi
 from scipy.spatial import ConvexHull, cKDTree
 
-from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _inside, _sealed, _surface_points, _voxels,
+from meshmei.quality import self_intersecting_pairs, topology
+from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _grid, _inside, _sealed, _surface_points,
                                          adapt_topology, perforate, seal, sheet_patches)
 from meshmei.shapes import initial_mesh
 
@@ -186,15 +184,6 @@ def _long_box(length=0.6, side=0.1):
     return V, F
 
 
-def _grid(V, F, spacing):
-    """_sealed's grid and wall for ``(V, F)`` at ``spacing``: ``(G, wall, lo)``."""
-    lo = V.min(0) - 4 * spacing
-    n = np.ceil((V.max(0) + 4 * spacing - lo) / spacing).astype(int) + 1
-    G = lo + spacing * np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
-    ball = ndi.generate_binary_structure(3, 1)
-    return G, ndi.binary_dilation(_voxels(_surface_points(V, F, spacing / 3.0), lo, spacing, n), ball), lo
-
-
 @pytest.mark.parametrize("case", ["shell", "ring", "long box", "long box, not tight"])
 def test_inside_is_the_winding_number_of_every_voxel(case):
     # the seal's inside from a few probes per piece of the grid is exactly the test of every voxel: with long
@@ -209,7 +198,7 @@ def test_inside_is_the_winding_number_of_every_voxel(case):
         spacing = 0.02 if case == "long box" else 0.005
         Q, tight = _cover_points(V, F, spacing / 3.0, COVER * spacing)
         assert len(Q) > 0 and tight == (case == "long box")
-    G, wall, lo = _grid(V, F, spacing)
+    lo, _, G, wall = _grid(V, F, spacing)
     every = (np.abs(igl.fast_winding_number(V, F, G.reshape(-1, 3)).reshape(wall.shape)) > 0.5) & ~wall
     assert every.sum() > 0
     assert np.array_equal(_inside(V, F, G, wall, lo, spacing), every)

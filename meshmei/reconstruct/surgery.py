@@ -372,14 +372,9 @@ def seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, *, spacin
 
 def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: float, far: float):
     """:func:`seal`'s mesh (or None) and "kept" or the :data:`SEAL_REFUSED` reason for None."""
-    lo = V.min(0) - 4 * spacing
-    n = np.ceil((V.max(0) + 4 * spacing - lo) / spacing).astype(int) + 1
-    G = lo + spacing * np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
+    lo, n, G, wall = _grid(V, F, spacing)
     inside = abs(_signed_volume(V, F)) / spacing ** 3  # the solid's own volume, in voxels
-    # the surface's own voxels: points of every face at a third of a voxel apart
-    P = _surface_points(V, F, spacing / 3.0)
     ball = ndi.generate_binary_structure(3, 1)
-    wall = ndi.binary_dilation(_voxels(P, lo, spacing, n), ball)  # walls two voxels thick: no leak between
     solid = wall | _inside(V, F, G, wall, lo, spacing)
     before = int(solid.sum())
     # the target's surface where it passes within SEAL_REACH voxels of the solid: it plugs a hole the mesh has
@@ -418,6 +413,17 @@ def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: floa
     if len(self_intersecting_pairs(Vm, Fm)) or not _closed(Fm):
         return None, SEAL_REFUSED["extraction"]
     return (Vm, Fm), "kept"
+
+
+def _grid(V, F, spacing: float):
+    """:func:`seal`'s voxels for ``(V, F)`` at ``spacing``: ``(lo, n, G, wall)``, the grid's corner, shape and
+    centres ``(*n, 3)`` (the mesh's box and four voxels around it), and the wall: the voxels of points of every
+    face a third of a voxel apart, with their neighbours (walls two voxels thick: no leak between)."""
+    lo = V.min(0) - 4 * spacing
+    n = np.ceil((V.max(0) + 4 * spacing - lo) / spacing).astype(int) + 1
+    G = lo + spacing * np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
+    P = _surface_points(V, F, spacing / 3.0)
+    return lo, n, G, ndi.binary_dilation(_voxels(P, lo, spacing, n), ndi.generate_binary_structure(3, 1))
 
 
 # _inside: a wall whose points leave no point of the surface farther than this many voxels (under one half:
