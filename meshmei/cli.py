@@ -380,9 +380,8 @@ def _add_reconstruct(sub) -> None:
                         f"unfolds folds lying on the target (0: off; default {d.w_facing:g})")
     edges = {"auto": "auto", True: "on", False: "off"}[d.contact_edges]
     p.add_argument("--contact-edges", choices=("auto", "on", "off"), default=edges,
-                   help="pair edges with edges in the contact barrier (not those a mesh edge joins): 'auto' in a "
-                        "stage once the guard has refused a few steps at an edge contact, 'on' in every stage "
-                        f"(slower), 'off' never (default {edges})")
+                   help="pair edges with edges in the contact barrier: 'auto' in a stage once the guard has refused "
+                        f"a few steps at an edge contact, 'on' in every stage (slower), 'off' never (default {edges})")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_reconstruct)
 

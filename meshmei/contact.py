@@ -388,14 +388,6 @@ class ContactBarrier:
         1, a pair may come within ``distance`` for up to that many calls before the barrier sees it; use it
         only where a :class:`~meshmei.validity.StepGuard` holds the guarantee and the barrier only steers
         (the 3D-MEI, whose steps are long against its edges, uses 4).
-    joined_edges : bool
-        With edge pairs in the energy, also the pairs that a mesh edge joins (an end of one is a neighbour
-        of an end of the other). True (default): every two edges that share no vertex, as incremental
-        potential contact pairs them. False leaves the joined pairs out of the energy only: they are still
-        searched, handed out by :meth:`candidates` and kept for :meth:`separation`, so a certificate covers
-        them. Where the surface folds sharply at a crease, or its faces are thin, such pairs lie within a
-        quarter of an edge with no second sheet anywhere near: the reconstruction leaves them out
-        (docs/reconstruction.md, *Edge pairs a mesh edge joins*).
 
     Attributes
     ----------
@@ -408,7 +400,7 @@ class ContactBarrier:
     """
 
     def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
-                 edges: bool = False, joined_edges: bool = True):
+                 edges: bool = False):
         check_positive("distance", distance)
         F = as_faces(F).cpu()  # the search and the energy run on the CPU (contact_energies)
         self.F = F
@@ -422,8 +414,6 @@ class ContactBarrier:
             raise ValueError(f"min_interval must be a positive integer, got {min_interval!r}")
         self.min_interval = min_interval
         self.E = self.En = None
-        self.joined_edges = bool(joined_edges)
-        self._edge_keys = None  # the mesh edges' pair keys, sorted (_apart)
         self.edge_energy = False  # edge pairs in the energy (use_edges), not only searched (track_edges)
         self.active, self.rebuilds, self._since = 0, 0, 0
         self.seconds = 0.0
@@ -724,25 +714,8 @@ class ContactBarrier:
         """The pairs for the energy of ``V`` (searched where due), as int64 arrays ``(vt, ft, ea, eb)``:
         :meth:`candidates`' pairs, or, where the last search kept at most :data:`_HAND_ALL` pairs, all of them,
         a superset that the energy's distance test (``d < distance``) cuts to the same pairs in the same order
-        (the bounds cost more than measuring a few hundred pairs). Without ``joined_edges``, less the edge
-        pairs that a mesh edge joins."""
-        pairs = self._prepared(V)[1]
-        if self.edge_energy and not self.joined_edges and len(pairs[2]):
-            pairs = pairs[:2] + self._apart(pairs[2], pairs[3])
-        return pairs
-
-    def _apart(self, ea: np.ndarray, eb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The edge pairs ``(ea, eb)`` (indices into :attr:`E`) that no mesh edge joins, in their order: no end
-        of one is a neighbour of an end of the other."""
-        n = self._least_vertices
-        if self._edge_keys is None:
-            self._edge_keys = np.sort(_pair_keys(self.En[:, 0], self.En[:, 1], n))
-        keys, joined = self._edge_keys, np.zeros(len(ea), dtype=bool)
-        for a in (self.En[ea, 0], self.En[ea, 1]):
-            for b in (self.En[eb, 0], self.En[eb, 1]):
-                k = _pair_keys(a, b, n)
-                joined |= keys[np.searchsorted(keys, k).clip(max=len(keys) - 1)] == k
-        return np.ascontiguousarray(ea[~joined]), np.ascontiguousarray(eb[~joined])
+        (the bounds cost more than measuring a few hundred pairs)."""
+        return self._prepared(V)[1]
 
     def separation(self, V: torch.Tensor):
         """The pairs the last call's search kept, where the call was for the vertices ``V``:

@@ -252,58 +252,6 @@ def test_edge_pairs_turned_on_later_give_the_energy_of_a_barrier_built_with_them
     assert float(late(V)) == float(both(V)) and late.rebuilds == rebuilds
 
 
-def _thin_strip_under_a_sheet():
-    """A grid of thin faces (rows 0.05 apart, columns 0.25) and a copy of it 0.07 above, shifted along the rows:
-    edges of neighbouring rows lie 0.05 apart joined by a mesh edge, and edges of the two layers 0.07 apart."""
-    from conftest import grid_sheet
-
-    V, F = grid_sheet(5, 3)
-    V[:, 1] *= 0.1
-    top = V.clone()
-    top[:, 0] += 0.1
-    top[:, 2] += 0.07
-    return torch.cat([V, top]), torch.cat([F, F + V.shape[0]])
-
-
-def test_edge_pairs_that_a_mesh_edge_joins_are_left_out_of_the_energy_and_nothing_else():
-    V, F = _thin_strip_under_a_sheet()
-    d_hat, n = 0.1, V.shape[0]
-    E = ContactBarrier(F, d_hat, edges=True).E
-    neighbours = {tuple(e) for e in E.tolist()} | {tuple(e[::-1]) for e in E.tolist()}
-    joined, apart = 0.0, 0.0  # brute force: every two edges sharing no vertex within d_hat
-    n_joined = n_apart = 0
-    for i in range(len(E)):
-        for j in range(i + 1, len(E)):
-            (a0, a1), (b0, b1) = E[i].tolist(), E[j].tolist()
-            if {a0, a1} & {b0, b1}:
-                continue
-            d = math.sqrt(float(segment_sqdist(V[a0][None], V[a1][None], V[b0][None], V[b1][None])[0]))
-            if d < d_hat:
-                term = -(d - d_hat) ** 2 * math.log(d / d_hat)
-                if any((a, b) in neighbours for a in (a0, a1) for b in (b0, b1)):
-                    joined, n_joined = joined + term, n_joined + 1
-                else:
-                    apart, n_apart = apart + term, n_apart + 1
-    assert n_joined > 0 and n_apart > 0
-    vertex_face = ContactBarrier(F, d_hat)
-    base = float(vertex_face(V))
-    every, left = ContactBarrier(F, d_hat, edges=True), ContactBarrier(F, d_hat, edges=True, joined_edges=False)
-    assert float(every(V)) == pytest.approx(base + (joined + apart) / n, rel=1e-10)
-    assert float(left(V)) == pytest.approx(base + apart / n, rel=1e-10)
-    assert every.active == vertex_face.active + n_joined + n_apart and left.active == vertex_face.active + n_apart
-    # the search is the same: its pairs, and what a certificate gets, still hold the joined ones
-    assert all(torch.equal(a, b) for a, b in zip(every.candidates(V), left.candidates(V)))
-    assert all(np.array_equal(a, b) for a, b in zip(every.separation(V)[:4], left.separation(V)[:4]))
-    # vertex-face pairs only (edge pairs searched for a certificate): the flag changes nothing
-    tracked = ContactBarrier(F, d_hat, joined_edges=False)
-    tracked.track_edges()
-    assert float(tracked(V)) == base
-    late = ContactBarrier(F, d_hat, joined_edges=False)  # turned on later: the same energy
-    late(V)
-    late.use_edges()
-    assert float(late(V)) == float(left(V))
-
-
 def test_the_half_plane_bound_is_a_lower_bound_exact_over_the_face():
     from meshmei.contact import _halfplane_sqdist, _halfplanes
 

@@ -595,20 +595,6 @@ def test_auto_edge_pairs_turn_on_in_a_stage_once_the_intersection_rule_refuses(m
     assert res.final.self_intersections == res_on.final.self_intersections == 0
 
 
-def test_the_reconstructions_edge_pairs_leave_out_those_a_mesh_edge_joins():
-    """At a sharp crease such pairs lie within reach with no second sheet near (docs/reconstruction.md, *Edge
-    pairs a mesh edge joins*): the reconstruction's barrier, auto or on, leaves them out of its energy."""
-    import importlib
-
-    from meshmei.reconstruct import ReconstructionSettings
-
-    fit = importlib.import_module("meshmei.reconstruct.fit")
-    V, F = initial_mesh("sphere", n_vertices=300)
-    for edges in ("auto", True):
-        contact = fit._stage_validity(V, F, 0, ReconstructionSettings(contact_edges=edges), {"warnings": []})[0]
-        assert contact.joined_edges is False and contact.edge_energy is (edges is True)
-
-
 def test_a_diverging_learning_rate_is_refused_or_named():
     src = initial_mesh("sphere", n_vertices=300)
     small = dict(steps=3, lr=1e30, n_samples=500, target_pool=2000, eval_samples=500, valid_steps=True)

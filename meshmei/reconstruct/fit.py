@@ -645,10 +645,7 @@ def _stage_validity(V, F, k: int, s, info: dict):
     """Stage ``k``'s contact barrier and step guard on ``(V, F)`` (each None where the run has none):
     ``(contact, guard, left_out, max_step)``, ``left_out`` the start's pairs in contact that the barrier leaves
     out, ``max_step`` the guard's step bound."""
-    # edge pairs that a mesh edge joins are left out of the energy: at a sharp crease they lie within reach with no
-    # second sheet near, and pushing them apart lifts the surface off the target (docs/reconstruction.md, *Edge
-    # pairs a mesh edge joins*)
-    contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True, joined_edges=False)
+    contact = (ContactBarrier.for_mesh(V, F, s.contact_distance, edges=s.contact_edges is True)
                if s.w_contact > 0 else None)
     left_out = contact.leave_out(V) if contact is not None else 0  # pairs already in contact: locked the fit
     if left_out:

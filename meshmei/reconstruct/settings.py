@@ -195,9 +195,7 @@ class ReconstructionSettings:
         the teapot's time at 2.5k vertices (the edge search); ``"auto"`` (default): in a stage from the step
         at which the guard has refused :data:`AUTO_EDGE_REFUSALS` candidates by the intersection rule (the
         sign of such a stall), so that stages that do not stall pay nothing; False: never
-        (docs/reconstruction.md, *Stalls at edge contacts*). Either way the energy leaves out the edge pairs
-        that a mesh edge joins (``ContactBarrier(joined_edges=False)``): at a sharp crease they lie within
-        reach with no second sheet near (*Edge pairs a mesh edge joins*).
+        (docs/reconstruction.md, *Stalls at edge contacts*).
     w_facing : float
         Weight of the facing term: the mean over the Chamfer term's mesh samples of ``max(0, -n . n_t)``, the
         mesh normal ``n`` at a sample against the target normal ``n_t`` at the target sample nearest to it,
