@@ -31,6 +31,7 @@ __all__ = [
     "count_self_intersections",
     "self_intersecting_pairs",
     "edge_use",
+    "signed_volume",
     "health_report",
     "health_line",
     "closedness",
@@ -233,6 +234,12 @@ def edge_use(F) -> tuple[int, int]:
     first[1:] = (key[1:] != key[:-1]) | (face[1:] != face[:-1])
     _, counts = torch.unique_consecutive(key[first], return_counts=True)
     return int((counts == 1).sum()), int((counts > 2).sum())
+
+
+def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """The volume a closed mesh ``(V, F)`` (NumPy arrays) encloses, positive where its faces wind outward:
+    the sum over faces of ``a . (b x c) / 6``."""
+    return float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
 
 
 def topology(F) -> dict:

@@ -10,8 +10,8 @@ import torch
 
 from meshmei.errors import MeshError
 from meshmei.quality import (closedness, count_degenerate_faces, count_flipped_faces, count_self_intersections,
-                             health_line, health_report, mesh_health, mesh_quality, triangle_measures,
-                             triangle_quality)
+                             health_line, health_report, mesh_health, mesh_quality, signed_volume,
+                             triangle_measures, triangle_quality)
 
 from conftest import grid_sheet, icosphere
 
@@ -181,3 +181,15 @@ def test_the_degenerate_face_tolerance_must_be_a_finite_non_negative_number():
         with pytest.raises(ValueError, match="eps must be a finite non-negative number"):
             count_degenerate_faces(V, F, eps=eps)
 
+
+
+def test_signed_volume_of_a_box_is_its_volume_with_the_faces_winding():
+    from scipy.spatial import ConvexHull
+
+    V = np.array([[x, y, z] for x in (0, 0.6) for y in (0, 0.1) for z in (0, 0.2)]) + [3.0, -2.0, 5.0]
+    F = ConvexHull(V).simplices.astype(np.int64)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    inward = np.einsum("ij,ij->i", n, V[F].mean(1) - V.mean(0)) < 0
+    F[inward] = F[inward][:, ::-1]  # every face outward
+    assert signed_volume(V, F) == pytest.approx(0.6 * 0.1 * 0.2, rel=1e-12)  # off the origin too
+    assert signed_volume(V, F[:, ::-1]) == pytest.approx(-0.6 * 0.1 * 0.2, rel=1e-12)

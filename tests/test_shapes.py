@@ -15,6 +15,7 @@ import torch
 
 from meshmei import shapes
 from meshmei.errors import MeshError
+from meshmei.quality import signed_volume
 from meshmei.shapes import initial_mesh, normalize_unit_diagonal, remesh, target_mesh
 from meshmei.shapes.remeshing import MAX_REMESH_GROWTH
 
@@ -48,10 +49,6 @@ def _edge_lengths(V, F):
 
 def _face_normals(V, F):
     return np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])  # (m, 3), length = 2 * area
-
-
-def _signed_volume(V, F):
-    return float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
 
 
 def _boundary_edges(F):
@@ -151,7 +148,7 @@ def test_sphere_on_surface_and_outward(default_meshes):
     np.testing.assert_allclose(np.linalg.norm(V, axis=1), 0.5, rtol=0, atol=1e-12)
     N = _face_normals(V, F)
     assert (np.einsum("ij,ij->i", N, V[F].mean(axis=1)) > 0).all()
-    assert _signed_volume(V, F) == pytest.approx(4 / 3 * math.pi * 0.5**3, rel=0.02)
+    assert signed_volume(V, F) == pytest.approx(4 / 3 * math.pi * 0.5**3, rel=0.02)
 
 
 def test_torus_on_surface_and_outward(default_meshes):
@@ -166,7 +163,7 @@ def test_torus_on_surface_and_outward(default_meshes):
     np.testing.assert_allclose(np.linalg.norm(tube_offset(V), axis=1), r, rtol=0, atol=1e-12)
     N = _face_normals(V, F)
     assert (np.einsum("ij,ij->i", N, tube_offset(V[F].mean(axis=1))) > 0).all()
-    assert _signed_volume(V, F) == pytest.approx(2 * math.pi**2 * R * r**2, rel=0.02)
+    assert signed_volume(V, F) == pytest.approx(2 * math.pi**2 * R * r**2, rel=0.02)
     # It fits the box [-0.5, 0.5]^2 x [-0.15, 0.15] and nearly touches it (vertices need not hit the extremes).
     extent = np.abs(V).max(axis=0)
     assert (extent <= np.array([0.5, 0.5, 0.15]) + 1e-12).all()
@@ -235,7 +232,7 @@ def test_bunny_matches_pymeshlab_file():
     _check_clean(V, F)
     assert len(_boundary_edges(F)) == 0
     assert igl.euler_characteristic(F) == 2
-    assert _signed_volume(V, F) > 0
+    assert signed_volume(V, F) > 0
     # Kept as stored: the normalised vertices are an affine image (shift and uniform scale) of the file's.
     P = np.array([[float(x) for x in t[1:4]] for t in raw if t and t[0] == "v"])
     Pn = (P - 0.5 * (P.min(0) + P.max(0))) / np.linalg.norm(np.ptp(P, axis=0))
@@ -264,7 +261,7 @@ def test_teapot_seams_merged(res, teapots):
 
 def test_teapot_outward(teapots):
     V, F = teapots[8]
-    assert _signed_volume(V, F) > 0
+    assert signed_volume(V, F) > 0
     N = _face_normals(V, F)
     N /= np.linalg.norm(N, axis=1, keepdims=True)
     C = V[F].mean(axis=1)

@@ -30,7 +30,7 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from ..quality import edge_use, self_intersecting_pairs, topology
+from ..quality import edge_use, self_intersecting_pairs, signed_volume, topology
 from .openings import spans_opening
 
 __all__ = ["FAR_FROM_TARGET", "FIT_QUANTILE", "FIT_GATE", "CUT_REACH", "SHEET_THICKNESS", "SEAL_VOXELS",
@@ -109,7 +109,7 @@ def _may_seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray) -> b
     (a fixed draw), the target encloses at least :data:`SEAL_GAIN` times as many as the mesh does (a seal
     fills only space the target encloses, and must fill that much); a few milliseconds, where a seal that
     fails takes seconds (the cup's thin shell: 7.6 s over three stages, for nothing)."""
-    if _hull_volume(V) < SEAL_GAIN * abs(_signed_volume(V, F)):
+    if _hull_volume(V) < SEAL_GAIN * abs(signed_volume(V, F)):
         return False
     P = V.min(0) + np.random.default_rng(0).random((SEAL_PROBES, 3)) * (V.max(0) - V.min(0))
     in_target = int((np.abs(igl.fast_winding_number(Vt, Ft, P)) > 0.5).sum())
@@ -373,7 +373,7 @@ def seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, *, spacin
 def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: float, far: float):
     """:func:`seal`'s mesh (or None) and "kept" or the :data:`SEAL_REFUSED` reason for None."""
     lo, n, G, wall = _grid(V, F, spacing)
-    inside = abs(_signed_volume(V, F)) / spacing ** 3  # the solid's own volume, in voxels
+    inside = abs(signed_volume(V, F)) / spacing ** 3  # the solid's own volume, in voxels
     ball = ndi.generate_binary_structure(3, 1)
     solid = wall | _inside(V, F, G, wall, lo, spacing)
     before = int(solid.sum())
@@ -408,7 +408,7 @@ def _sealed(V, F, Vt, Ft, *, spacing: float, min_gain: float, carve, reach: floa
     Vm, Fm, _ = igl.marching_cubes(S.transpose(2, 1, 0).reshape(-1), G.transpose(2, 1, 0, 3).reshape(-1, 3),
                                    int(n[0]), int(n[1]), int(n[2]), 0.5)
     Fm = np.asarray(Fm, dtype=np.int64)
-    if _signed_volume(Vm, Fm) < 0:  # outward normals, as the meshes of a reconstruction have
+    if signed_volume(Vm, Fm) < 0:  # outward normals, as the meshes of a reconstruction have
         Fm = Fm[:, ::-1].copy()
     if len(self_intersecting_pairs(Vm, Fm)) or not _closed(Fm):
         return None, SEAL_REFUSED["extraction"]
@@ -509,10 +509,6 @@ def _lattice(V, F, k) -> np.ndarray:
         b = np.stack([i[keep], j[keep], m - i[keep] - j[keep]], 1) / m  # (p, 3) barycentric
         out.append(np.einsum("pk,fkd->fpd", b, V[faces]).reshape(-1, 3))
     return np.concatenate(out)
-
-
-def _signed_volume(V, F) -> float:
-    return float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
 
 
 def surgery_lines(stages) -> list[str]:

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from .._checks import check_positive, float_dtype
 from ..errors import MeshError
-from ..quality import in_range, range_exponent
+from ..quality import in_range, range_exponent, signed_volume
 from ._meshlab import pymeshlab
 from .remeshing import isotropic_parameters, mesh_arrays
 
@@ -236,14 +236,9 @@ def _implicit(name):
     ms.meshing_isotropic_explicit_remeshing(**isotropic_parameters(pymeshlab.PercentageValue(1.0), iterations=5,
                                                                    feature_degrees=30.0))
     V, F = mesh_arrays(ms.current_mesh())
-    if _signed_volume(V, F) < 0:
+    if signed_volume(V, F) < 0:
         F = F[:, ::-1].copy()
     return V, F
-
-
-def _signed_volume(V, F):
-    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
 def target_mesh(name, *, resolution=16, dtype=torch.float32, device=None):
