@@ -7,8 +7,8 @@ import torch
 from scipy.spatial import ConvexHull, cKDTree
 
 from meshmei.quality import self_intersecting_pairs, topology
-from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _grid, _inside, _sealed, _surface_points,
-                                         adapt_topology, perforate, seal, sheet_patches)
+from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _grid, _handles, _inside, _sealed,
+                                         _surface_points, adapt_topology, perforate, seal, sheet_patches)
 from meshmei.shapes import initial_mesh
 
 
@@ -246,6 +246,43 @@ def test_a_refused_seal_says_why():
     assert _sealed(V, F, V, F, **kw) == (None, SEAL_REFUSED["outside"])
     got, why = _sealed(V, F, *_ball(0.3), **kw)
     assert why == "kept" and got is not None and _closed_manifold(got[1])
+
+
+def test_a_seal_after_a_cut_is_kept_only_where_it_closes_a_passage_and_leaves_the_sheets_open():
+    # after a cut, adapt_topology tries a seal given (cut, uncut, middles): the Euler characteristics with the
+    # sheets cut and without, and the sheets' middles; kept where the seal's characteristic lies above the
+    # cut's (it closed a passage) and at most the uncut one's, and no middle is inside it (no sheet filled)
+    kw = dict(spacing=0.01, min_gain=0.0, reach=0.02, far=0.01)
+    # the plate over the ring: carving its middle does what a cut does, and there is no passage to close
+    Vt, Ft, _ = _ring()
+    V, F = _plate()
+    C = V[F].mean(1)
+    middle = C[np.linalg.norm(C[:, :2], axis=1) < 0.1]
+    axis = np.zeros((1, 3))
+    got, why = _sealed(V, F, Vt, Ft, carve=[middle], **kw)  # ungated: kept, the plate with a hole
+    assert why == "kept" and topology(got[1])["euler"] == 0
+    assert abs(igl.fast_winding_number(*got, axis)[0]) < 0.5
+    assert _sealed(V, F, Vt, Ft, carve=[middle], after_cut=(0, 2, axis), **kw) == (None, SEAL_REFUSED["passage"])
+    # the shell's passages pressed shut: the seal closes them (Euler characteristic 0 to 2); kept where the
+    # sheet's middle is outside the result
+    V, F = _shell(hole=0.006)
+    outside = np.array([[0.5, 0.0, 0.0]])
+    got, why = _sealed(V, F, *_ball(0.3), carve=(), after_cut=(-2, 2, outside), **kw)
+    assert why == "kept" and topology(got[1])["euler"] == 2 and _closed_manifold(got[1])
+    # ... not where a sheet's middle is inside it (the seal filled what was cut), nor above the uncut mesh
+    assert _sealed(V, F, *_ball(0.3), carve=(), after_cut=(-2, 2, axis), **kw) == (None, SEAL_REFUSED["passage"])
+    assert _sealed(V, F, *_ball(0.3), carve=(), after_cut=(-2, 0, outside), **kw) == \
+        (None, SEAL_REFUSED["passage"])
+
+
+def test_handles_count_the_genus_of_every_piece():
+    # a seal after a cut is tried only where the uncut mesh has a handle: a passage is one
+    S, T = _ball(0.3), _ring()[:2]
+    assert _handles(S[1]) == 0 and _handles(T[1]) == 1
+    assert _handles(np.concatenate([T[1], T[1] + len(T[0])])) == 2
+    assert _handles(np.concatenate([S[1], T[1] + len(S[0])])) == 1
+    V, F = _shell(hole=0.006)
+    assert _handles(F) == 1
 
 
 def test_adapt_topology_waits_for_a_close_fit_and_leaves_a_good_one_alone():
