@@ -7,6 +7,7 @@ import torch
 from scipy.spatial import ConvexHull, cKDTree
 
 from meshmei.quality import self_intersecting_pairs, topology
+from meshmei.reconstruct.openings import spans_opening
 from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _grid, _handles, _inside, _sealed,
                                          _surface_points, adapt_topology, perforate, seal, sheet_patches)
 from meshmei.shapes import initial_mesh
@@ -95,6 +96,36 @@ def test_perforate_cuts_only_where_the_target_has_an_opening():
     assert np.array_equal(off, _off(V, F, Vr, Fr))  # the ball is farther than the ring from every face
     assert sheet_patches(V, F, Vt, Ft, off, thickness=2 * edge) == []
     assert perforate(V, F, Vt, Ft, off, thickness=2 * edge) is None
+
+
+def _fan(centre, normal, radius=0.02, k=6):
+    """A hexagonal disk of ``k`` triangles about ``centre``, facing ``normal``."""
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    u = np.cross(n, [0.0, 1.0, 0.0] if abs(n[1]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    t = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    V = np.concatenate([[centre], centre + radius * (np.outer(np.cos(t), u) + np.outer(np.sin(t), v))])
+    F = np.array([[0, 1 + i, 1 + (i + 1) % k] for i in range(k)])
+    return V, F
+
+
+def test_a_sheet_counts_as_spanning_an_opening_along_either_sides_normal():
+    # a deep pipe (radius 0.1, 1 long) is open along its axis only within 11 degrees; the sheet's two sides
+    # face up tilted 50 degrees and straight down: their mean normal, 25 degrees off, sees the wall, the lower
+    # side's own normal sees the opening
+    Vt, Ft = _revolved(np.array([[0.1, -0.5], [0.15, -0.5], [0.15, 0.5], [0.1, 0.5]]))
+    tilt = np.radians(50.0)
+    top = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    middle = np.zeros((1, 3))
+    assert not spans_opening(Vt, Ft, middle, (top - [0.0, 0.0, -1.0])[None])[0]  # the mean normal alone
+    for bottom, found in (([0.0, 0.0, -1.0], 1), (-top, 0)):  # then the sides parallel: every axis tilted
+        (Va, Fa), (Vb, Fb) = _fan(np.array([0.0, 0.0, 0.005]), top), _fan(np.array([0.0, 0.0, -0.005]), bottom)
+        V, F = np.concatenate([Va, Vb]), np.concatenate([Fa, Fb + len(Va)])
+        got = sheet_patches(V, F, Vt, Ft, np.ones(len(F), dtype=bool), thickness=0.05)
+        assert len(got) == found
+        if found:
+            assert sorted(map(sorted, got[0])) == [list(range(6)), list(range(6, 12))]
 
 
 def test_perforate_leaves_a_mesh_without_a_sheet_alone():
