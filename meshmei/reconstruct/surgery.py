@@ -13,9 +13,11 @@ on the teapot) ends as the target's surface with two defects the guard's clean s
 sheet (the faces of both sides over the off-target part taken out, the two holes joined by a short tube: a
 handle added), and :func:`seal` rebuilds the solid from voxels with its thin passages closed (and holes
 plugged where the target has surface) and the cavities they close filled, carving out a sheet the mesh
-could not be cut through. Each result is closed, manifold and free of intersecting pairs, or the mesh is
-left as it was. The target is used only to decide: which faces are off it, whether it has an opening where
-a sheet is, whether it encloses what a seal fills, and where it has surface across a hole.
+could not be cut through, or closing a passage a cut left (the start's hole pressed shut inside a solid that
+fills the target, where a seal adds no volume). Each result is closed, manifold and free of intersecting
+pairs, or the mesh is left as it was. The target is used only to decide: which faces are off it, whether it
+has an opening where a sheet is, whether it encloses what a seal fills, and where it has surface across a
+hole.
 """
 
 from __future__ import annotations
@@ -216,9 +218,9 @@ def sheet_patches(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, 
     patches are the sides of a sheet when their mean normals point apart (cosine below -0.5) and each one's
     centre lies behind the other, against its normal, within ``thickness``, and the target has an opening
     there: the point between the two centres is open both ways along the sheet's normal (the sides' mean
-    normal, or failing that either side's own) and surrounded by the target in the sheet's plane (:func:`~meshmei.reconstruct.openings.spans_opening`; a thin part of the
-    mesh that is off the target but lies over it is no sheet to cut). Each patch is used once, the nearest
-    pairs first.
+    normal, or failing that either side's own) and surrounded by the target in the sheet's plane
+    (:func:`~meshmei.reconstruct.openings.spans_opening`; a thin part of the mesh that is off the target but
+    lies over it is no sheet to cut). Each patch is used once, the nearest pairs first.
     """
     C = V[F].mean(1)
     patches = [p for p in _face_components(F, np.flatnonzero(off)) if _is_disk(F[p])]
