@@ -182,7 +182,6 @@ def test_the_degenerate_face_tolerance_must_be_a_finite_non_negative_number():
             count_degenerate_faces(V, F, eps=eps)
 
 
-
 def test_signed_volume_of_a_box_is_its_volume_with_the_faces_winding():
     from scipy.spatial import ConvexHull
 

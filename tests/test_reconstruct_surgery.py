@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.spatial import ConvexHull, cKDTree
 
-from meshmei.quality import self_intersecting_pairs, topology
+from meshmei.quality import self_intersecting_pairs, signed_volume, topology
 from meshmei.reconstruct.openings import spans_opening
 from meshmei.reconstruct.surgery import (COVER, SEAL_REFUSED, _cover_points, _grid, _handles, _inside, _sealed,
                                          _surface_points, adapt_topology, perforate, seal, sheet_patches)
@@ -23,10 +23,6 @@ def _closed_manifold(F) -> bool:
     E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
     return not t["nonmanifold_edges"] and not t["nonmanifold_vertices"] and \
         bool((np.unique(E, axis=0, return_counts=True)[1] == 2).all())
-
-
-def _volume(V, F) -> float:
-    return float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
 
 
 def _ring():
@@ -163,7 +159,7 @@ def _revolved(profile, n_theta=64):
     a, b = i * n_theta + j, ((i + 1) % k) * n_theta + j
     c, d = ((i + 1) % k) * n_theta + (j + 1) % n_theta, i * n_theta + (j + 1) % n_theta
     F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
-    return V, (F if _volume(V, F) > 0 else F[:, ::-1].copy())
+    return V, (F if signed_volume(V, F) > 0 else F[:, ::-1].copy())
 
 
 def _shell(hole: float, outer=0.30, inner=0.28, n=40):
@@ -182,7 +178,7 @@ def test_seal_closes_thin_passages_and_fills_the_cavity():
     assert got is not None
     V2, F2 = got
     assert topology(F2)["euler"] == 2 and _closed_manifold(F2) and len(self_intersecting_pairs(V2, F2)) == 0
-    assert _volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)  # the ball the shell bounds
+    assert signed_volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)  # the ball the shell bounds
     assert np.linalg.norm(V2, axis=1).max() < 0.30 + 0.01  # within a voxel of the shell's outside
 
 
@@ -192,12 +188,12 @@ def test_seal_counts_what_it_adds_against_the_solids_own_volume():
     # centred torus on the teapot at 10k were (2 of 34 runs of 10 s, ending at 5.6e-4 for 2e-5)
     V, F = _shell(hole=0.006, inner=0.25)
     cavity = 4 / 3 * np.pi * 0.25 ** 3
-    assert abs(_volume(V, F)) / cavity == pytest.approx(0.73, abs=0.02)
+    assert abs(signed_volume(V, F)) / cavity == pytest.approx(0.73, abs=0.02)
     got, why = _sealed(V, F, *_ball(0.3), spacing=0.01, min_gain=2.0, carve=(), reach=0.0, far=0.0)
     assert why == "kept"
     V2, F2 = got
     assert topology(F2)["euler"] == 2 and _closed_manifold(F2) and len(self_intersecting_pairs(V2, F2)) == 0
-    assert _volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)
+    assert signed_volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)
     # the same shell with a cavity under its own volume is left alone (2.5 would be needed)
     V, F = _shell(hole=0.006, inner=0.2)
     assert _sealed(V, F, *_ball(0.3), spacing=0.01, min_gain=2.5, carve=(), reach=0.0, far=0.0) == \
@@ -255,7 +251,7 @@ def test_seal_plugs_a_wide_hole_where_the_target_has_surface():
     assert got is not None
     V2, F2 = got
     assert topology(F2)["euler"] == 2 and _closed_manifold(F2) and len(self_intersecting_pairs(V2, F2)) == 0
-    assert _volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)
+    assert signed_volume(V2, F2) == pytest.approx(4 / 3 * np.pi * 0.30 ** 3, rel=0.1)
 
 
 def test_seal_leaves_openings_solids_and_what_the_target_leaves_open_alone():

@@ -32,6 +32,7 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from ..metrics import face_components
 from ..quality import edge_use, self_intersecting_pairs, signed_volume, topology
 from .openings import spans_opening
 
@@ -142,10 +143,7 @@ def _may_seal(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray) -> b
 
 def _handles(F: np.ndarray) -> int:
     """The handles (genus, summed over the pieces) of the closed mesh with faces ``F``."""
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    n = int(F.max()) + 1
-    pieces = connected_components(sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)),
-                                  directed=False)[0] - (n - len(np.unique(F)))
+    pieces = int(face_components(F, int(F.max()) + 1).max()) + 1
     return (2 * pieces - topology(F)["euler"]) // 2
 
 
@@ -248,6 +246,8 @@ def sheet_patches(V: np.ndarray, F: np.ndarray, Vt: np.ndarray, Ft: np.ndarray, 
         for axis in ([normal[i] - normal[j] for _, i, j in pairs], [normal[i] for _, i, _ in pairs],
                      [normal[j] for _, _, j in pairs]):
             ok[~ok] = spans_opening(Vt, Ft, middle[~ok], np.array(axis)[~ok])
+            if ok.all():  # (each call builds a ray tree of the target)
+                break
         pairs = [p for p, o in zip(pairs, ok) if o]
     used, out = set(), []
     for _, i, j in pairs:
