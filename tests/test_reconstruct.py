@@ -351,8 +351,8 @@ def test_cli_stage_schedules(tmp_path, capsys):
         # smoothing in the fine stages), with the first stage's samples following --samples
         first = {**RBF_THREE_LEVEL_OVERRIDES[0], "n_samples": 150}
         want = [first, *RBF_THREE_LEVEL_OVERRIDES[1:]] if levels == 3 else None
-        if levels == 4:  # the same, and the last stage at n lighter still
-            want = [first, *RBF_FOUR_LEVEL_OVERRIDES[1:]]
+        if levels == 4:  # the same, and the last stage at n lighter still, with twice --samples
+            want = [first, *RBF_FOUR_LEVEL_OVERRIDES[1:-1], {**RBF_FOUR_LEVEL_OVERRIDES[-1], "n_samples": 600}]
         assert settings["stage_overrides"] == want
     out_dir = tmp_path / "ls3"
     rc, out = _cli(["--init", "sphere", "--n-vertices", 800, "--target", "bunny", "--out", out_dir, "--steps", 4,
@@ -377,10 +377,11 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
     # from 8k (the benchmark's 10k) four: what three give n/4, then one lighter stage at n
     assert FOUR_LEVEL_MIN_VERTICES == 4 * THREE_LEVEL_MIN_VERTICES
     # the first four stages as three levels' (and capped as below), the last with a fifth of the fine
-    # stages' Laplacian weight
+    # stages' Laplacian weight and twice the run's samples
     assert [{k: v for k, v in o.items() if k != "max_steps"} for o in RBF_FOUR_LEVEL_OVERRIDES[:4]] == [
         {k: v for k, v in o.items() if k != "max_steps"} for o in RBF_THREE_LEVEL_OVERRIDES]
-    assert RBF_FOUR_LEVEL_OVERRIDES[4] == {"w_laplacian": RBF_THREE_LEVEL_OVERRIDES[-1]["w_laplacian"] / 5}
+    assert RBF_FOUR_LEVEL_OVERRIDES[4] == {"w_laplacian": RBF_THREE_LEVEL_OVERRIDES[-1]["w_laplacian"] / 5,
+                                          "n_samples": 2 * ReconstructionSettings().n_samples}
     for n in (FOUR_LEVEL_MIN_VERTICES, 10_000, 28_000):
         assert default_schedule("rbf", n) == (*default_stages(n, 4), RBF_FOUR_LEVEL_OVERRIDES)
     for n in (THREE_LEVEL_MIN_VERTICES, *starts, 10_000, 28_000):
@@ -403,8 +404,13 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
     assert all("normal_match" not in (o or {}) for o in RBF_THREE_LEVEL_OVERRIDES[1:])
     assert default_schedule("rbf", 10_000, 3, n_samples=3001)[2] == ({"n_samples": 1500, "normal_match": 0.3,
                                                                       "max_steps": 150}, *RBF_THREE_LEVEL_OVERRIDES[1:])
-    assert default_schedule("rbf", 10_000, n_samples=3001)[2] == ({"n_samples": 1500, "normal_match": 0.3,
-                                                                   "max_steps": 150}, *RBF_FOUR_LEVEL_OVERRIDES[1:])
+    assert default_schedule("rbf", 10_000, n_samples=3001)[2] == (
+        {"n_samples": 1500, "normal_match": 0.3, "max_steps": 150}, *RBF_FOUR_LEVEL_OVERRIDES[1:-1],
+        {**RBF_FOUR_LEVEL_OVERRIDES[-1], "n_samples": 6002})
+    # the last stage's twice the samples stays within what the settings take
+    from meshmei.reconstruct.settings import MAX_SAMPLES
+
+    assert default_schedule("rbf", 10_000, n_samples=MAX_SAMPLES)[2][-1]["n_samples"] == MAX_SAMPLES
     # the coarse stages' limits are the steps a default run gives them: they cut only longer budgets, and the
     # fine stages have none
     shares = default_stages(10_000, 3)[1]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ReconstructionError
-from .settings import METHODS, MIN_STAGE_VERTICES
+from .settings import MAX_SAMPLES, METHODS, MIN_STAGE_VERTICES
 
 __all__ = ["RBF_THREE_LEVEL_OVERRIDES", "RBF_FOUR_LEVEL_OVERRIDES", "THREE_LEVEL_MIN_VERTICES",
            "FOUR_LEVEL_MIN_VERTICES", "NAMED_SCHEDULES", "default_stages", "default_schedule", "schedule_from_text"]
@@ -67,8 +67,15 @@ RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps
 # against 1.12e-6 (1.0: 8.5e-7; 0.25: 7.7e-7 with the smallest triangle quality 0.18 against 0.24), 9.8e-7 in
 # 30 s against 1.36e-6, and the bunny at 3.1e-7 in 70 s against 5.0e-7, all clean
 # (docs/reconstruction.md, *The last stage's smoothing*).
+#
+# The last stage draws twice the run's Chamfer samples (default_schedule: 20,000 with the default 10,000, two
+# a vertex at 10k). With one a vertex its sampled term's noise set the level it stayed at for a given
+# learning rate: the teapot through the handle at 10k (100 s, benchmark settings, 2026-12-01) was at 9.7e-7
+# to 1.0e-6 at 50 s and ended at 6.7e-7 to 7.2e-7 in the runs without an excursion, with twice the samples
+# at 7.6e-7 to 9.2e-7 and 5.1e-7 to 6.3e-7, for about a fifth fewer steps (docs/reconstruction.md, *The
+# last stage's samples*); four times the samples halved the steps for no further gain.
 RBF_FOUR_LEVEL_OVERRIDES = (*RBF_THREE_LEVEL_OVERRIDES[:2], {**RBF_THREE_LEVEL_OVERRIDES[2], "max_steps": 350},
-                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250}, {"w_laplacian": 0.5})
+                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250}, {"w_laplacian": 0.5, "n_samples": 20_000})
 
 
 def _vertex_count(n_vertices) -> int:
@@ -131,7 +138,8 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
     ``levels`` 2, 3 or 4 forces that many levels (``--stages auto2`` / ``auto3`` / ``auto4``); rbf with three
     levels always gets :data:`RBF_THREE_LEVEL_OVERRIDES` (with four, :data:`RBF_FOUR_LEVEL_OVERRIDES`, the same
     and a lighter last stage): half the run's Chamfer samples in the coarsest stage (``n_samples // 2``; 5,000
-    with the default 10,000) and the lighter fine stages. ``None`` (``--stages auto``) picks as follows.
+    with the default 10,000) and the lighter fine stages; with four, twice the run's samples in the last stage
+    (``2 n_samples``, at most ``MAX_SAMPLES``). ``None`` (``--stages auto``) picks as follows.
 
     rbf at ``FOUR_LEVEL_MIN_VERTICES`` (8,000) vertices or more: four levels
     (``default_stages(n, levels=4)``), measured against three at 10k on the bunny and the teapot
@@ -161,7 +169,10 @@ def default_schedule(method: str, n_vertices: int, levels: int | None = None, *,
         return stages, fractions, None
     overrides = RBF_FOUR_LEVEL_OVERRIDES if levels == 4 else RBF_THREE_LEVEL_OVERRIDES
     first = dict(overrides[0], n_samples=int(n_samples) // 2)
-    return stages, fractions, (first,) + overrides[1:]
+    if levels == 3:
+        return stages, fractions, (first,) + overrides[1:]
+    last = dict(overrides[-1], n_samples=min(2 * int(n_samples), MAX_SAMPLES))
+    return stages, fractions, (first,) + overrides[1:-1] + (last,)
 
 
 def schedule_from_text(spec: str, method: str, n_vertices: int, *, n_samples: int = 10_000) -> tuple:
