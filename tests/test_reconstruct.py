@@ -445,7 +445,8 @@ def test_cli_auto_gives_rbf_four_levels_on_a_10k_torus(tmp_path, capsys):
     assert history["n_vertices"] > 0.9 * n  # the last stage ran (3 steps left it out, and the result at 2.5k)
     assert tuple(settings["stages"]) == default_stages(n, 4)[0]
     assert settings["stage_overrides"] == [{**RBF_FOUR_LEVEL_OVERRIDES[0], "n_samples": 250},  # half of --samples
-                                           *RBF_FOUR_LEVEL_OVERRIDES[1:]]
+                                           *RBF_FOUR_LEVEL_OVERRIDES[1:-1],
+                                           {**RBF_FOUR_LEVEL_OVERRIDES[-1], "n_samples": 1000}]  # and twice
 
 
 def test_cli_starts_a_torus_through_the_targets_opening(tmp_path, capsys):
