@@ -72,10 +72,11 @@ RBF_THREE_LEVEL_OVERRIDES = ({"n_samples": 5000, "normal_match": 0.3, "max_steps
 # a vertex at 10k). With one a vertex its sampled term's noise set the level it stayed at for a given
 # learning rate: the teapot through the handle at 10k (100 s, benchmark settings, 2026-12-01) was at 9.7e-7
 # to 1.0e-6 at 50 s and ended at 6.7e-7 to 7.2e-7 in the runs without an excursion, with twice the samples
-# at 7.6e-7 to 9.2e-7 and 5.1e-7 to 6.3e-7, for about a fifth fewer steps (docs/reconstruction.md, *The
+# at 7.6e-7 to 9.2e-7 and 5.1e-7 to 6.3e-7, for 10 to 20 % fewer steps (docs/reconstruction.md, *The
 # last stage's samples*); four times the samples halved the steps for no further gain.
 RBF_FOUR_LEVEL_OVERRIDES = (*RBF_THREE_LEVEL_OVERRIDES[:2], {**RBF_THREE_LEVEL_OVERRIDES[2], "max_steps": 350},
-                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250}, {"w_laplacian": 0.5, "n_samples": 20_000})
+                            {**RBF_THREE_LEVEL_OVERRIDES[3], "max_steps": 250},
+                            {"w_laplacian": 0.5, "n_samples": 20_000})
 
 
 def _vertex_count(n_vertices) -> int:
