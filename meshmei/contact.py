@@ -397,6 +397,11 @@ class ContactBarrier:
         Candidate searches so far.
     seconds : float
         Time spent finding candidates (the searches, and handing out the cached pairs between them).
+    edge_weight : float
+        What the edge pairs' barrier is multiplied by in the energy (default 1). A reconstruction that turns
+        edge pairs on in its last stage ramps it from near 0 to 1 (:data:`~meshmei.reconstruct.settings.
+        AUTO_EDGE_RAMP`): at a near-contact their barrier's gradient, at full weight at once, sets the
+        optimiser's one step divisor for the whole mesh (docs/reconstruction.md, *The switch's kick*).
     """
 
     def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
@@ -415,6 +420,7 @@ class ContactBarrier:
         self.min_interval = min_interval
         self.E = self.En = None
         self.edge_energy = False  # edge pairs in the energy (use_edges), not only searched (track_edges)
+        self.edge_weight = 1.0  # the edge pairs' share of the energy (a run ramps it up after a switch)
         self.active, self.rebuilds, self._since = 0, 0, 0
         self.seconds = 0.0
         self._built_at = None
@@ -769,7 +775,7 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
         total, counts = _compiled_contact(V, barriers[0], found, kinds_used, dh)  # one mesh: a scalar
     else:
         Vf = X.reshape(-1, 3)
-        kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function) per kind of pair
+        kinds = []  # (corner indices (k, 4) into Vf, item (k,), distance function, weight) per kind of pair
         for first, second, rows_of, dist in ((0, 1, lambda a, b: torch.cat([a[:, None], F[b]], 1), point_triangle_sqdist),
                                              (2, 3, lambda a, b: torch.cat([E[a], E[b]], 1), segment_sqdist))[:kinds_used]:
             parts = [(torch.from_numpy(x[first]), torch.from_numpy(x[second])) for x in found]
@@ -777,7 +783,7 @@ def contact_energies(barriers, V: torch.Tensor) -> torch.Tensor:
                               for b, (a, _) in enumerate(parts)])
             if len(item):
                 rows = rows_of(torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])) + (item * n)[:, None]
-                kinds.append((rows, item, dist))
+                kinds.append((rows, item, dist, 1.0 if first == 0 else barriers[0].edge_weight))
         total, counts = _torch_contact(X, Vf, kinds, dh)
         total = total[0] if V.ndim == 2 else total
     for cb, k in zip(barriers, counts.tolist()):
@@ -792,7 +798,7 @@ def _torch_contact(V, Vf, kinds, dh):
     B, n = V.shape[:2]
     counts = torch.zeros(B, dtype=torch.long, device="cpu")
     total = V.sum((1, 2)) * 0.0  # zero, with a (zero) gradient, where no pair is near
-    for rows, item, dist in kinds:
+    for rows, item, dist, weight in kinds:
         with torch.no_grad():
             near = dist(*(Vf[rows[:, k]] for k in range(4))) < dh * dh
         if not bool(near.any()):
@@ -801,7 +807,8 @@ def _torch_contact(V, Vf, kinds, dh):
         counts += torch.bincount(item.cpu(), minlength=B)
         # index_select: advanced indexing's backward (an accumulating index_put) adds in a thread-dependent order
         d = dist(*(Vf.index_select(0, rows[:, k]) for k in range(4))).clamp_min(torch.finfo(V.dtype).tiny).sqrt()
-        total = total.index_add(0, item, log_barrier(d, dh))
+        b = log_barrier(d, dh)
+        total = total.index_add(0, item, b if weight == 1.0 else weight * b)
     return total / n, counts
 
 
@@ -817,11 +824,21 @@ def _compiled_contact(V, barrier, found, kinds_used, dh):
     counts = np.zeros(B, dtype=np.int64)
     tiny, lib = torch.finfo(V.dtype).tiny, native.library()
     tables = [None if t is None else np.ascontiguousarray(t, dtype=np.int64) for t in (barrier.Fn, barrier.En)]
+    weight = barrier.edge_weight
     for b, pairs in enumerate(found):
         for kind in range(kinds_used):
             first, second = pairs[2 * kind:2 * kind + 2]  # contiguous int64 (ContactBarrier._energy_pairs)
-            if len(first):
-                lib.contact_energy(len(first), Vd.ctypes.data, first.ctypes.data, second.ctypes.data,
-                                   tables[kind].ctypes.data, kind, b, n, dh, tiny, energy.ctypes.data,
-                                   counts.ctypes.data, None if grad is None else grad.ctypes.data)
+            if not len(first):
+                continue
+            # edge pairs at a weight other than 1 (a ramp): written apart, then added in scaled
+            apart = kind == 1 and weight != 1.0
+            e_out = np.zeros_like(energy) if apart else energy
+            g_out = np.zeros_like(grad) if apart and grad is not None else grad
+            lib.contact_energy(len(first), Vd.ctypes.data, first.ctypes.data, second.ctypes.data,
+                               tables[kind].ctypes.data, kind, b, n, dh, tiny, e_out.ctypes.data,
+                               counts.ctypes.data, None if g_out is None else g_out.ctypes.data)
+            if apart:
+                energy += weight * e_out
+                if grad is not None:
+                    grad += weight * g_out
     return native.with_gradient(V, energy / n, None if grad is None else grad / n), torch.from_numpy(counts)

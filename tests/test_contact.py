@@ -240,6 +240,32 @@ def test_the_3d_meis_contact_barriers_see_two_edges_crossing():
     assert bool((X.grad[:, [3, 4], 2] < 0).all()) and bool((X.grad[:, [0, 1], 2] > 0).all())  # pushed apart
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_edge_weight_scales_the_edge_pairs_energy_and_gradient_only(compiled):
+    """``edge_weight`` (a reconstruction's ramp after a switch): the energy is the vertex-face pairs' plus the
+    weight times the edge pairs', and so is its gradient, compiled or in torch."""
+    V, F = _two_sheets(0.0)
+    W, _ = _two_sheets(mean_edge_length(V, F) / 10)
+    d = mean_edge_length(V, F) / 3
+
+    def energy_and_grad(edges, weight=1.0):
+        cb = ContactBarrier(F, d, edges=edges)
+        cb.edge_weight = weight
+        X = W.clone().requires_grad_()
+        with contextlib.nullcontext() if compiled else torch_reference():
+            e = cb(X)
+        e.backward()
+        return float(e), X.grad
+
+    e_vf, g_vf = energy_and_grad(False)
+    e_all, g_all = energy_and_grad(True)
+    assert e_all > e_vf > 0
+    for weight in (0.0, 0.3):
+        e, g = energy_and_grad(True, weight)
+        assert e == pytest.approx(e_vf + weight * (e_all - e_vf), rel=1e-10)
+        torch.testing.assert_close(g, g_vf + weight * (g_all - g_vf), rtol=1e-9, atol=1e-12)
+
+
 def test_edge_pairs_turned_on_later_give_the_energy_of_a_barrier_built_with_them():
     V, F = _crossing_edges(0.05)
     late, both = ContactBarrier(F, 0.5), ContactBarrier(F, 0.5, edges=True)

@@ -595,6 +595,47 @@ def test_auto_edge_pairs_turn_on_in_a_stage_once_the_intersection_rule_refuses(m
     assert res.final.self_intersections == res_on.final.self_intersections == 0
 
 
+def test_auto_edge_pairs_ramp_up_in_the_last_stage_only(monkeypatch):
+    """A switch in the run's last stage starts the edge pairs at 1 / AUTO_EDGE_RAMP of their weight and adds as
+    much each step; one in an earlier stage takes them at full weight (its stall costs more than the kick)."""
+    import importlib
+
+    from meshmei.contact import ContactBarrier
+    from meshmei.reconstruct.settings import AUTO_EDGE_RAMP
+
+    fit = importlib.import_module("meshmei.reconstruct.fit")
+    made, weights = [], []
+    real = ContactBarrier.__init__
+
+    def init(self, *a, **k):
+        real(self, *a, **k)
+        made.append(self)
+
+    monkeypatch.setattr(ContactBarrier, "__init__", init)
+    monkeypatch.setattr(fit, "AUTO_EDGE_REFUSALS", 0)
+    monkeypatch.setattr(fit, "AUTO_EDGE_RAMP", 4)
+    # a refusal by the intersection rule, once, in each stage: the guard's count, as a stall would raise it
+    real_accept = fit.StepGuard.accept
+
+    def accept(self, V, frame=None):
+        ok = real_accept(self, V, frame)
+        self.reasons["intersection"] = max(self.reasons["intersection"], 1)
+        return ok
+
+    monkeypatch.setattr(fit.StepGuard, "accept", accept)
+    src = initial_mesh("sphere", n_vertices=300)
+    res = reconstruct(src, "bunny", "rbf", steps=12, lr=6e-2, n_samples=1000, target_pool=5000, eval_samples=2000,
+                      valid_steps=True, stages=(300, 300), stage_fractions=(0.5, 0.5),
+                      callbacks=[lambda rec: weights.append((len(made), made[-1].edge_weight))])
+    assert [st["contact_edges_from"] for st in res.info["stages"]] == [1, 7]
+    first = [w for n, w in weights if n == 1]
+    last = [w for n, w in weights if n == 2]
+    assert first == [1.0] * len(first)  # a stage before the last: full weight
+    # the last stage switched at its first step: a quarter of the weight, then a quarter more each step
+    assert last[:4] == pytest.approx([0.25, 0.5, 0.75, 1.0]) and last[4:] == [1.0] * len(last[4:])
+    assert AUTO_EDGE_RAMP >= 1 and res.final.self_intersections == 0
+
+
 def test_a_diverging_learning_rate_is_refused_or_named():
     src = initial_mesh("sphere", n_vertices=300)
     small = dict(steps=3, lr=1e30, n_samples=500, target_pool=2000, eval_samples=500, valid_steps=True)

@@ -30,7 +30,8 @@ from ..sampling import PointIndex, sample_points
 from ..shapes import remesh
 from ..validity import StepGuard
 from .schedule import NAMED_SCHEDULES, schedule_from_text
-from .settings import AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings, ReconstructionWarning
+from .settings import (AUTO_EDGE_RAMP, AUTO_EDGE_REFUSALS, ReconstructionResult, ReconstructionSettings,
+                       ReconstructionWarning)
 from .sources import source_mesh, target_surface
 from .surgery import adapt_topology
 
@@ -699,11 +700,17 @@ def _run_stages(V, F, s, per_stage, chamfer, evaluation, trace, budget, bar, cal
         end = _merged_restarts(k, stages, per_stage, bounds, budget, setup, merged_into)
         latest, edges_from = [None], [trace.step if s.contact_edges is True else None]
 
-        def after_step(rec, param=param, F=F, latest=latest, contact=contact, guard=guard):
+        last = end == len(stages) - 1
+
+        def after_step(rec, param=param, F=F, latest=latest, contact=contact, guard=guard, last=last):
             if (s.contact_edges == "auto" and contact is not None and not contact.edge_energy and guard is not None
                     and guard.reasons["intersection"] >= AUTO_EDGE_REFUSALS):
                 contact.use_edges()  # a stall at an edge contact: pair edges from here on
                 edges_from[0] = rec["step"]
+                if last:  # where the kick costs most: their weight ramped up (AUTO_EDGE_RAMP)
+                    contact.edge_weight = 1.0 / AUTO_EDGE_RAMP
+            elif contact is not None and contact.edge_weight < 1.0:
+                contact.edge_weight = min(1.0, contact.edge_weight + 1.0 / AUTO_EDGE_RAMP)
             if callback is not None:
                 callback(rec["step"], latest[0].detach(), rec["loss"])
             for cb in callbacks:
