@@ -198,8 +198,9 @@ class ReconstructionSettings:
         cross at a near-contact the vertex-face pairs do not see. True: in every stage, at about 1.3 times
         the teapot's time at 2.5k vertices (the edge search); ``"auto"`` (default): in a stage from the step
         at which the guard has refused :data:`AUTO_EDGE_REFUSALS` candidates by the intersection rule (the
-        sign of such a stall), so that stages that do not stall pay nothing; False: never
-        (docs/reconstruction.md, *Stalls at edge contacts*).
+        sign of such a stall), so that stages that do not stall pay nothing, and in the run's last stage at a
+        weight that grows to full over :data:`AUTO_EDGE_RAMP` steps; False: never (docs/reconstruction.md,
+        *Stalls at edge contacts*, *The switch's kick*).
     w_facing : float
         Weight of the facing term: the mean over the Chamfer term's mesh samples of ``max(0, -n . n_t)``, the
         mesh normal ``n`` at a sample against the target normal ``n_t`` at the target sample nearest to it,
