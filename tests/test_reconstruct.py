@@ -411,11 +411,11 @@ def test_default_schedule_gives_rbf_three_levels_from_2k_vertices_and_four_from_
     from meshmei.reconstruct.settings import MAX_SAMPLES
 
     assert default_schedule("rbf", 10_000, n_samples=MAX_SAMPLES)[2][-1]["n_samples"] == MAX_SAMPLES
-    # the coarse stages' limits are the steps a default run gives them: they cut only longer budgets, and the
-    # fine stages have none
+    # the limits of the coarse stages and the first fine one are the steps a default run gives them: they cut
+    # only longer budgets, and the last stage has none
     shares = default_stages(10_000, 3)[1]
-    assert [o["max_steps"] for o in RBF_THREE_LEVEL_OVERRIDES[:2]] == [round(f * DEFAULT_STEPS) for f in shares[:2]]
-    assert all("max_steps" not in (o or {}) for o in RBF_THREE_LEVEL_OVERRIDES[2:])
+    assert [o["max_steps"] for o in RBF_THREE_LEVEL_OVERRIDES[:3]] == [round(f * DEFAULT_STEPS) for f in shares[:3]]
+    assert "max_steps" not in RBF_THREE_LEVEL_OVERRIDES[3]
     # four levels: up to the last stage at most the steps the default three-level run gives its stages (the
     # 2,500-vertex default run's, stage by stage), so a long budget goes to the last stage; the default run
     # at 10k gives each stage fewer steps than its limit, so the limits cut only longer budgets
