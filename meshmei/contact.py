@@ -399,9 +399,10 @@ class ContactBarrier:
         Time spent finding candidates (the searches, and handing out the cached pairs between them).
     edge_weight : float
         What the edge pairs' barrier is multiplied by in the energy (default 1). A reconstruction that turns
-        edge pairs on in its last stage ramps it from near 0 to 1 (:data:`~meshmei.reconstruct.settings.
-        AUTO_EDGE_RAMP`): at a near-contact their barrier's gradient, at full weight at once, sets the
-        optimiser's one step divisor for the whole mesh (docs/reconstruction.md, *The switch's kick*).
+        edge pairs on in its last stage ramps it from near 0 to 1 over
+        :data:`~meshmei.reconstruct.settings.AUTO_EDGE_RAMP` steps: at a near-contact their barrier's
+        gradient, at full weight at once, sets the optimiser's one step divisor for the whole mesh
+        (docs/reconstruction.md, *The switch's kick*).
     """
 
     def __init__(self, F: torch.Tensor, distance: float, margin: float | None = None, min_interval: int = 1,
